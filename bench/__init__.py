@@ -1,0 +1,4 @@
+"""isobench runner: plans cases × backends × methods × knobs, times, measures, reports, compares.
+
+Entry point: ``python -m bench`` (see ``bench/cli.py``).
+"""

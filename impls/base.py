@@ -1,0 +1,106 @@
+"""Shared machinery of the built-in backends (the protocol itself is in ``protocol.py``)."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from .methods import get_method
+from .protocol import Capabilities, Prepared, RayResult
+
+
+def check_rays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Validate ray arrays (float64 numpy, shape (n, 3), finite, unit directions)."""
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if o.ndim != 2 or o.shape[1] != 3:
+        raise ValueError(f"origins must have shape (n, 3), got {o.shape}; reshape with origins.reshape(-1, 3)")
+    if d.shape != o.shape:
+        raise ValueError(f"directions must have the shape of origins {o.shape}, got {d.shape}")
+    dn = np.linalg.norm(d, axis=1)
+    if not np.all(np.abs(dn - 1) < 1e-12):
+        raise ValueError("directions must be unit vectors; normalise them with d / np.linalg.norm(d, axis=1, keepdims=True)")
+    return o, d
+
+
+class ArrayBackend:
+    """Base of the built-in backends: validation, method lookup, ``prepare``.
+
+    Subclasses set ``lib``, ``capabilities``, ``xp`` and ``_impl`` (name → function of
+    ``(backend, scene, o, d, *, t_min, t_max, **knobs)`` returning native ``(t, status,
+    iterations, evals)``) and implement ``asarray``, ``to_numpy``, ``synchronize`` and
+    optionally ``compile``.
+    """
+
+    lib: str = ""
+    capabilities = Capabilities()
+    xp: Any = None
+    _impl: dict[str, Callable] = {}
+
+    def __init__(self, device: str = "cpu"):
+        if device not in self.capabilities.devices:
+            raise ValueError(f"{self.lib} backend: device {device!r} not available; available: {self.capabilities.devices}")
+        self.device = device
+        self.id = self.lib if self.lib == "numpy" else f"{self.lib}:{device}"
+
+    def __repr__(self) -> str:
+        return f"<isobench backend {self.id}>"
+
+    def methods(self) -> tuple[str, ...]:
+        return tuple(sorted(self._impl))
+
+    # subclasses ------------------------------------------------------------------------------
+    def asarray(self, a: np.ndarray, dtype: str) -> Any:  # pragma: no cover
+        raise NotImplementedError
+
+    def to_numpy(self, a: Any) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def synchronize(self, out: Any = None) -> None:
+        """Block until device work (of ``out``, or all queued work) is done."""
+
+    def compile(self, fn: Callable, *example_args: Any) -> tuple[Callable, float | None]:
+        """Compile ``fn`` for ``example_args``; returns (callable, compile seconds or None)."""
+        return fn, None
+
+    def versions(self) -> dict[str, str]:
+        return {}
+
+    # protocol --------------------------------------------------------------------------------
+    def prepare(self, method: str, scene: Any, origins: Any, directions: Any, *, dtype: str = "float64",
+                t_min: float = 0.0, t_max: float = math.inf, **knobs: Any) -> Prepared:
+        spec = get_method(method)
+        if method not in self._impl:
+            raise NotImplementedError(f"backend {self.id} does not implement {method!r}; it implements {self.methods()}")
+        if dtype not in self.capabilities.dtypes:
+            raise ValueError(f"dtype={dtype!r} not supported by {self.id}; use one of {self.capabilities.dtypes}")
+        reason = spec.skip_reason(scene)
+        if reason:
+            raise ValueError(reason)
+        if not (t_min < t_max):
+            raise ValueError(f"t_min={t_min} must be < t_max={t_max}")
+        knobs = spec.validate(knobs)
+        o_np, d_np = check_rays(origins, directions)
+        o, d = self.asarray(o_np, dtype), self.asarray(d_np, dtype)
+        impl = self._impl[method]
+
+        def fn(o, d):
+            return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), **knobs)
+
+        run_fn, compile_s = self.compile(fn, o, d)
+
+        def result(out: Any) -> RayResult:
+            t, status, iters, evals = (self.to_numpy(a) for a in out)
+            return RayResult(t=t.astype(np.float64), status=status.astype(np.int32),
+                             iterations=iters.astype(np.int32), evals=evals.astype(np.int32))
+
+        return Prepared(run=lambda: run_fn(o, d), result=result, compile_s=compile_s)
+
+
+def timed_compile(compile_thunk: Callable[[], Callable]) -> tuple[Callable, float]:
+    t0 = time.perf_counter()
+    fn = compile_thunk()
+    return fn, time.perf_counter() - t0

@@ -1,0 +1,95 @@
+"""The backend protocol: what every backend (built-in or plugged in) provides.
+
+A backend wraps one array library on one device.  It converts arrays, synchronises the
+device, compiles (or not), differentiates (or not), and provides *methods*: named ray
+algorithms with one signature, ``prepare(method, scene, origins, directions, dtype=…, **knobs)
+-> Prepared``.  ``Prepared.run()`` does the timed work and returns backend-native arrays;
+``Prepared.result(out)`` turns them into a float64/int numpy :class:`RayResult`.  The split lets
+``bench`` time ``run`` alone (conversion, compilation and transfer excluded).
+
+Per-ray status codes follow scipy's elementwise solvers (``scipy/_lib/_elementwise_iterative_
+method.py``): 0 converged, negative codes are failures, positive codes are non-failure
+outcomes.  No silent NaN: a non-finite depth always comes with a status that says why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+
+class Status(enum.IntEnum):
+    """Per-ray outcome of a root finder."""
+
+    CONVERGED = 0  #: a hit within the method's tolerance; ``t`` is the depth
+    IN_PROGRESS = 1  #: internal: still iterating (never returned)
+    MISS = 2  #: the ray left [t_min, t_max] with no hit; ``t`` is ``inf``
+    MAX_ITER = -2  #: the step budget ran out; ``t`` is the last iterate
+    NON_FINITE = -3  #: φ or t became NaN/inf; ``t`` is NaN
+    BAD_INPUT = -5  #: the ray itself is invalid (non-finite origin, zero direction)
+    ILL_CONDITIONED = -6  #: derivative along the ray ≈ 0 (grazing), e.g. for dt/dθ
+
+
+@dataclasses.dataclass
+class RayResult:
+    """Per-ray outputs of a root finder, as numpy arrays of shape ``(n,)``."""
+
+    t: np.ndarray
+    status: np.ndarray
+    iterations: np.ndarray
+    evals: np.ndarray
+
+    def status_counts(self) -> dict[str, int]:
+        vals, counts = np.unique(self.status, return_counts=True)
+        return {Status(int(v)).name: int(c) for v, c in zip(vals, counts)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Capabilities:
+    """What a backend can do; one table drives tests, bench and reports.
+
+    autodiff: "reverse"/"forward"/"both" or ``None``; jit: compiles functions; dtypes and
+    devices supported; ``notes``: human-readable statements the report shows (e.g. where
+    finite differences replace autodiff).
+    """
+
+    dtypes: tuple[str, ...] = ("float64", "float32")
+    devices: tuple[str, ...] = ("cpu",)
+    autodiff: str | None = None
+    jit: bool = False
+    notes: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass
+class Prepared:
+    """A method bound to a scene, rays, dtype and knobs, ready to be timed.
+
+    ``run()`` -> native output (work queued or done on the device); ``result(native)`` ->
+    :class:`RayResult`.  ``compile_s`` is set by backends that compile ahead of time.
+    """
+
+    run: Callable[[], Any]
+    result: Callable[[Any], RayResult]
+    compile_s: float | None = None
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """Structural protocol; :class:`impls.base.ArrayBackend` is a convenient base class."""
+
+    id: str
+    lib: str
+    device: str
+    capabilities: Capabilities
+
+    def methods(self) -> tuple[str, ...]: ...
+
+    def prepare(self, method: str, scene: Any, origins: np.ndarray, directions: np.ndarray, *,
+                dtype: str = "float64", **knobs: Any) -> Prepared: ...
+
+    def synchronize(self) -> None: ...
+
+    def versions(self) -> dict[str, str]: ...

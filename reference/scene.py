@@ -1,0 +1,210 @@
+"""Scene trees: the one description of geometry that every backend evaluates.
+
+A scene is an immutable tree of :class:`Field` nodes (primitives, CSG, transforms, MLP fields,
+user callables).  Every node evaluates its implicit function φ(x) written against the *array
+API* (https://data-apis.org/array-api/), so numpy, torch and jax evaluate the very same formula
+with their own arrays: a backend passes its namespace ``xp`` (``numpy``,
+``array_api_compat.torch``, ``jax.numpy``) and its arrays.
+
+Conventions (used everywhere in isobench):
+
+* Points are arrays of shape ``(..., 3)``; φ returns shape ``(...)``.
+* φ < 0 inside, φ > 0 outside, φ = 0 on the surface (the lecture's Ω⁻ / Ω⁺ / ∂Ω).
+* Parameters.  Each node owns a tuple of named float64 parameters (``own_params``).  The
+  scene's parameter vector θ is their concatenation in *pre-order* (node, then its children
+  left to right).  ``value(x, xp, theta)`` evaluates φ with θ replaced by an array of the
+  caller's library, which is how backends differentiate φ with respect to θ (dt/dθ).
+
+Exact answers (ray intervals, normals, curvatures, closest points, dt/dθ) live on the nodes
+too, in float64 numpy only, because they are the reference and nothing else needs them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from typing import Any, Iterator
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneInfo:
+    """What a scene states about itself; the planner decides what to run from this.
+
+    exact_sdf:      φ is the exact signed distance (|∇φ| = 1 a.e.).
+    lipschitz:      a valid Lipschitz constant L of φ on the domain of interest (|φ(x) − φ(y)|
+                    ≤ L|x − y|), or ``None`` when no bound is known.  Sphere tracing steps φ/L.
+    distance_bound: φ is an SDF *bound* (|φ| ≤ distance, same sign), as CSG of SDFs is.
+    smooth:         φ is C² away from a measure-zero set at distance > 0 from typical hits.
+    exact_hits:     ray–surface intervals are known in closed form (``ray_intervals``).
+    exact_normals:  ``normal_exact`` is available.
+    exact_curvature: ``curvatures_exact`` is available.
+    exact_hit_param_grad: ``hit_param_grad`` (dt/dθ) is available in closed form.
+    """
+
+    exact_sdf: bool
+    lipschitz: float | None
+    distance_bound: bool
+    smooth: bool
+    exact_hits: bool
+    exact_normals: bool
+    exact_curvature: bool
+    exact_hit_param_grad: bool
+
+
+class ParamCursor:
+    """Hands out each node's parameters in pre-order, as constants or as slices of θ.
+
+    ``xp`` is the caller's array namespace and ``like`` an array whose dtype and device the
+    parameters take.  With ``theta=None`` the stored float64 values are converted; otherwise
+    consecutive slices of ``theta`` (shape ``(P,)``) are returned, so autodiff flows to θ.
+    """
+
+    def __init__(self, xp: Any, like: Any, theta: Any | None = None):
+        self.xp = xp
+        self.like = like
+        self.theta = theta
+        self.offset = 0
+
+    def take(self, value: np.ndarray) -> Any:
+        value = np.asarray(value, dtype=np.float64)
+        if self.theta is None:
+            return _const(self.xp, self.like, value)
+        n = value.size
+        piece = self.theta[self.offset : self.offset + n]
+        self.offset += n
+        return piece[0] if value.ndim == 0 else self.xp.reshape(piece, value.shape)
+
+
+def _const(xp: Any, like: Any, value: Any) -> Any:
+    """``value`` as an array of ``like``'s namespace, dtype and device."""
+    import array_api_compat
+
+    if xp is np or array_api_compat.is_numpy_array(like):
+        return np.asarray(value, dtype=like.dtype)
+    return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))
+
+
+def const(xp: Any, like: Any, value: Any) -> Any:
+    """Public form of :func:`_const` for node implementations (non-parameter constants)."""
+    return _const(xp, like, value)
+
+
+def norm(xp: Any, v: Any) -> Any:
+    """Euclidean norm over the last axis, written with array-API primitives only."""
+    return xp.sqrt(xp.sum(v * v, axis=-1))
+
+
+class Field:
+    """Base class of every scene node.
+
+    Subclasses define ``own_params`` (name → float64 array, the differentiable parameters),
+    ``children`` and ``_eval(x, xp, cursor)``; they override ``info`` and whichever exact
+    answers they know.  Nodes are immutable: build a new node to change a parameter.
+    """
+
+    #: short lowercase name used in case ids and reports
+    kind: str = "field"
+
+    # -- structure -------------------------------------------------------------------------
+    def own_params(self) -> dict[str, np.ndarray]:
+        return {}
+
+    @property
+    def children(self) -> tuple["Field", ...]:
+        return ()
+
+    @property
+    def info(self) -> SceneInfo:  # pragma: no cover - every concrete node overrides
+        raise NotImplementedError
+
+    def walk(self) -> Iterator["Field"]:
+        """Nodes in pre-order (the order of θ)."""
+        yield self
+        for c in self.children:
+            yield from c.walk()
+
+    # -- parameters ------------------------------------------------------------------------
+    def param_vector(self) -> np.ndarray:
+        """θ: all differentiable parameters in pre-order, float64, shape ``(P,)``."""
+        parts = [np.ravel(np.asarray(v, np.float64)) for n in self.walk() for v in n.own_params().values()]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def param_names(self) -> list[str]:
+        """One dotted name per entry of θ: ``<preorder index>.<kind>.<param>[<i>]``."""
+        names = []
+        for k, node in enumerate(self.walk()):
+            for pname, v in node.own_params().items():
+                v = np.asarray(v)
+                if v.ndim == 0:
+                    names.append(f"{k}.{node.kind}.{pname}")
+                else:
+                    names.extend(f"{k}.{node.kind}.{pname}[{i}]" for i in range(v.size))
+        return names
+
+    # -- evaluation ------------------------------------------------------------------------
+    def value(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
+        """φ(x; θ) for points ``x`` of shape ``(..., 3)`` in the caller's library ``xp``."""
+        cursor = ParamCursor(xp, x, theta)
+        out = self._eval(x, xp, cursor)
+        if theta is not None and cursor.offset != theta.shape[0]:
+            raise ValueError(
+                f"theta has {theta.shape[0]} entries but the scene uses {cursor.offset}; "
+                "pass scene.param_vector() (or an array of the same length)"
+            )
+        return out
+
+    def __call__(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
+        return self.value(x, xp, theta)
+
+    def _eval(self, x: Any, xp: Any, cursor: ParamCursor) -> Any:  # pragma: no cover
+        raise NotImplementedError
+
+    # -- exact answers (float64 numpy; override where known) -------------------------------
+    def ray_intervals(self, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
+        """Per ray, the sorted boundaries of {t ∈ ℝ : φ(o + t d) < 0} as an array of shape
+        ``(2k,)`` (enter, exit, enter, exit, …; ±inf allowed).  Rays are rows of ``o``, ``d``."""
+        raise NotImplementedError(f"{type(self).__name__} has no exact ray intervals")
+
+    def first_hit(self, o: np.ndarray, d: np.ndarray, t_min: float = 0.0) -> np.ndarray:
+        """Exact depth of the first crossing of φ = 0 at t > t_min along o + t d (inf: miss).
+        Default: from :meth:`ray_intervals`; primitives override with a vectorised formula."""
+        return first_hit_from_intervals(self.ray_intervals(o, d), t_min)
+
+    def normal_exact(self, x: np.ndarray) -> np.ndarray:
+        raise NotImplementedError(f"{type(self).__name__} has no exact normal")
+
+    def curvatures_exact(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Principal curvatures (κ1 ≥ κ2) at surface points, sign convention: positive where
+        the surface bends away from its outward normal (a sphere has κ = +1/r)."""
+        raise NotImplementedError(f"{type(self).__name__} has no exact curvature")
+
+    # -- identity ----------------------------------------------------------------------------
+    def spec(self) -> dict:
+        """A JSON-able description; equal specs mean equal scenes (used for the case hash)."""
+        return {
+            "kind": self.kind,
+            "type": type(self).__name__,
+            "params": {k: np.asarray(v, np.float64).tolist() for k, v in self.own_params().items()},
+            "children": [c.spec() for c in self.children],
+        }
+
+    def content_hash(self) -> str:
+        return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def first_hit_from_intervals(intervals: list[np.ndarray], t_min: float = 0.0) -> np.ndarray:
+    """First surface crossing at t > t_min (strictly after the start) from ray intervals.
+
+    A boundary is a crossing of φ = 0.  The first boundary greater than ``t_min`` is the first
+    hit whether the ray starts outside (an entry) or inside (an exit).  ``inf`` means a miss.
+    """
+    out = np.full(len(intervals), math.inf)
+    for i, b in enumerate(intervals):
+        b = b[np.isfinite(b) & (b > t_min)]
+        if b.size:
+            out[i] = b.min()
+    return out

@@ -1,0 +1,86 @@
+"""Backend conformance for sphere tracing: against the exact hits, and against each other."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from impls import Status, registry
+from reference import get_case
+from tests.conftest import BACKEND_IDS
+
+CASE = "sphere.camera.64x64"
+
+
+def trace(backend, case, **knobs):
+    prep = backend.prepare("sphere_trace", case.scene, case.origins, case.directions, dtype="float64",
+                           t_min=case.t_min, t_max=case.t_max, **knobs)
+    out = prep.run()
+    backend.synchronize(out)
+    return prep.result(out)
+
+
+def test_depth_within_1e9_of_exact_at_tight_tolerance(backend):
+    case = get_case(CASE)
+    res = trace(backend, case, tol=1e-12, max_steps=1000)
+    exact = case.exact_t
+    hit = np.isfinite(exact)
+    assert np.all(res.status[hit] == Status.CONVERGED)
+    assert np.all(res.status[~hit] == Status.MISS)
+    assert np.max(np.abs(res.t[hit] - exact[hit])) <= 1e-9
+    assert np.all(np.isinf(res.t[~hit]))
+    # one φ evaluation at the start and one after every step that stays within [t_min, t_max]
+    assert np.all(res.evals == res.iterations + (res.status != Status.MISS))
+
+
+def test_budget_exhaustion_is_reported_not_hidden(backend):
+    case = get_case(CASE)
+    res = trace(backend, case, tol=1e-12, max_steps=3)
+    assert np.any(res.status == Status.MAX_ITER)
+    assert np.all(res.iterations <= 3)
+    assert not np.any(np.isnan(res.t) & (res.status != Status.NON_FINITE))
+
+
+def test_bad_rays_get_bad_input_status(backend):
+    case = get_case(CASE)
+    o = case.origins[:4].copy()
+    o[1] = np.nan
+    res = backend.prepare("sphere_trace", case.scene, o, case.directions[:4], tol=1e-9, max_steps=50, t_max=10.0)
+    r = res.result(res.run())
+    assert r.status[1] == Status.BAD_INPUT
+    assert np.all(r.status[[0, 2, 3]] != Status.BAD_INPUT)
+
+
+def test_bad_arguments_name_the_argument(backend):
+    case = get_case(CASE)
+    with pytest.raises(ValueError, match="tol"):
+        backend.prepare("sphere_trace", case.scene, case.origins, case.directions, tol=-1.0)
+    with pytest.raises(ValueError, match="origins"):
+        backend.prepare("sphere_trace", case.scene, case.origins[:, :2], case.directions, tol=1e-6)
+    with pytest.raises(ValueError, match="max_steps"):
+        backend.prepare("sphere_trace", case.scene, case.origins, case.directions, max_steps=2.5)
+    with pytest.raises(ValueError, match="dtype"):
+        backend.prepare("sphere_trace", case.scene, case.origins, case.directions, dtype="int8")
+
+
+def test_backends_agree_with_each_other():
+    case = get_case(CASE)
+    results = {}
+    for bid in BACKEND_IDS:
+        b = registry.resolve(bid)
+        if not isinstance(b, registry.Unavailable):
+            results[bid] = trace(b, case, tol=1e-10, max_steps=1000)
+    if len(results) < 2:
+        pytest.skip("fewer than two backends available")
+    ref_id, ref = next(iter(results.items()))
+    for bid, r in results.items():
+        np.testing.assert_array_equal(r.status, ref.status, err_msg=f"{bid} vs {ref_id}")
+        hit = r.status == Status.CONVERGED
+        np.testing.assert_allclose(r.t[hit], ref.t[hit], rtol=0, atol=1e-12, err_msg=f"{bid} vs {ref_id}")
+
+
+def test_unknown_backend_is_unavailable_not_a_crash():
+    b = registry.resolve("nosuchlib")
+    assert isinstance(b, registry.Unavailable) and "unknown backend" in b.reason
+    b = registry.resolve("nosuch.module:attr")
+    assert isinstance(b, registry.Unavailable) and "could not load" in b.reason

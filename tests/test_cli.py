@@ -1,0 +1,85 @@
+"""The CLI end to end, in a temporary folder: files written, every backend present, compare."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bench.results import COLUMNS, read_results
+from impls import registry
+from tests.conftest import BACKEND_IDS
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def bench(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "bench", *args], cwd=cwd or ROOT, capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "quick"
+    p = bench("run", "--suite", "quick", "--out", str(out), "--min-time", "0.02", "--min-repeats", "3", "--no-progress")
+    assert p.returncode == 0, p.stdout + p.stderr
+    return out
+
+
+def test_run_writes_every_file(quick_run):
+    for name in ("results.parquet", "results.csv", "report.md", "report.html", "environment.json"):
+        assert (quick_run / name).stat().st_size > 0, name
+    df = read_results(quick_run)
+    assert set(COLUMNS) <= set(df.columns)
+    csv = pd.read_csv(quick_run / "results.csv")
+    assert len(csv) == len(df)
+    env = json.loads((quick_run / "environment.json").read_text())
+    assert env["version.numpy"] and env["commit"] and env["cpu_count"]
+
+
+def test_every_available_backend_appears(quick_run):
+    df = read_results(quick_run)
+    available = [b for b in BACKEND_IDS if not isinstance(registry.resolve(b), registry.Unavailable)]
+    ran = set(df.loc[df["outcome"] == "ok", "backend"])
+    assert set(available) <= ran
+    html = (quick_run / "report.html").read_text()
+    for b in available:
+        assert b in html
+    assert "data:image/png;base64," in html
+
+
+def test_results_are_never_overwritten(quick_run):
+    p = bench("run", "--suite", "quick", "--out", str(quick_run), "--no-progress", "--backend", "numpy")
+    assert p.returncode == 2 and "never overwritten" in p.stdout
+
+
+def test_compare_same_run_passes_and_planted_regression_fails(quick_run, tmp_path):
+    p = bench("compare", str(quick_run), str(quick_run))
+    assert p.returncode == 0, p.stdout + p.stderr
+    bad = tmp_path / "bad"
+    shutil.copytree(quick_run, bad)
+    df = read_results(bad)
+    i = df.index[(df["outcome"] == "ok") & np.isfinite(df["error_max"])][0]
+    df.loc[i, "error_max"] = df.loc[i, "error_max"] * 10 + 1e-6
+    (bad / "results.parquet").unlink()
+    df.to_csv(bad / "results.csv", index=False)
+    p = bench("compare", str(quick_run), str(bad))
+    assert p.returncode == 1, p.stdout + p.stderr
+    assert "regression" in p.stdout
+
+
+def test_bad_arguments_get_clear_errors(tmp_path):
+    p = bench("run", "--suite", "nosuch", "--out", str(tmp_path / "x"))
+    assert p.returncode != 0 and "unknown suite" in (p.stdout + p.stderr)
+    p = bench("run", "--case", "nosuch.*", "--out", str(tmp_path / "y"), "--no-progress")
+    assert p.returncode == 2 and "no case matches" in p.stdout
+
+
+def test_cases_lists_the_catalog():
+    p = bench("cases")
+    assert p.returncode == 0 and "sphere.camera.64x64" in p.stdout
