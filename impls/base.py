@@ -30,9 +30,10 @@ class ArrayBackend:
     """Base of the built-in backends: validation, method lookup, ``prepare``.
 
     Subclasses set ``lib``, ``capabilities``, ``xp`` and ``_impl`` (name → function of
-    ``(backend, scene, o, d, *, t_min, t_max, **knobs)`` returning native ``(t, status,
-    iterations, evals)``) and implement ``asarray``, ``to_numpy``, ``synchronize`` and
-    optionally ``compile``.
+    ``(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs)`` returning a dict of native
+    arrays with at least ``t, status, iterations, evals``; ``t_hit`` is ``None`` or the
+    per-ray depth (native array) that point-wise methods (normals, curvature, dt/dθ) evaluate
+    at) and implement ``asarray``, ``to_numpy``, ``synchronize`` and optionally ``compile``.
     """
 
     lib: str = ""
@@ -71,7 +72,7 @@ class ArrayBackend:
 
     # protocol --------------------------------------------------------------------------------
     def prepare(self, method: str, scene: Any, origins: Any, directions: Any, *, dtype: str = "float64",
-                t_min: float = 0.0, t_max: float = math.inf, **knobs: Any) -> Prepared:
+                t_min: float = 0.0, t_max: float = math.inf, t_hit: Any = None, **knobs: Any) -> Prepared:
         spec = get_method(method)
         if method not in self._impl:
             raise NotImplementedError(f"backend {self.id} does not implement {method!r}; it implements {self.methods()}")
@@ -84,20 +85,28 @@ class ArrayBackend:
             raise ValueError(f"t_min={t_min} must be < t_max={t_max}")
         knobs = spec.validate(knobs)
         o_np, d_np = check_rays(origins, directions)
+        if spec.needs_t_hit:
+            if t_hit is None:
+                raise ValueError(f"{method} evaluates at given hits: pass t_hit (per-ray depth, shape (n,))")
+            t_hit = np.asarray(t_hit, dtype=np.float64)
+            if t_hit.shape != (o_np.shape[0],):
+                raise ValueError(f"t_hit must have shape ({o_np.shape[0]},), got {t_hit.shape}")
         o, d = self.asarray(o_np, dtype), self.asarray(d_np, dtype)
+        th = None if t_hit is None else self.asarray(t_hit, dtype)
         impl = self._impl[method]
 
-        def fn(o, d):
-            return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), **knobs)
+        def fn(o, d, th):
+            return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), t_hit=th, **knobs)
 
-        run_fn, compile_s = self.compile(fn, o, d)
+        run_fn, compile_s = self.compile(fn, o, d, th)
 
         def result(out: Any) -> RayResult:
-            t, status, iters, evals = (self.to_numpy(a) for a in out)
-            return RayResult(t=t.astype(np.float64), status=status.astype(np.int32),
-                             iterations=iters.astype(np.int32), evals=evals.astype(np.int32))
+            out = {k: self.to_numpy(v) for k, v in out.items()}
+            return RayResult(t=out.pop("t").astype(np.float64), status=out.pop("status").astype(np.int32),
+                             iterations=out.pop("iterations").astype(np.int32), evals=out.pop("evals").astype(np.int32),
+                             outputs=out)
 
-        return Prepared(run=lambda: run_fn(o, d), result=result, compile_s=compile_s)
+        return Prepared(run=lambda: run_fn(o, d, th), result=result, compile_s=compile_s)
 
 
 def timed_compile(compile_thunk: Callable[[], Callable]) -> tuple[Callable, float]:

@@ -33,14 +33,24 @@ class Knob:
 
 @dataclasses.dataclass(frozen=True)
 class MethodSpec:
-    """A method's contract.  ``requires`` names :class:`reference.SceneInfo` fields that must be
-    truthy for the method to apply (e.g. ``lipschitz`` for sphere tracing)."""
+    """A method's contract.
+
+    family:   ``root`` (finds t), ``gradient`` (normals/curvature at given hits), ``param_grad``
+              (dt/dθ at given hits), ``render`` (colour per ray); bench measures each family's
+              error against the matching reference answer.
+    requires: :class:`reference.SceneInfo` fields that must be truthy for the method to apply
+              (e.g. ``lipschitz`` for sphere tracing).
+    needs_t_hit: the method evaluates at given per-ray depths (``prepare(..., t_hit=...)``).
+    outputs:  names of the extra per-ray outputs in :attr:`RayResult.outputs`.
+    """
 
     name: str
     family: str
     knobs: tuple[Knob, ...]
     requires: tuple[str, ...]
     description: str
+    needs_t_hit: bool = False
+    outputs: tuple[str, ...] = ()
 
     def skip_reason(self, scene) -> str | None:
         info = scene.info

@@ -35,12 +35,19 @@ class Status(enum.IntEnum):
 
 @dataclasses.dataclass
 class RayResult:
-    """Per-ray outputs of a root finder, as numpy arrays of shape ``(n,)``."""
+    """Per-ray outputs of any method, as numpy arrays with leading dimension ``n`` (rays).
+
+    Every method returns ``t`` (depth: the hit found, or the ``t_hit`` it was given), ``status``,
+    ``iterations`` and ``evals`` (field evaluations per ray).  Other outputs go to ``outputs``
+    under the names its :class:`impls.methods.MethodSpec` lists (e.g. ``normal`` (n, 3),
+    ``curvature_laplacian`` (n,), ``dt_dtheta`` (n, P), ``color`` (n, 3)).
+    """
 
     t: np.ndarray
     status: np.ndarray
     iterations: np.ndarray
     evals: np.ndarray
+    outputs: dict = dataclasses.field(default_factory=dict)
 
     def status_counts(self) -> dict[str, int]:
         vals, counts = np.unique(self.status, return_counts=True)

@@ -12,7 +12,7 @@ from jax import lax
 from ..protocol import Status
 
 
-def sphere_trace(backend, scene, o, d, *, t_min, t_max, tol, max_steps):
+def sphere_trace(backend, scene, o, d, *, t_min, t_max, t_hit, tol, max_steps):
     """Sphere tracing t ← t + |φ|/L; contract as in the numpy module."""
     n = o.shape[0]
     inv_lip = 1.0 / scene.info.lipschitz
@@ -53,4 +53,4 @@ def sphere_trace(backend, scene, o, d, *, t_min, t_max, tol, max_steps):
 
     t, f, status, iters, evals = lax.while_loop(cond, body, state)
     t, status = classify(t, f, status, iters)
-    return t, status, iters, evals
+    return {"t": t, "status": status, "iterations": iters, "evals": evals}

@@ -12,7 +12,7 @@ import numpy as np
 from ..protocol import Status
 
 
-def sphere_trace(backend, scene, o, d, *, t_min, t_max, tol, max_steps):
+def sphere_trace(backend, scene, o, d, *, t_min, t_max, t_hit, tol, max_steps):
     """Sphere tracing (Hart 1996; lecture 'Sphere Tracing'): t ← t + |φ(o + t d)|/L.
 
     Starts at t_min; the step uses |φ| so a ray starting inside (φ < 0) marches to the exit.
@@ -54,4 +54,4 @@ def sphere_trace(backend, scene, o, d, *, t_min, t_max, tol, max_steps):
         if idx.size:
             f = scene.value(o[idx] + t[idx, None] * d[idx], np)
             evals[idx] += 1
-    return t, status, iters, evals
+    return {"t": t, "status": status, "iterations": iters, "evals": evals}

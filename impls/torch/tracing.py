@@ -7,7 +7,7 @@ import torch
 from ..protocol import Status
 
 
-def sphere_trace(backend, scene, o, d, *, t_min, t_max, tol, max_steps):
+def sphere_trace(backend, scene, o, d, *, t_min, t_max, t_hit, tol, max_steps):
     """Sphere tracing t ← t + |φ|/L with active-set compaction; see the numpy module for the
     contract (statuses, counts).  No autograd graph is recorded (``torch.no_grad``)."""
     xp = backend.xp
@@ -46,4 +46,4 @@ def sphere_trace(backend, scene, o, d, *, t_min, t_max, tol, max_steps):
             if idx.numel():
                 f = scene.value(o[idx] + t[idx, None] * d[idx], xp)
                 evals[idx] += 1
-        return t, status, iters, evals
+        return {"t": t, "status": status, "iterations": iters, "evals": evals}
