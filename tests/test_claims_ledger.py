@@ -1,0 +1,110 @@
+"""The claims machinery tells a planted true statement from a planted false one.
+
+These tests do not assert the lecture's verdicts (those are the output of a run); they check
+that the verdict rule, the error handling and the files behave, on statements whose truth we
+know independently.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bench.claims import COLUMNS, Evidence, Ledger, Trial, Verdict, decide, run_claims
+from bench.claims.stats import fit_power
+
+
+def _planted_ledger() -> Ledger:
+    led = Ledger()
+
+    @led.claim("true", statement="sin²x + cos²x = 1", equation="planted", how_checked="|lhs − 1| ≤ 4ε")
+    def _true(ctx):
+        x = np.linspace(-10, 10, 1001)
+        err = np.abs(np.sin(x) ** 2 + np.cos(x) ** 2 - 1)
+        return Evidence([Trial(f"x={v:.2f}", bool(e <= 4 * np.finfo(float).eps)) for v, e in zip(x[::100], err[::100])],
+                        {"max_err": float(err.max())})
+
+    @led.claim("false", statement="x + 1 < x for all x", equation="planted", how_checked="evaluate")
+    def _false(ctx):
+        return Evidence([Trial(f"x={v}", bool(v + 1 < v), {"x": v}) for v in (-1.0, 0.0, 2.5)])
+
+    @led.claim("cond", statement="x² ≥ x", equation="planted", how_checked="evaluate on a grid")
+    def _cond(ctx):
+        xs = np.linspace(-2, 2, 9)
+        return Evidence([Trial("x ≤ 0 or x ≥ 1" if (v <= 0 or v >= 1) else f"x={v}", bool(v * v >= v), {"x": v})
+                         for v in xs])
+
+    @led.claim("rate_true", statement="bisection error halves per step (order 1, ratio 1/2)", equation="planted",
+               how_checked="fitted ratio within 0.05 of 1/2")
+    def _rate_true(ctx):
+        w = 1.0 / 2.0 ** np.arange(1, 30)  # bracket half-widths
+        ratio = float(np.exp(np.polyfit(np.arange(w.size), np.log(w), 1)[0]))
+        return Evidence([Trial("bracket width", abs(ratio - 0.5) <= 0.05, {"ratio": ratio})])
+
+    @led.claim("rate_false", statement="bisection converges quadratically", equation="planted",
+               how_checked="fitted order within 0.1 of 2")
+    def _rate_false(ctx):
+        e = 1.0 / 2.0 ** np.arange(1, 30)
+        q, _ = fit_power(e[:-1], e[1:])
+        return Evidence([Trial("bracket width", abs(q - 2) <= 0.1, {"order": q})])
+
+    @led.claim("boom", statement="raises", equation="planted", how_checked="-")
+    def _boom(ctx):
+        raise ZeroDivisionError("planted failure")
+
+    @led.claim("notevidence", statement="returns junk", equation="planted", how_checked="-")
+    def _junk(ctx):
+        return 42
+
+    @led.claim("empty", statement="no trials", equation="planted", how_checked="-")
+    def _empty(ctx):
+        return Evidence([])
+
+    return led
+
+
+def test_decide_rule():
+    t, f = Trial("a", True), Trial("b", False, {"x": 1.0})
+    assert decide([t, t]).verdict is Verdict.HOLDS
+    d = decide([f, f])
+    assert d.verdict is Verdict.FAILS and "b" in d.counterexample and "x=1" in d.counterexample
+    d = decide([t, f])
+    assert d.verdict is Verdict.CONDITIONAL and d.conditions == "a" and d.counterexample.startswith("b")
+    assert decide([]).verdict is Verdict.ERROR
+
+
+def test_planted_claims_get_the_right_verdicts(tmp_path):
+    df = run_claims(tmp_path, ledger=_planted_ledger())
+    v = dict(zip(df["id"], df["verdict"]))
+    assert v == {"true": "holds", "false": "fails", "cond": "holds under conditions", "rate_true": "holds",
+                 "rate_false": "fails", "boom": "error", "notevidence": "error", "empty": "error"}
+    row = df.set_index("id")
+    assert "ZeroDivisionError" in row.loc["boom", "message"] and "planted failure" in row.loc["boom", "message"]
+    assert "x=0.5" in row.loc["cond", "counterexample"]
+    assert row.loc["cond", "conditions"] == "x ≤ 0 or x ≥ 1"
+    assert row.loc["false", "counterexample"].startswith("x=-1.0")
+
+
+def test_files_written(tmp_path):
+    df = run_claims(tmp_path, ledger=_planted_ledger(), only=["true", "boom"])
+    assert list(df.columns) == COLUMNS
+    on_disk = pd.read_csv(tmp_path / "claims.csv")
+    assert list(on_disk["id"]) == ["true", "boom"]
+    for p in df["plot"]:
+        assert (tmp_path / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "temp files left behind"
+
+
+def test_bad_only_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="unknown claim id"):
+        run_claims(tmp_path, ledger=_planted_ledger(), only=["nope"])
+    with pytest.raises(ValueError, match="list of claim ids"):
+        run_claims(tmp_path, ledger=_planted_ledger(), only="true")
+
+
+def test_out_dir_is_a_file(tmp_path):
+    f = tmp_path / "x"
+    f.write_text("")
+    with pytest.raises(ValueError, match="out_dir"):
+        run_claims(f, ledger=_planted_ledger())
