@@ -14,14 +14,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 def figure(ncols: int = 1, nrows: int = 1, width: float = 4.6, height: float = 3.6):
     """A figure with ``nrows × ncols`` axes (returned flat as a list)."""
-    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, height * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, height * nrows), squeeze=False,
+                             layout="constrained")
     return fig, list(axes.ravel())
 
 
 def save_png(fig, path: Path) -> None:
     """Save ``fig`` to ``path`` atomically (temp file in the same folder, then ``os.replace``)."""
     path = Path(path)
-    fig.tight_layout()
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
     os.close(fd)
     try:
