@@ -66,7 +66,7 @@ def algebraic_sphere_shape(radius: float = 1.0, domain_radius: float = 4.0) -> S
     """
     s = Sphere(radius=radius)
     return Shape(
-        name=f"algebraic sphere |x|²−{radius:g}²", f=lambda x: np.sum(np.asarray(x, float) ** 2, axis=-1) - radius**2,
+        name=f"algebraic sphere |x|²−{radius**2:g}", f=lambda x: np.sum(np.asarray(x, float) ** 2, axis=-1) - radius**2,
         exact_sdf=False, lipschitz=2.0 * domain_radius, domain_radius=domain_radius, first_hit=s.first_hit,
         curv_sum=lambda x: sum(s.curvatures_exact(x)), normal=s.normal_exact,
         closest=lambda x: radius * s.normal_exact(x),
