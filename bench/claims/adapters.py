@@ -253,16 +253,25 @@ def mlp_field(seed: int = 7, widths=(3, 32, 32, 1), scale: float = 1.5) -> MLP:
 # -- root finding through a backend (SWITCH: impls methods: bisection/newton/secant/hybrid) -------
 
 
-def trace_hits(scene, o: Array, d: Array, *, tol: float = 1e-12, max_steps: int = 4096, t_max: float = 10.0,
-               backend_id: str = "numpy"):
-    """First hits by the backend's ``sphere_trace`` method; returns (t, status, evals) as numpy."""
+def prepare_trace(scene, o: Array, d: Array, *, tol: float = 1e-12, max_steps: int = 4096, t_max: float = 10.0,
+                  backend_id: str = "numpy"):
+    """The backend's ``sphere_trace`` prepared on these rays: returns (run, to_numpy) where ``run()`` does
+    the timed work and ``to_numpy(out)`` gives (t, status, evals) as float64/int numpy."""
     from impls import registry
 
     b = registry.resolve(backend_id)
     if isinstance(b, registry.Unavailable):
         raise RuntimeError(f"backend {backend_id} unavailable: {b.reason}")
     prep = b.prepare("sphere_trace", scene, o, d, t_min=0.0, t_max=t_max, tol=tol, max_steps=max_steps)
-    out = prep.run()
-    b.synchronize(out)
-    res = prep.result(out)
-    return res.t, res.status, res.evals
+
+    def run():
+        out = prep.run()
+        b.synchronize(out)
+        return out
+
+    def to_numpy(out):
+        res = prep.result(out)
+        return res.t, res.status, res.evals
+
+    return run, to_numpy
+
