@@ -130,7 +130,7 @@ def check_spectral(ctx):
     "20000 steps are counted, not failed); steps with L=1 and with the empirical max |∇f| are reported for contrast",
 )
 def check_trace(ctx):
-    n_side = 8 if ctx.quick else 32
+    n_side = 6 if ctx.quick else 24
     o, d = camera_rays(n_side, eye=(0.4, 0.3, 4.0), fov_deg=40.0)
     trials, key, rows = [], {}, []
     rng = np.random.default_rng(ctx.seed + 6)

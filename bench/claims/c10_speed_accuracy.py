@@ -63,8 +63,8 @@ def volume_render(scene, o, d, rho, n, model, s=S_SHARP, t_far=T_FAR):
     "holds if reaching the volume's best error takes surface rendering longer than volume rendering",
 )
 def check_speed(ctx):
-    n_side = 24 if ctx.quick else 96
-    repeats = 3 if ctx.quick else 9
+    n_side = 24 if ctx.quick else 64
+    repeats = 3 if ctx.quick else 5
     scene = Sphere()
     o, d = camera_rays(n_side, eye=(0.0, 0.0, 3.0), fov_deg=45.0)
     rho = adapters.colour_field(1.0)

@@ -72,7 +72,7 @@ def _unrolled(kind, o, d, k_max):
     "fitted per-step error ratio of unrolled sphere tracing vs 1 − |⟨n,d⟩|",
 )
 def check_unrolled(ctx):
-    k_max = 60 if ctx.quick else 400
+    k_max = 60 if ctx.quick else 200
     bs = np.array([0.0, 0.6, 0.9, 0.99])
     truth, cos = _truth(bs)
     trials, key, curves = [], {}, []

@@ -1,0 +1,173 @@
+"""The instruments inside the claim checks, each on a case whose answer is known independently.
+
+These do not assert the lecture's verdicts; they show that each instrument reports a true statement
+as true and a false one as false (planted cases), so a verdict it produces can be trusted.
+"""
+
+from __future__ import annotations
+
+import mpmath as mp
+import numpy as np
+import pytest
+
+from bench.claims import LEDGER, run_claims
+from bench.claims import _load as load_claims
+from bench.claims import adapters
+from bench.claims.c01_boolean import exact_csg_sdf
+from bench.claims.c06_root_orders import newton, observed_order, secant
+from bench.claims.c07_implicit_dt import _truth, hit_to_tolerance
+from bench.claims.c09_volume_bound import lecture_bound
+from bench.claims.rendering import composite, window_samples
+from bench.claims.stats import central_laplacian, fit_power
+from bench.claims.tracing import dense_first_hit, sphere_trace_signed
+from reference import Sphere
+
+
+def test_fit_power_recovers_planted_rates():
+    h = np.logspace(-3, 0, 9)
+    assert fit_power(h, 3 * h**2)[0] == pytest.approx(2.0, abs=1e-12)
+    assert fit_power(h, 0.1 * h**0.5)[0] == pytest.approx(0.5, abs=1e-12)
+    with pytest.raises(ValueError, match="≥ 2"):
+        fit_power([1.0], [1.0])
+
+
+def test_observed_order_tells_orders_apart():
+    with mp.workdps(400):
+        quad = [mp.mpf(10) ** -(2**k) for k in range(1, 9)]
+        golden = [mp.mpf(10) ** -(1.618**k) for k in range(4, 16)]
+        lin = [mp.mpf(2) ** -k for k in range(30, 200)]
+    assert observed_order(quad) == pytest.approx(2.0, abs=1e-6)
+    assert observed_order(golden) == pytest.approx(1.618, abs=1e-3)
+    assert observed_order(lin) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_newton_and_secant_on_sqrt2():
+    with mp.workdps(200):
+        g = lambda t: t * t - 2  # noqa: E731
+        r = mp.sqrt(2)
+        en = [abs(x - r) for x in newton(g, lambda t: 2 * t, mp.mpf(1), 10)]
+        es = [abs(x - r) for x in secant(g, mp.mpf(1), mp.mpf(2), 14)]
+        assert observed_order(en) == pytest.approx(2.0, abs=0.05)
+        assert observed_order(es) == pytest.approx((1 + 5**0.5) / 2, abs=0.1)
+
+
+def test_exact_csg_sdf_against_brute_force():
+    """The closed-form CSG distance agrees with the distance to a dense sample of the boundary."""
+    from bench.claims.c01_boolean import CA, CB, RA, RB
+
+    rng = np.random.default_rng(0)
+    # dense boundary samples of both spheres
+    u = rng.normal(size=(200_000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pa, pb = CA + RA * u, CB + RB * u
+    in_b = np.linalg.norm(pa - CB, axis=1) < RB
+    in_a = np.linalg.norm(pb - CA, axis=1) < RA
+    boundary = {"union": np.concatenate([pa[~in_b], pb[~in_a]]), "intersection": np.concatenate([pa[in_b], pb[in_a]]),
+                "difference": np.concatenate([pa[~in_b], pb[in_a]])}
+    from scipy.spatial import cKDTree
+
+    x = rng.uniform(-2, 2, (300, 3))
+    for op, pts in boundary.items():
+        d_brute, _ = cKDTree(pts).query(x)
+        sdf, _ = exact_csg_sdf(x, op)
+        # the brute force overestimates by at most the sample spacing (~0.01 for 2e5 points on a unit sphere)
+        assert np.all(np.abs(sdf) <= d_brute + 1e-12), op
+        assert np.max(d_brute - np.abs(sdf)) < 0.02, op
+
+
+def test_composite_matches_hand_computation_and_rejects_bad_alpha():
+    a = np.array([[0.5, 0.5, 1.0]])
+    c = np.array([[1.0, 2.0, 4.0]])
+    C, T = composite(a, c)
+    assert C[0] == pytest.approx(0.5 * 1 + 0.25 * 2 + 0.25 * 4)
+    assert T[0] == 0.0
+    with pytest.raises(ValueError, match="alpha"):
+        composite(np.array([[1.5]]), np.array([[1.0]]))
+    mids, lo, hi, dl = window_samples(np.array([2.0]), 0.5, 4)
+    assert np.allclose(mids, [[1.625, 1.875, 2.125, 2.375]]) and np.allclose(dl, 0.25)
+
+
+def test_lecture_bound_formula():
+    g, e, d, n = 2.0, 0.3, 0.5, 3
+    a = 0.5 + e * d
+    assert lecture_bound(g, e, d, n) == pytest.approx(g * d * abs((2 * e * d - a**n) / (0.5 - e * d)))
+
+
+def test_density_models_are_opacities():
+    phi = np.linspace(-1, 1, 101)[None, :]
+    for m in adapters.DENSITY_MODELS:
+        a = adapters.density_alphas(m, phi, phi + 0.01, phi - 0.01, np.full(phi.shape, 0.02), 50.0)
+        assert np.all((a >= 0) & (a <= 1)), m
+    with pytest.raises(ValueError, match="density model"):
+        adapters.density_alphas("nope", phi, phi, phi, phi, 1.0)
+
+
+def test_tracer_and_dense_reference_on_the_exact_sphere():
+    s = Sphere()
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = -3 * d + 0.5 * rng.uniform(-1, 1, (50, 3))
+    exact = s.first_hit(o, d)
+    dense = dense_first_hit(s.value, o, d, t_max=10.0)
+    hit = np.isfinite(exact)
+    assert np.array_equal(hit, np.isfinite(dense))
+    assert np.max(np.abs(dense[hit] - exact[hit])) < 1e-12
+    r = sphere_trace_signed(s.value, o, d, tol=1e-12)
+    assert np.all(r.converged[hit]) and np.max(np.abs(r.t[hit] - exact[hit])) < 1e-9
+    assert not np.any(r.converged[~hit])
+    # a planted overshooting step (φ/0.4 on an SDF) is caught as passing through
+    r2 = sphere_trace_signed(s.value, o, d, lipschitz=0.4, tol=1e-12)
+    assert np.any(r2.t_furthest[hit] > exact[hit] + 1e-6)
+    with pytest.raises(ValueError, match="lipschitz"):
+        sphere_trace_signed(s.value, o, d, lipschitz=0.0)
+
+
+def test_hit_to_tolerance_and_truth():
+    s = Sphere()
+    b = np.array([0.0, 0.5, 0.9])
+    o = np.stack([b, 0 * b, 3 + 0 * b], -1)
+    d = np.tile([0.0, 0.0, -1.0], (3, 1))
+    t = hit_to_tolerance(s.value, o, d, np.zeros(3), np.full(3, 3.0), 1e-13)
+    assert np.all(np.abs(s.value(o + t[:, None] * d)) <= 1e-13)
+    truth, _ = _truth(b)
+    assert np.allclose(truth, s.hit_param_grad(o, d, s.first_hit(o, d)), rtol=1e-12, atol=1e-12)
+
+
+def test_laplacian_stencil_on_a_quadratic():
+    x = np.random.default_rng(2).uniform(-1, 1, (10, 3))
+    assert np.allclose(central_laplacian(lambda p: np.sum(p * p, -1), x), 6.0, atol=1e-6)
+
+
+def test_mlp_gradient_matches_finite_differences():
+    net = adapters.mlp_field(3)
+    x = np.random.default_rng(3).uniform(-1, 1, (20, 3))
+    from bench.claims.stats import central_gradient
+
+    assert np.allclose(net.grad(x), central_gradient(net.value, x, 1e-6), atol=1e-7)
+
+
+def test_ledger_covers_the_lecture_claims():
+    load_claims(LEDGER)
+    ids = LEDGER.ids()
+    for n in range(1, 13):
+        assert any(i.rstrip("abc") == str(n) for i in ids), f"claim {n} missing from the ledger"
+    for c in LEDGER.select(None):
+        assert c.statement and c.equation and c.how_checked, c.id
+
+
+def test_real_claims_run_without_error(tmp_path):
+    """A few cheap real claims produce evidence (not an error row) and their plots."""
+    df = run_claims(tmp_path, only=["2c", "3", "4b", "9"])
+    assert (df["verdict"] != "error").all(), df[["id", "message"]].to_string()
+    assert all((tmp_path / p).stat().st_size > 1000 for p in df["plot"])
+
+
+@pytest.mark.slow
+def test_quick_mode_under_a_minute(tmp_path):
+    import time
+
+    t0 = time.perf_counter()
+    df = run_claims(tmp_path, quick=True)
+    assert time.perf_counter() - t0 < 60
+    assert (df["verdict"] != "error").all(), df[["id", "message"]].to_string()
