@@ -13,12 +13,11 @@ obtained (see its docstring for what to switch once they land).
 from __future__ import annotations
 
 import importlib
-import os
-import tempfile
 import time
 import traceback
 from pathlib import Path
 
+from .atomic import write_atomic
 from .ledger import LEDGER, CheckContext, Claim, Evidence, Ledger, Trial, Verdict, decide, format_numbers, numbers_json
 
 __all__ = ["run_claims", "Claim", "Evidence", "Trial", "Verdict", "Ledger", "LEDGER", "CheckContext", "decide",
@@ -97,16 +96,8 @@ def run_one(claim: Claim, out_dir: Path, ctx: CheckContext) -> dict:
 
 
 def write_csv_atomic(df, path: Path) -> None:
-    """Write ``df`` as CSV to ``path`` via a temp file in the same folder and ``os.replace``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".csv.tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        df.to_csv(tmp, index=False)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Write ``df`` as CSV to ``path`` atomically."""
+    write_atomic(path, lambda tmp: df.to_csv(tmp, index=False))
 
 
 def run_claims(out_dir: Path, *, quick: bool = True, only: list[str] | None = None, ledger: Ledger | None = None,

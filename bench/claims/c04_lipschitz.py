@@ -43,7 +43,7 @@ def _empirical(net, rng, n):
 )
 def check_bound(ctx):
     rng = np.random.default_rng(ctx.seed + 4)
-    n = 20_000 if ctx.quick else 500_000
+    n = 20_000 if ctx.quick else 200_000
     trials, key, hists = [], {}, []
     for seed in SEEDS:
         net = adapters.mlp_field(seed)

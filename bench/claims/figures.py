@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")  # headless; must precede pyplot
 import matplotlib.pyplot as plt  # noqa: E402
+
+from .atomic import write_atomic  # noqa: E402
 
 
 def figure(ncols: int = 1, nrows: int = 1, width: float = 4.6, height: float = 3.6):
@@ -20,17 +20,11 @@ def figure(ncols: int = 1, nrows: int = 1, width: float = 4.6, height: float = 3
 
 
 def save_png(fig, path: Path) -> None:
-    """Save ``fig`` to ``path`` atomically (temp file in the same folder, then ``os.replace``)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
+    """Save ``fig`` to ``path`` atomically and close it."""
     try:
-        fig.savefig(tmp, dpi=90, format="png")
-        os.replace(tmp, path)
+        write_atomic(Path(path), lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def message_png(path: Path, title: str, message: str) -> None:
