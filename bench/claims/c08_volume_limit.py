@@ -92,8 +92,23 @@ def check_limit(ctx):
         key[f"{model}: final error along path (s=10, s=1000, s=100/Δ)"] = [
             paths[(model, lab)][-1] for lab in ("s=10", "s=1000", "s=100/Δ")]
 
-    fig, axes = figure(4, 1, 3.6, 3.4)
-    for ax, model in zip(axes, adapters.DENSITY_MODELS):
+    # the error surface over (Δ, N) at one sharpness, per model (second row of the figure)
+    hm_d = np.logspace(0, -3, 7)
+    hm_n = np.array([4, 16, 64, 256, 1024])
+    surfaces = {m: np.array([[render_error(m, 1000.0, dl, int(n), scene, o, d, t_s, rho) for n in hm_n] for dl in hm_d])
+                for m in adapters.DENSITY_MODELS}
+
+    fig, axes = figure(4, 2, 3.6, 3.4)
+    for ax, model in zip(axes[4:], adapters.DENSITY_MODELS):
+        im = ax.imshow(np.log10(np.maximum(surfaces[model], 1e-17)), origin="lower", aspect="auto", cmap="viridis",
+                       vmin=-8, vmax=0)
+        ax.set_xticks(range(hm_n.size), [str(n) for n in hm_n])
+        ax.set_yticks(range(hm_d.size), [f"{x:.0e}" for x in hm_d])
+        ax.set_xlabel("N (samples)")
+        ax.set_ylabel("Δ (length units)")
+        ax.set_title(f"{model}, s=1000: log10 max |C − ρ(x_s)|", fontsize=8)
+    fig.colorbar(im, ax=axes[4:], shrink=0.8, label="log10 error (colour units)")
+    for ax, model in zip(axes[:4], adapters.DENSITY_MODELS):
         for lab in ("s=10", "s=1000", "s=100/Δ"):
             ax.loglog(deltas, np.maximum(paths[(model, lab)], 1e-17), "o-", ms=3, label=lab)
         ax.axhline(1e-2, color="k", ls=":", lw=0.8)
