@@ -22,8 +22,11 @@ class TraceResult:
 
 
 def sphere_trace_signed(f, o, d, *, lipschitz: float = 1.0, tol: float = 1e-10, max_steps: int = 2000,
-                        t_min: float = 0.0, t_max: float = 10.0) -> TraceResult:
-    """Vectorised signed sphere tracing t ← t + φ/L on rays o + t d (numpy float64)."""
+                        t_min: float = 0.0, t_max: float = 10.0, abs_step: bool = False) -> TraceResult:
+    """Vectorised sphere tracing t ← t + φ/L on rays o + t d (numpy float64).
+
+    ``abs_step=True`` steps |φ|/L instead (a ray starting inside marches forward to its exit); on a ray
+    that starts outside and never overshoots the two rules take identical steps."""
     if not (lipschitz > 0):
         raise ValueError(f"lipschitz must be > 0, got {lipschitz!r}")
     n = o.shape[0]
@@ -41,7 +44,8 @@ def sphere_trace_signed(f, o, d, *, lipschitz: float = 1.0, tol: float = 1e-10, 
         conv[idx[done]] = True
         active[idx[done]] = False
         go = idx[~done]
-        t[go] += fv[~done] / lipschitz
+        step = np.abs(fv[~done]) if abs_step else fv[~done]
+        t[go] += step / lipschitz
         iters[go] += 1
         far[go] = np.maximum(far[go], t[go])
         out = go[(t[go] > t_max) | (t[go] < t_min - t_max) | ~np.isfinite(t[go])]
