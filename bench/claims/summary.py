@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 
 
-def _cell(s: str, limit: int) -> str:
-    s = " ".join(str(s).split()).replace("|", "\\|")
+def _cell(s: str, limit: int, markdown: bool = True) -> str:
+    s = " ".join(str(s).split())
+    if markdown:
+        s = s.replace("|", "\\|")
     return s if len(s) <= limit else s[: limit - 1] + "…"
 
 
@@ -48,5 +50,5 @@ def terminal_summary(df) -> str:
     out = []
     for r in df.itertuples(index=False):
         extra = r.message if r.verdict == "error" else r.counterexample
-        out.append(f"{r.id:>4}  {r.verdict:<24} {r.seconds:7.2f}s  {_cell(extra, 110)}")
+        out.append(f"{r.id:>4}  {r.verdict:<24} {r.seconds:7.2f}s  {_cell(extra, 110, markdown=False)}")
     return "\n".join(out)
