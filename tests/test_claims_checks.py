@@ -171,3 +171,19 @@ def test_quick_mode_under_a_minute(tmp_path):
     df = run_claims(tmp_path, quick=True)
     assert time.perf_counter() - t0 < 60
     assert (df["verdict"] != "error").all(), df[["id", "message"]].to_string()
+
+
+def test_mesh_distance_instrument_detects_a_wrong_surface():
+    """Marching cubes of the unit sphere is within O(h²) of it, and ≈ 0.05 from a sphere of radius 1.05."""
+    pytest.importorskip("skimage")
+    pytest.importorskip("igl")
+    from bench.claims.c12_marching_cubes import mesh_distances
+
+    sph = adapters.sphere_shape()
+    rng = np.random.default_rng(4)
+    h, haus, cham, _ = mesh_distances(sph, sph.f, "sphere", 32, rng, n_surface=2000)
+    assert haus < h**2 and cham < haus
+    wrong = adapters.sphere_shape(1.05)
+    # distances measured against the wrong exact surface (mesh → surface part) reveal the offset
+    _, haus_w, _, _ = mesh_distances(sph, wrong.f, "sphere", 32, rng, n_surface=2000)
+    assert haus_w > 0.04

@@ -108,3 +108,15 @@ def test_out_dir_is_a_file(tmp_path):
     f.write_text("")
     with pytest.raises(ValueError, match="out_dir"):
         run_claims(f, ledger=_planted_ledger())
+
+
+def test_markdown_and_terminal_summaries(tmp_path):
+    from bench.claims.summary import markdown_section, terminal_summary
+
+    df = run_claims(tmp_path, ledger=_planted_ledger(), only=["true", "cond", "boom"])
+    md = markdown_section(df, plot_prefix="claims/")
+    assert md.count("\n| ") == 1 + 3  # header + one row per claim
+    assert "[png](claims/claim_cond.png)" in md and "holds for: x ≤ 0 or x ≥ 1" in md
+    assert "ZeroDivisionError" in md
+    lines = terminal_summary(df).splitlines()
+    assert len(lines) == 3 and "error" in lines[2]
