@@ -65,6 +65,9 @@ class _NAry(Field):
     def info(self):
         return _combine_info(self._children)
 
+    def _rebuild(self, own, children):
+        return type(self)(*children)
+
     def _active(self, x):
         """Index of the active child per point and every child's jet."""
         jets = [c._jet(x) for c in self._children]
@@ -139,8 +142,10 @@ class Complement(Field):
 
     @property
     def info(self):
-        ci = self.child.info
-        return dataclasses.replace(ci)
+        return dataclasses.replace(self.child.info)
+
+    def _rebuild(self, own, children):
+        return Complement(children[0])
 
     def _eval(self, x, xp, cursor):
         return -self.child._eval(x, xp, cursor)
@@ -173,6 +178,9 @@ class Difference(Field):
     @property
     def info(self):
         return _combine_info(self._children)
+
+    def _rebuild(self, own, children):
+        return Difference(*children)
 
     def _eval(self, x, xp, cursor):
         a, b = self._children

@@ -165,17 +165,48 @@ class Field:
                     names.extend(f"{k}.{node.kind}.{pname}[{i}]" for i in range(v.size))
         return names
 
+    def with_params(self, theta: np.ndarray) -> "Field":
+        """A copy of the scene with θ (in :meth:`param_vector` order) replaced: how the exact
+        answers are differentiated by finite differences, and how a fitted θ is turned back
+        into a scene."""
+        theta = np.asarray(theta, np.float64)
+        if theta.shape != self.param_vector().shape:
+            raise ValueError(f"theta must have shape {self.param_vector().shape} (scene.param_vector()), got {theta.shape}")
+        node, used = self._with_params(theta, 0)
+        return node
+
+    def _with_params(self, theta: np.ndarray, offset: int) -> tuple["Field", int]:
+        own = {}
+        for name, v in self.own_params().items():
+            v = np.asarray(v, np.float64)
+            piece = theta[offset : offset + v.size]
+            offset += v.size
+            own[name] = float(piece[0]) if v.ndim == 0 else tuple(piece.tolist())
+        kids = []
+        for c in self.children:
+            c2, offset = c._with_params(theta, offset)
+            kids.append(c2)
+        return self._rebuild(own, tuple(kids)), offset
+
+    def _rebuild(self, own: dict, children: tuple) -> "Field":
+        """A node like this one with own parameters ``own`` and ``children`` (dataclass nodes:
+        ``dataclasses.replace``; other nodes override)."""
+        if dataclasses.is_dataclass(self):
+            extra = {"child": children[0]} if children else {}
+            return dataclasses.replace(self, **own, **extra)
+        raise NotImplementedError(f"{type(self).__name__} cannot rebuild itself with new parameters")
+
     # -- evaluation ------------------------------------------------------------------------
     def value(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
         """φ(x; θ) for points ``x`` of shape ``(..., 3)`` in the caller's library ``xp``."""
-        cursor = ParamCursor(xp, x, theta)
-        out = self._eval(x, xp, cursor)
-        if theta is not None and cursor.offset != theta.shape[0]:
-            raise ValueError(
-                f"theta has {theta.shape[0]} entries but the scene uses {cursor.offset}; "
-                "pass scene.param_vector() (or an array of the same length)"
-            )
-        return out
+        if theta is not None:
+            n_params = self.param_vector().size
+            if tuple(theta.shape) != (n_params,):
+                raise ValueError(
+                    f"theta has shape {tuple(theta.shape)} but the scene has {n_params} parameters; "
+                    "pass scene.param_vector() (or an array of the same length)"
+                )
+        return self._eval(x, xp, ParamCursor(xp, x, theta))
 
     def __call__(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
         return self.value(x, xp, theta)

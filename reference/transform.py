@@ -56,6 +56,9 @@ class Transform(Field):
     def info(self):
         return dataclasses.replace(self.child.info)
 
+    def _rebuild(self, own, children):
+        return Transform(children[0], self.rotation, own["translation"])
+
     def _local(self, x):
         return (np.asarray(x, np.float64) - self.translation) @ self.rotation
 
