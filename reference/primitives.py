@@ -193,11 +193,12 @@ class Box(Field):
     def ray_intervals(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
         lo, hi = np.full(o.shape[0], -np.inf), np.full(o.shape[0], np.inf)
+        empty = np.zeros(o.shape[0], bool)
         for i, b in enumerate(self.half_size):
             a0, a1 = ray_slab(o[:, i], d[:, i], -b, b)
+            empty |= np.isnan(a0)  # a parallel ray outside this slab: no interval at all
             lo, hi = np.fmax(lo, a0), np.fmin(hi, a1)
-            lo = np.where(np.isnan(a0), np.nan, lo)
-        return iv.from_bounds(lo, hi)
+        return iv.from_bounds(np.where(empty, np.nan, lo), hi)
 
     def _jet(self, x):
         b = np.asarray(self.half_size)
