@@ -391,5 +391,26 @@ def _register_all() -> None:
          lambda: (Difference(Sphere(radius=1.0), Sphere(radius=1.0 - 1e-4)), *_cam(32)), ("thin", "camera"),
          "a spherical shell 1e-4 thick (hollow ball), 32×32 camera")
 
+    # fields without closed-form hits ----------------------------------------------------------
+    from .mlp import MLPField
+    from .numerical import CallableField
+
+    _add("mlp.camera.32x32", lambda: (MLPField(), *_cam(32, fov=50.0)), ("camera", "mlp"),
+         "the stored 3→16→16→1 MLP blob (Lipschitz bound ≈ 29.9) seen by a 32×32 camera; hits from the "
+         "certified numerical reference", t_max=6.0)
+    _add("callable.wavy.camera.32x32",
+         lambda: (CallableField(wavy_sphere, lipschitz=1.25, name="reference.cases.wavy_sphere"), *_cam(32)),
+         ("camera",), "a user callable |x| − 1 + 0.05 sin(5x)sin(5y)sin(5z), Lipschitz bound 1.25",
+         t_max=6.0)
+
+
+def wavy_sphere(x, xp):
+    """A user-style callable field: |x| − 1 + 0.05 sin 5x sin 5y sin 5z.  The bump's gradient is
+    0.25 (c₁s₂s₃, s₁c₂s₃, s₁s₂c₃) (sᵢ = sin 5xᵢ, cᵢ = cos 5xᵢ) whose squared norm
+    Σ cᵢ² Πⱼ≠ᵢ sⱼ² ≤ 1 (with pᵢ = sᵢ², cᵢ² = 1 − pᵢ it is the probability that exactly two of three
+    independent events of probabilities pᵢ occur), so L ≤ 1 + 0.25 = 1.25."""
+    r = xp.sqrt(xp.sum(x * x, axis=-1))
+    return r - 1.0 + 0.05 * xp.sin(5.0 * x[..., 0]) * xp.sin(5.0 * x[..., 1]) * xp.sin(5.0 * x[..., 2])
+
 
 _register_all()

@@ -7,6 +7,7 @@ import mpmath
 import numpy as np
 
 from .csg import Complement, Difference, Intersection, Union
+from .mlp import MLPField
 from .implicits import AlgebraicSphere, Ellipsoid, Scaled
 from .primitives import Box, CappedCylinder, Capsule, Plane, Sphere, Torus
 from .transform import Transform
@@ -29,6 +30,7 @@ def every_node() -> dict:
         "intersection": Intersection(Sphere(radius=1.0), Transform.from_rotvec(Box((0.8, 0.8, 0.8)), (0.4, 0.4, 0.0))),
         "difference": Difference(Box((0.7, 0.7, 0.7)), Sphere(radius=0.9)),
         "complement": Complement(Sphere(radius=1.0)),
+        "mlp": MLPField(),
     }
 
 
