@@ -46,16 +46,10 @@ def _check_children(kids) -> tuple[Field, ...]:
     return kids
 
 
-class _NAry(Field):
-    """min (union) or max (intersection) over the children."""
+class _Combination(Field):
+    """A CSG node over several children: θ = the children's θ in order, no own parameters."""
 
-    _pick = None  # np.argmin / np.argmax
-    _set_op = None
-
-    def __init__(self, *children: Field):
-        self._children = _check_children(children)
-        if len(self._children) < 2:
-            raise ValueError(f"{type(self).__name__} needs at least two children, got {len(self._children)}")
+    _children: tuple[Field, ...] = ()
 
     @property
     def children(self):
@@ -67,6 +61,26 @@ class _NAry(Field):
 
     def _rebuild(self, own, children):
         return type(self)(*children)
+
+
+class _NAry(_Combination):
+    """min (union) or max (intersection) over the children."""
+
+    _pick = None  # np.argmin / np.argmax
+    _set_op = None
+    _xp_op = ""  # "minimum" / "maximum"
+
+    def __init__(self, *children: Field):
+        self._children = _check_children(children)
+        if len(self._children) < 2:
+            raise ValueError(f"{type(self).__name__} needs at least two children, got {len(self._children)}")
+
+    def _eval(self, x, xp, cursor):
+        op = getattr(xp, self._xp_op)
+        out = self._children[0]._eval(x, xp, cursor)
+        for c in self._children[1:]:
+            out = op(out, c._eval(x, xp, cursor))
+        return out
 
     def _active(self, x):
         """Index of the active child per point and every child's jet."""
@@ -105,12 +119,8 @@ class Union(_NAry):
     kind = "union"
     _pick = staticmethod(np.argmin)
     _set_op = staticmethod(iv.union)
+    _xp_op = "minimum"
 
-    def _eval(self, x, xp, cursor):
-        out = self._children[0]._eval(x, xp, cursor)
-        for c in self._children[1:]:
-            out = xp.minimum(out, c._eval(x, xp, cursor))
-        return out
 
 
 class Intersection(_NAry):
@@ -119,12 +129,8 @@ class Intersection(_NAry):
     kind = "intersection"
     _pick = staticmethod(np.argmax)
     _set_op = staticmethod(iv.intersection)
+    _xp_op = "maximum"
 
-    def _eval(self, x, xp, cursor):
-        out = self._children[0]._eval(x, xp, cursor)
-        for c in self._children[1:]:
-            out = xp.maximum(out, c._eval(x, xp, cursor))
-        return out
 
 
 class Complement(Field):
@@ -162,7 +168,7 @@ class Complement(Field):
         return [iv.complement(b) for b in self.child.ray_intervals(o, d)]
 
 
-class Difference(Field):
+class Difference(_Combination):
     """a minus b: φ = max(φ_a, −φ_b) (children (a, b), θ = (θ_a, θ_b))."""
 
     kind = "difference"
@@ -170,17 +176,6 @@ class Difference(Field):
     def __init__(self, a: Field, b: Field):
         self._children = _check_children([a, b])
         self._as_intersection = Intersection(a, Complement(b))
-
-    @property
-    def children(self):
-        return self._children
-
-    @property
-    def info(self):
-        return _combine_info(self._children)
-
-    def _rebuild(self, own, children):
-        return Difference(*children)
 
     def _eval(self, x, xp, cursor):
         a, b = self._children

@@ -53,6 +53,20 @@ def _sign(x):
     return np.where(x >= 0, 1.0, -1.0)
 
 
+def _rounded_max_jet(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ψ(q) = |max(q, 0)| + min(maxᵢ qᵢ, 0) (the box/cylinder SDF in terms of the face
+    distances q) and its gradient u = ∂ψ/∂q: max(q, 0)/|max(q, 0)| outside (some qᵢ > 0),
+    the unit vector of the largest qᵢ inside and on the surface."""
+    mq = np.maximum(q, 0)
+    out_len = np.linalg.norm(mq, axis=1)
+    outside = np.max(q, axis=1) > 0
+    e = np.zeros_like(q)
+    e[np.arange(q.shape[0]), np.argmax(q, axis=1)] = 1.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.where(outside[:, None], mq / out_len[:, None], e)
+    return out_len + np.minimum(np.max(q, axis=1), 0), u
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Sphere(Field):
     """Sphere of centre c and radius r: φ(x) = |x − c| − r (exact SDF, L = 1).
@@ -202,17 +216,8 @@ class Box(Field):
 
     def _jet(self, x):
         b = np.asarray(self.half_size)
-        q = np.abs(x) - b
-        s = _sign(x)
-        mq = np.maximum(q, 0)
-        out_len = np.linalg.norm(mq, axis=1)
-        outside = np.max(q, axis=1) > 0
-        e = np.zeros_like(x)
-        e[np.arange(x.shape[0]), np.argmax(q, axis=1)] = 1.0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.where(outside[:, None], mq / out_len[:, None], e)
-        phi = out_len + np.minimum(np.max(q, axis=1), 0)
-        return phi, s * u, -u
+        phi, u = _rounded_max_jet(np.abs(x) - b)
+        return phi, _sign(x) * u, -u
 
     def curvatures_exact(self, x):
         x = _points(x)
@@ -413,18 +418,11 @@ class CappedCylinder(Field):
 
     def _jet(self, x):
         rho, w = self._w(x)
-        mw = np.maximum(w, 0)
-        out_len = np.linalg.norm(mw, axis=1)
-        outside = np.max(w, axis=1) > 0
-        e = np.zeros_like(w)
-        e[np.arange(x.shape[0]), np.argmax(w, axis=1)] = 1.0
+        phi, u = _rounded_max_jet(w)
         with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.where(outside[:, None], mw / out_len[:, None], e)
             er = np.stack([x[:, 0] / rho, x[:, 1] / rho, np.zeros_like(rho)], axis=1)
         ez = np.stack([np.zeros_like(rho), np.zeros_like(rho), _sign(x[:, 2])], axis=1)
-        g = u[:, :1] * er + u[:, 1:] * ez
-        phi = out_len + np.minimum(np.max(w, axis=1), 0)
-        return phi, g, -u
+        return phi, u[:, :1] * er + u[:, 1:] * ez, -u
 
     def curvatures_exact(self, x):
         x = _points(x)
