@@ -86,7 +86,9 @@ def test_mlp_lipschitz_bound_is_the_product_of_spectral_norms_and_holds():
 
 def test_mlp_is_bit_identical_in_jax_eager_and_within_a_few_ulp_elsewhere():
     """Measured: jax eager reproduces numpy bit for bit; torch and jax.jit sum the matmuls in a
-    different order (or fused), differing by ≤ 5 ulp of max|φ| (≈ 1.1e-15 here)."""
+    different order (or fused), differing by up to 2.9 (torch) and 4.3 (jax.jit) ulp of max|φ|
+    (≈ 1.1e-15 absolute) on this machine; the test allows 8 ulp so another CPU's SIMD width
+    does not fail it."""
     torch = pytest.importorskip("torch")
     jax = pytest.importorskip("jax")
     jax.config.update("jax_enable_x64", True)
@@ -99,7 +101,7 @@ def test_mlp_is_bit_identical_in_jax_eager_and_within_a_few_ulp_elsewhere():
     np.testing.assert_array_equal(np.asarray(mlp.value(jnp.asarray(x), jnp)), ref)
     scale = np.max(np.abs(ref))
     for out in (mlp.value(torch.from_numpy(x), xpt).numpy(), np.asarray(jax.jit(lambda p: mlp.value(p, jnp))(jnp.asarray(x)))):
-        assert np.max(np.abs(out - ref)) <= 5 * EPS * scale
+        assert np.max(np.abs(out - ref)) <= 8 * EPS * scale
 
 
 def test_mlp_dt_dtheta_matches_differences_of_the_numerical_hit():
