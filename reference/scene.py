@@ -222,7 +222,10 @@ class Field:
 
     def first_hit(self, o: np.ndarray, d: np.ndarray, t_min: float = 0.0) -> np.ndarray:
         """Exact depth of the first crossing of φ = 0 at t > t_min along o + t d (inf: miss).
-        Default: from :meth:`ray_intervals`; primitives override with a vectorised formula."""
+        Default: from :meth:`ray_intervals`; primitives override with a vectorised formula.
+        Sphere and torus also count a tangent touch (a double root, φ = 0 without a
+        sign change) as a hit; interval-based first hits (CSG) do not, since a touch bounds no
+        interval — a measure-zero set of rays."""
         return first_hit_from_intervals(self.ray_intervals(o, d), t_min)
 
     def jet(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
