@@ -1,10 +1,25 @@
 """isobench reference: exact scenes, exact answers and the case catalog (float64 truth).
 
 Nothing here imports a backend or the bench runner.
+
+Scenes: :class:`Sphere`, :class:`Plane`, :class:`Box`, :class:`Torus`, :class:`Capsule`,
+:class:`CappedCylinder` (exact SDFs); :class:`AlgebraicSphere`, :class:`Ellipsoid`,
+:class:`Scaled` (implicit, not SDFs, with Lipschitz bounds on a stated domain); :class:`Union`,
+:class:`Intersection`, :class:`Difference`, :class:`Complement` (CSG); :class:`Transform`
+(rigid placement); :class:`MLPField` (stored weights); :class:`CallableField` (user functions).
 """
 
-from .cases import Case, catalog, get_case
-from .primitives import Sphere
+from .cases import Case, case_ids, catalog, get_case, register
+from .csg import Complement, Difference, Intersection, Union
+from .implicits import AlgebraicSphere, Ellipsoid, Scaled
+from .mlp import MLPField
+from .numerical import CallableField, crossings_numeric, first_hit_numeric
+from .primitives import Box, CappedCylinder, Capsule, Plane, Sphere, Torus
 from .scene import Field, SceneInfo
+from .transform import Transform
 
-__all__ = ["Case", "Field", "SceneInfo", "Sphere", "catalog", "get_case"]
+__all__ = [
+    "AlgebraicSphere", "Box", "CallableField", "CappedCylinder", "Capsule", "Case", "Complement", "Difference",
+    "Ellipsoid", "Field", "Intersection", "MLPField", "Plane", "Scaled", "SceneInfo", "Sphere", "Torus",
+    "Transform", "Union", "case_ids", "catalog", "crossings_numeric", "first_hit_numeric", "get_case", "register",
+]

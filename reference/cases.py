@@ -38,6 +38,7 @@ class Case:
     t_max: float = 10.0
     tags: tuple[str, ...] = ()
     description: str = ""
+    color_frequency: float = 2.0
 
     @property
     def n_rays(self) -> int:
@@ -54,9 +55,77 @@ class Case:
 
     @functools.cached_property
     def exact_t(self) -> np.ndarray:
-        """Exact first-hit depth per ray in (t_min, t_max]; ``inf`` for a miss."""
-        t = self.scene.first_hit(self.origins, self.directions, self.t_min)
-        return np.where(t <= self.t_max, t, np.inf)
+        """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss.  Closed form where the
+        scene has exact hits, else the numerical reference (:mod:`reference.numerical`) whose
+        bound is :attr:`exact_t_error_bound`."""
+        return self._exact_t_and_bound[0]
+
+    @functools.cached_property
+    def exact_t_error_bound(self) -> float:
+        """Largest bound on |exact_t − true depth| over the rays: 0 for closed forms (their
+        float64 rounding is stated per answer in the README table), the numerical
+        reference's bisection bound otherwise."""
+        return self._exact_t_and_bound[1]
+
+    @functools.cached_property
+    def _exact_t_and_bound(self) -> tuple[np.ndarray, float]:
+        if self.scene.info.exact_hits:
+            t = self.scene.first_hit(self.origins, self.directions, self.t_min)
+            return np.where(t <= self.t_max, t, np.inf), 0.0
+        from .numerical import first_hit_numeric
+
+        t, err = first_hit_numeric(self.scene, self.origins, self.directions, self.t_min, self.t_max)
+        return t, float(np.max(err, initial=0.0))
+
+    @functools.cached_property
+    def hit_mask(self) -> np.ndarray:
+        return np.isfinite(self.exact_t)
+
+    @functools.cached_property
+    def exact_points(self) -> np.ndarray:
+        """x* = o + t d at hits, NaN rows elsewhere, (n, 3)."""
+        x = np.full(self.origins.shape, np.nan)
+        m = self.hit_mask
+        x[m] = self.origins[m] + self.exact_t[m, None] * self.directions[m]
+        return x
+
+    def _at_hits(self, what: str, fn, width: int | None):
+        if not getattr(self.scene.info, what):
+            raise ValueError(f"case {self.id}: scene {type(self.scene).__name__} has no {what.replace('_', ' ')}; "
+                             "check case.scene.info before asking")
+        m = self.hit_mask
+        out = np.full((self.n_rays,) if width is None else (self.n_rays, width), np.nan)
+        if m.any():
+            out[m] = fn(m)
+        return out
+
+    @functools.cached_property
+    def exact_normals(self) -> np.ndarray:
+        """Outward unit normals at the hits (n, 3), NaN at misses."""
+        return self._at_hits("exact_normals", lambda m: self.scene.normal_exact(self.exact_points[m]), 3)
+
+    @functools.cached_property
+    def exact_curvatures(self) -> tuple[np.ndarray, np.ndarray]:
+        """(κ1, κ2) at the hits (κ1 ≥ κ2, convention of :mod:`reference.curvature`), NaN at
+        misses and where the surface has an edge."""
+        k1 = self._at_hits("exact_curvature", lambda m: self.scene.curvatures_exact(self.exact_points[m])[0], None)
+        k2 = self._at_hits("exact_curvature", lambda m: self.scene.curvatures_exact(self.exact_points[m])[1], None)
+        return k1, k2
+
+    @functools.cached_property
+    def exact_dt_dtheta(self) -> np.ndarray:
+        """dt/dθ at the hits (n, P) in ``scene.param_vector()`` order, NaN rows at misses."""
+        if not self.scene.info.exact_hit_param_grad:
+            raise ValueError(f"case {self.id}: scene {type(self.scene).__name__} has no closed-form dt/dθ")
+        return self.scene.hit_param_grad(self.origins, self.directions, self.exact_t)
+
+    @functools.cached_property
+    def color_field(self):
+        """The case's colour field ρ(x) (:class:`reference.rendering.SineColor`), with its
+        Lipschitz constant; scaled to the scene's size."""
+        from .rendering import SineColor
+
+        return SineColor(frequency=self.color_frequency)
 
 
 _FACTORIES: dict[str, Callable[[], Case]] = {}
@@ -104,6 +173,47 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
 
 
 # -- the cases -------------------------------------------------------------------------------
+#
+# Tags say what a case exercises and needs: the scene's own kind, ``sdf`` (exact SDF),
+# ``lipschitz`` (a Lipschitz bound exists), ``csg``, ``transform``, ``grazing``, ``tangent``,
+# ``inside``, ``surface``, ``far``, ``scale``, ``thin``, ``parallel``, ``camera``, ``mlp``,
+# ``numerical`` (no closed-form hits) and ``quick`` (the CI suite).
+
+
+def _scene_tags(scene: Field) -> tuple[str, ...]:
+    info = scene.info
+    structural = {"transform", "union", "intersection", "difference", "complement", "scaled"}
+    tags = [scene.kind] + sorted({n.kind for n in scene.walk()} - structural - {scene.kind})
+    if info.exact_sdf:
+        tags.append("sdf")
+    if info.lipschitz is not None:
+        tags.append("lipschitz")
+    if not info.exact_hits:
+        tags.append("numerical")
+    kinds = {n.kind for n in scene.walk()}
+    if kinds & {"union", "intersection", "difference", "complement"}:
+        tags.append("csg")
+    if "transform" in kinds:
+        tags.append("transform")
+    return tuple(tags)
+
+
+def _add(case_id: str, build: Callable[[], tuple], tags: tuple[str, ...] = (), description: str = "",
+         t_min: float = 0.0, t_max: float = 10.0, color_frequency: float = 2.0) -> None:
+    """Register ``case_id`` built lazily from ``build() -> (scene, origins, directions)``."""
+
+    def factory() -> Case:
+        scene, o, d = build()
+        all_tags = tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags)))
+        return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(o, np.float64),
+                    directions=np.ascontiguousarray(d, np.float64), t_min=t_min, t_max=t_max,
+                    tags=all_tags, description=description, color_frequency=color_frequency)
+
+    register(case_id)(factory)
+
+
+def _cam(n: int, eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov: float = 40.0, up=(0.0, 1.0, 0.0)):
+    return _rays.pinhole(eye=eye, look_at=look_at, up=up, fov_deg=fov, width=n, height=n)
 
 
 @register("sphere.camera.64x64")
@@ -116,7 +226,191 @@ def _sphere_camera() -> Case:
         directions=dirs,
         t_min=0.0,
         t_max=10.0,
-        tags=("quick", "camera", "sphere", "sdf"),
+        tags=("quick", "camera", "sphere", "sdf", "lipschitz"),
         description="unit sphere seen by a 64×64 pinhole camera at distance 3 (fov 40°); "
         "the corners miss",
     )
+
+
+def _register_all() -> None:
+    from .csg import Complement, Difference, Intersection, Union
+    from .implicits import AlgebraicSphere, Ellipsoid, Scaled
+    from .primitives import Box, CappedCylinder, Capsule, Plane, Torus
+    from .transform import Transform
+
+    # sphere ---------------------------------------------------------------------------------
+    for k in (3, 6, 9, 12):
+        _add(f"sphere.grazing.1e-{k}", lambda k=k: (Sphere(), *_rays.grazing_pm(256, k, 3.0, seed=k)),
+             ("grazing",) + (("quick",) if k == 6 else ()),
+             f"unit sphere, impact parameters 1 ± 1e-{k} from distance 3 (half near misses)")
+    for e in (3, 6):
+        _add(f"sphere.far.1e{e}", lambda e=e: (Sphere(), *_rays.far(256, 10.0**e, 1.2, seed=e)), ("far",),
+             f"unit sphere seen from distance 1e{e} (rays aimed at the ball of radius 1.2)", t_max=2 * 10.0**e)
+    _add("sphere.inside", lambda: (Sphere(), *_rays.in_ball(256, 0.999, seed=11)), ("inside",),
+         "origins inside the unit sphere: the first hit is the exit")
+
+    def _surface():
+        rng = np.random.default_rng(12)
+        o = _rays.normalize(rng.normal(size=(256, 3)))
+        d = _rays.normalize(-o + 0.9 * _rays.normalize(rng.normal(size=(256, 3))))
+        return Sphere(), o, d
+
+    _add("sphere.surface", _surface, ("surface",),
+         "origins on the unit sphere (to rounding), directions into it; t_min = −1e-9 so the "
+         "answer is the hit at the origin itself (t ≈ 0)", t_min=-1e-9)
+    for e, sgn in ((6, "-"), (6, "")):
+        scale = 10.0 ** (-e if sgn else e)
+        _add(f"sphere.scale.1e{sgn}{e}",
+             lambda scale=scale: (Sphere(radius=scale), *_cam(32, eye=(0.0, 0.0, 3 * scale))),
+             ("scale", "camera"), f"sphere of radius {scale:g} seen by a 32×32 camera at 3× its radius",
+             t_max=10 * scale, color_frequency=2.0 / scale)
+
+    # plane ----------------------------------------------------------------------------------
+    _add("plane.camera.32x32", lambda: (Plane(), *_cam(32, eye=(0.0, -3.0, 1.0), fov=60.0, up=(0.0, 0.0, 1.0))),
+         ("camera",), "ground plane z < 0 seen from height 1, the upper rows miss (horizon)", t_max=50.0)
+
+    def _plane_grazing():
+        rng = np.random.default_rng(13)
+        a = 1e-6 * rng.uniform(0.5, 2.0, 256)
+        o = np.stack([rng.uniform(-1, 1, 256), rng.uniform(-1, 1, 256), np.full(256, 1e-6)], axis=1)
+        d = np.stack([np.cos(a), np.zeros(256), -np.sin(a)], axis=1)
+        return Plane(), o, d
+
+    _add("plane.grazing.1e-6", _plane_grazing, ("grazing",),
+         "rays at angles ~1e-6 to the plane from height 1e-6 (hit near t ≈ 1)")
+
+    # box ------------------------------------------------------------------------------------
+    box = lambda: Transform.from_rotvec(Box((0.6, 0.4, 0.3)), (0.3, -0.5, 0.2), (0.05, -0.02, 0.1))
+    _add("box.camera.32x32", lambda: (box(), *_cam(32)), ("camera", "quick"),
+         "rotated, translated box seen by a 32×32 camera at distance 3")
+
+    def _box_parallel():
+        rng = np.random.default_rng(14)
+        n = 512
+        axis = rng.integers(0, 3, n)
+        d = np.eye(3)[axis] * rng.choice([-1.0, 1.0], n)[:, None]
+        o = rng.uniform(-0.9, 0.9, size=(n, 3))
+        off = np.where(np.arange(n) % 2 == 0, 1e-9, -1e-9)  # just outside / just inside a face plane
+        other = (axis + 1 + rng.integers(0, 2, n)) % 3
+        o[np.arange(n), other] = np.sign(rng.uniform(-1, 1, n)) * (1.0 + off)
+        o[np.arange(n), axis] = -3.0 * d[np.arange(n), axis]
+        return Box((1.0, 1.0, 1.0)), o, d
+
+    _add("box.parallel", _box_parallel, ("parallel", "grazing"),
+         "rays parallel to the faces of the unit-half-size box, 1e-9 outside (miss) or inside (hit) a face plane")
+    _add("box.inside", lambda: (Box((1.0, 0.5, 0.25)), *_rays.in_ball(256, 0.24, seed=15)), ("inside",),
+         "origins inside a box, random directions")
+    _add("box.thinplate.1e-6", lambda: (Box((1.0, 1.0, 1e-6)), *_cam(32, eye=(0.5, 1.0, 2.5))), ("thin", "camera"),
+         "a plate 2e-6 thick seen obliquely by a 32×32 camera")
+
+    # torus ----------------------------------------------------------------------------------
+    _add("torus.camera.32x32", lambda: (Torus(1.0, 0.25), *_cam(32, eye=(0.0, -2.5, 1.8))), ("camera", "quick"),
+         "torus R = 1, r = 0.25 seen obliquely by a 32×32 camera")
+
+    def _torus_grazing(k):
+        rng = np.random.default_rng(20 + k)
+        n = 256
+        y = (1.25) * (1 + np.where(np.arange(n) % 2 == 0, 1.0, -1.0) * 10.0 ** (-k))
+        phase = rng.uniform(0, 2 * np.pi, n)
+        c, s = np.cos(phase), np.sin(phase)
+        # the ray along the tangent of the outer equator at angle `phase`, offset y from the axis
+        o = np.stack([y * c + 3 * s, y * s - 3 * c, np.zeros(n)], axis=1)
+        d = np.stack([-s, c, np.zeros(n)], axis=1)
+        return Torus(1.0, 0.25), o, d
+
+    for k in (3, 6, 9, 12):
+        _add(f"torus.grazing.1e-{k}", lambda k=k: _torus_grazing(k), ("grazing",),
+             f"rays in the equatorial plane passing (R + r)(1 ± 1e-{k}) from the axis: grazing the outer equator")
+
+    def _torus_tangent():
+        rng = np.random.default_rng(30)
+        n = 256
+        y0 = rng.uniform(-0.9, 0.9, n)
+        o = np.stack([np.full(n, -3.0), y0, np.full(n, 0.25)], axis=1)
+        d = np.tile([1.0, 0.0, 0.0], (n, 1))
+        return Torus(1.0, 0.25), o, d
+
+    _add("torus.tangent", _torus_tangent, ("tangent", "grazing"),
+         "rays in the plane z = r touching the top of the tube at ρ = R: double roots of the quartic")
+    for e in (3, 6):
+        _add(f"torus.far.1e{e}", lambda e=e: (Torus(1.0, 0.25), *_rays.far(256, 10.0**e, 1.0, seed=40 + e)), ("far",),
+             f"torus seen from distance 1e{e}", t_max=2 * 10.0**e)
+
+    def _torus_inside():
+        rng = np.random.default_rng(50)
+        n = 256
+        ang, v = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, 2 * np.pi, n)
+        rr = 0.2 * rng.uniform(size=n)
+        rho = 1.0 + rr * np.cos(v)
+        o = np.stack([rho * np.cos(ang), rho * np.sin(ang), rr * np.sin(v)], axis=1)
+        return Torus(1.0, 0.25), o, _rays.random_directions(n, 51)
+
+    _add("torus.inside", _torus_inside, ("inside",), "origins inside the tube, random directions")
+
+    # capsule, cylinder ----------------------------------------------------------------------
+    _add("capsule.camera.32x32",
+         lambda: (Capsule((-0.5, -0.3, 0.1), (0.4, 0.5, -0.2), 0.35), *_cam(32)), ("camera",),
+         "an oblique capsule seen by a 32×32 camera")
+    cyl = lambda: Transform.from_rotvec(CappedCylinder(0.5, 0.7), (0.9, 0.0, 0.3))
+    _add("cylinder.camera.32x32", lambda: (cyl(), *_cam(32)), ("camera",), "a tilted capped cylinder, 32×32 camera")
+
+    def _cyl_parallel():
+        rng = np.random.default_rng(60)
+        n = 512
+        xy = rng.uniform(-0.8, 0.8, size=(n, 2))
+        o = np.concatenate([xy, np.full((n, 1), 3.0)], axis=1)
+        return CappedCylinder(0.5, 0.7), o, np.tile([0.0, 0.0, -1.0], (n, 1))
+
+    _add("cylinder.parallel", _cyl_parallel, ("parallel",),
+         "rays parallel to the cylinder's axis: the cap or a miss (the quadratic degenerates)")
+
+    # non-SDF implicits ----------------------------------------------------------------------
+    _add("algsphere.camera.32x32", lambda: (AlgebraicSphere(domain_radius=6.5), *_cam(32)), ("camera", "quick"),
+         "the lecture's |x|² − 1 (not an SDF, L = 13 on |x| ≤ 6.5) seen by a 32×32 camera; t ≤ 3.5 keeps "
+         "rays in the domain", t_max=3.5)
+    _add("ellipsoid.camera.32x32",
+         lambda: (Transform.from_rotvec(Ellipsoid((1.0, 0.6, 0.4), domain_radius=6.5), (0.2, 0.7, 0.0)), *_cam(32)),
+         ("camera",), "a rotated ellipsoid quadric (not an SDF), 32×32 camera", t_max=3.5)
+    _add("scaled.torus.k3", lambda: (Scaled(Torus(1.0, 0.25), 3.0), *_cam(32, eye=(0.0, -2.5, 1.8))), ("camera",),
+         "3 × the torus SDF: same surface, L = 3")
+
+    # CSG ------------------------------------------------------------------------------------
+    _add("csg.union.camera.32x32",
+         lambda: (Union(Torus(1.0, 0.25), Box((0.4, 0.4, 0.4))), *_cam(32, eye=(0.0, -2.5, 1.8))),
+         ("camera", "quick"), "torus ∪ box, 32×32 camera")
+    _add("csg.difference.camera.32x32",
+         lambda: (Difference(Box((0.7, 0.7, 0.7)), Sphere(radius=0.9)), *_cam(32, eye=(1.5, 1.2, 2.2))),
+         ("camera",), "box minus a sphere (bites at the corners), 32×32 camera")
+    _add("csg.intersection.camera.32x32",
+         lambda: (Intersection(Sphere(radius=1.0), Transform.from_rotvec(Box((0.8, 0.8, 0.8)), (0.4, 0.4, 0.0))),
+                  *_cam(32)), ("camera",), "sphere ∩ rotated box, 32×32 camera")
+    _add("csg.complement.inside",
+         lambda: (Complement(Sphere(radius=1.0)), *_rays.impact(256, np.linspace(0.0, 1.5, 256), 3.0, seed=70)),
+         ("inside",), "the outside of the unit sphere as the solid: origins inside it at distance 3")
+    _add("csg.shell.1e-4",
+         lambda: (Difference(Sphere(radius=1.0), Sphere(radius=1.0 - 1e-4)), *_cam(32)), ("thin", "camera"),
+         "a spherical shell 1e-4 thick (hollow ball), 32×32 camera")
+
+    # fields without closed-form hits ----------------------------------------------------------
+    from .mlp import MLPField
+    from .numerical import CallableField
+
+    _add("mlp.camera.32x32", lambda: (MLPField(), *_cam(32, fov=50.0)), ("camera", "mlp"),
+         "the stored 3→16→16→1 MLP blob (Lipschitz bound ≈ 29.9) seen by a 32×32 camera; hits from the "
+         "certified numerical reference", t_max=6.0)
+    _add("callable.wavy.camera.32x32",
+         lambda: (CallableField(wavy_sphere, lipschitz=1.25, name="reference.cases.wavy_sphere"), *_cam(32)),
+         ("camera",), "a user callable |x| − 1 + 0.05 sin(5x)sin(5y)sin(5z), Lipschitz bound 1.25",
+         t_max=6.0)
+
+
+def wavy_sphere(x, xp):
+    """A user-style callable field: |x| − 1 + 0.05 sin 5x sin 5y sin 5z.  The bump's gradient is
+    0.25 (c₁s₂s₃, s₁c₂s₃, s₁s₂c₃) (sᵢ = sin 5xᵢ, cᵢ = cos 5xᵢ) whose squared norm
+    Σ cᵢ² Πⱼ≠ᵢ sⱼ² ≤ 1 (with pᵢ = sᵢ², cᵢ² = 1 − pᵢ it is the probability that exactly two of three
+    independent events of probabilities pᵢ occur), so L ≤ 1 + 0.25 = 1.25."""
+    r = xp.sqrt(xp.sum(x * x, axis=-1))
+    return r - 1.0 + 0.05 * xp.sin(5.0 * x[..., 0]) * xp.sin(5.0 * x[..., 1]) * xp.sin(5.0 * x[..., 2])
+
+
+_register_all()

@@ -42,3 +42,39 @@ def ray_sphere_roots(o: np.ndarray, d: np.ndarray, center: np.ndarray, radius: f
     t0[miss] = np.nan
     t1[miss] = np.nan
     return t0, t1
+
+
+def ray_cylinder_roots(f_perp: np.ndarray, d_perp: np.ndarray, radius: float):
+    """Roots t0 ≤ t1 of |f⊥ + t d⊥|² = r² for an infinite cylinder, given the components of
+    (origin − axis point) and of the direction orthogonal to the axis.
+
+    Same stable formula as :func:`ray_sphere_roots` (it does not assume |d⊥| = 1).  A ray
+    parallel to the axis (d⊥ = 0) is inside for all t when |f⊥| < r: roots (−inf, inf); else
+    NaN (no crossing)."""
+    f_perp = np.asarray(f_perp, np.float64)
+    d_perp = np.asarray(d_perp, np.float64)
+    a = np.einsum("...i,...i->...", d_perp, d_perp)
+    par = a == 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t0, t1 = ray_sphere_roots(f_perp, np.where(par[..., None], 1.0, d_perp), np.zeros(f_perp.shape[-1]), radius)
+    inside = np.linalg.norm(f_perp, axis=-1) < radius
+    t0 = np.where(par, np.where(inside, -np.inf, np.nan), t0)
+    t1 = np.where(par, np.where(inside, np.inf, np.nan), t1)
+    return t0, t1
+
+
+def ray_slab(o_axis: np.ndarray, d_axis: np.ndarray, lo: float, hi: float):
+    """Interval (t0, t1) where lo < o + t d < hi along one coordinate (one rounded division
+    per bound, so each bound is correctly rounded).  d = 0: (−inf, inf) if lo < o < hi, else
+    NaN (empty)."""
+    o_axis = np.asarray(o_axis, np.float64)
+    d_axis = np.asarray(d_axis, np.float64)
+    par = d_axis == 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ta = (lo - o_axis) / d_axis
+        tb = (hi - o_axis) / d_axis
+    t0, t1 = np.fmin(ta, tb), np.fmax(ta, tb)
+    inside = (lo < o_axis) & (o_axis < hi)
+    t0 = np.where(par, np.where(inside, -np.inf, np.nan), t0)
+    t1 = np.where(par, np.where(inside, np.inf, np.nan), t1)
+    return t0, t1

@@ -43,6 +43,8 @@ class SceneInfo:
     exact_normals:  ``normal_exact`` is available.
     exact_curvature: ``curvatures_exact`` is available.
     exact_hit_param_grad: ``hit_param_grad`` (dt/dθ) is available in closed form.
+    domain:         where ``lipschitz`` holds when it is not all of ℝ³ (e.g. "|x| ≤ 4"); ``None``
+                    means everywhere.
     """
 
     exact_sdf: bool
@@ -53,6 +55,7 @@ class SceneInfo:
     exact_normals: bool
     exact_curvature: bool
     exact_hit_param_grad: bool
+    domain: str | None = None
 
 
 class ParamCursor:
@@ -96,6 +99,23 @@ def const(xp: Any, like: Any, value: Any) -> Any:
 def norm(xp: Any, v: Any) -> Any:
     """Euclidean norm over the last axis, written with array-API primitives only."""
     return xp.sqrt(xp.sum(v * v, axis=-1))
+
+
+def safe_norm(xp: Any, v: Any) -> Any:
+    """Euclidean norm whose autodiff gradient is 0 (not NaN) where v = 0.
+
+    The "double where" keeps √ away from 0 in the traced graph, so the value is exactly |v|
+    and reverse-mode through the unused branch sees a finite derivative.  Used where an SDF
+    evaluates |max(q, 0)| with q ≤ 0 on the surface itself (box, capped cylinder)."""
+    s = xp.sum(v * v, axis=-1)
+    pos = s > 0
+    return xp.where(pos, xp.sqrt(xp.where(pos, s, const(xp, s, 1.0))), const(xp, s, 0.0))
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` divided by their Euclidean norm (float64 numpy)."""
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 class Field:
@@ -145,17 +165,48 @@ class Field:
                     names.extend(f"{k}.{node.kind}.{pname}[{i}]" for i in range(v.size))
         return names
 
+    def with_params(self, theta: np.ndarray) -> "Field":
+        """A copy of the scene with θ (in :meth:`param_vector` order) replaced: how the exact
+        answers are differentiated by finite differences, and how a fitted θ is turned back
+        into a scene."""
+        theta = np.asarray(theta, np.float64)
+        if theta.shape != self.param_vector().shape:
+            raise ValueError(f"theta must have shape {self.param_vector().shape} (scene.param_vector()), got {theta.shape}")
+        node, used = self._with_params(theta, 0)
+        return node
+
+    def _with_params(self, theta: np.ndarray, offset: int) -> tuple["Field", int]:
+        own = {}
+        for name, v in self.own_params().items():
+            v = np.asarray(v, np.float64)
+            piece = theta[offset : offset + v.size]
+            offset += v.size
+            own[name] = float(piece[0]) if v.ndim == 0 else tuple(piece.tolist())
+        kids = []
+        for c in self.children:
+            c2, offset = c._with_params(theta, offset)
+            kids.append(c2)
+        return self._rebuild(own, tuple(kids)), offset
+
+    def _rebuild(self, own: dict, children: tuple) -> "Field":
+        """A node like this one with own parameters ``own`` and ``children`` (dataclass nodes:
+        ``dataclasses.replace``; other nodes override)."""
+        if dataclasses.is_dataclass(self):
+            extra = {"child": children[0]} if children else {}
+            return dataclasses.replace(self, **own, **extra)
+        raise NotImplementedError(f"{type(self).__name__} cannot rebuild itself with new parameters")
+
     # -- evaluation ------------------------------------------------------------------------
     def value(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
         """φ(x; θ) for points ``x`` of shape ``(..., 3)`` in the caller's library ``xp``."""
-        cursor = ParamCursor(xp, x, theta)
-        out = self._eval(x, xp, cursor)
-        if theta is not None and cursor.offset != theta.shape[0]:
-            raise ValueError(
-                f"theta has {theta.shape[0]} entries but the scene uses {cursor.offset}; "
-                "pass scene.param_vector() (or an array of the same length)"
-            )
-        return out
+        if theta is not None:
+            n_params = self.param_vector().size
+            if tuple(theta.shape) != (n_params,):
+                raise ValueError(
+                    f"theta has shape {tuple(theta.shape)} but the scene has {n_params} parameters; "
+                    "pass scene.param_vector() (or an array of the same length)"
+                )
+        return self._eval(x, xp, ParamCursor(xp, x, theta))
 
     def __call__(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
         return self.value(x, xp, theta)
@@ -171,16 +222,64 @@ class Field:
 
     def first_hit(self, o: np.ndarray, d: np.ndarray, t_min: float = 0.0) -> np.ndarray:
         """Exact depth of the first crossing of φ = 0 at t > t_min along o + t d (inf: miss).
-        Default: from :meth:`ray_intervals`; primitives override with a vectorised formula."""
+        Default: from :meth:`ray_intervals`; primitives override with a vectorised formula.
+        Sphere and torus also count a tangent touch (a double root, φ = 0 without a
+        sign change) as a hit; interval-based first hits (CSG) do not, since a touch bounds no
+        interval — a measure-zero set of rays."""
         return first_hit_from_intervals(self.ray_intervals(o, d), t_min)
 
+    def jet(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Exact first-order jet at points ``x`` (n, 3), float64 numpy:
+        ``(φ (n,), ∇ₓφ (n, 3), ∂φ/∂θ (n, P))`` with θ in :meth:`param_vector` order.
+
+        Closed-form derivatives of each node's formula (no differencing); at a kink (CSG seam,
+        box edge, medial axis) it returns one of the one-sided derivatives."""
+        x = _points(x)
+        phi, grad, dtheta = self._jet(x)
+        return phi, grad, dtheta
+
+    def _jet(self, x: np.ndarray):
+        raise NotImplementedError(f"{type(self).__name__} has no closed-form derivatives")
+
     def normal_exact(self, x: np.ndarray) -> np.ndarray:
-        raise NotImplementedError(f"{type(self).__name__} has no exact normal")
+        """Outward unit normal n = ∇φ/|∇φ| (lecture, "Properties - Normal") at points ``x``."""
+        return unit(self.jet(x)[1])
 
     def curvatures_exact(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Principal curvatures (κ1 ≥ κ2) at surface points, sign convention: positive where
-        the surface bends away from its outward normal (a sphere has κ = +1/r)."""
+        the surface bends away from its outward normal (a sphere has κ = +1/r).  See
+        :mod:`reference.curvature` for the mean, sum and Gaussian curvature."""
         raise NotImplementedError(f"{type(self).__name__} has no exact curvature")
+
+    def closest_point_exact(self, x: np.ndarray) -> np.ndarray:
+        """Closest surface point x* = x − φ(x) ∇φ(x) (exact for an exact SDF, where |∇φ| = 1
+        and the segment from x to x* is normal to the surface; off the medial axis, where the
+        closest point is unique).  Raises for scenes that are not exact SDFs."""
+        if not self.info.exact_sdf:
+            raise ValueError(
+                f"{type(self).__name__} is not an exact SDF, so x − φ∇φ is not its closest point; "
+                "closest points are only provided for exact SDFs"
+            )
+        x = _points(x)
+        phi, grad, _ = self.jet(x)
+        return x - phi[:, None] * grad
+
+    def hit_param_grad(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """dt/dθ at the hits x = o + t d, shape (n, P) in :meth:`param_vector` order.
+
+        Implicit differentiation of φ(o + t(θ) d; θ) = 0 (lecture eq. 7–8):
+        dt/dθ = −(∂φ/∂θ) / ⟨∇ₓφ, d⟩, evaluated with the closed-form partials of :meth:`jet`.
+        Rows of missed rays (t = inf) are NaN."""
+        o, d = _points(o, "o"), _points(d, "d")
+        t = np.asarray(t, np.float64)
+        hit = np.isfinite(t)
+        out = np.full((o.shape[0], self.param_vector().size), np.nan)
+        if hit.any():
+            x = o[hit] + t[hit, None] * d[hit]
+            _, grad, dtheta = self.jet(x)
+            gd = np.einsum("ij,ij->i", grad, d[hit])
+            out[hit] = -dtheta / gd[:, None]
+        return out
 
     # -- identity ----------------------------------------------------------------------------
     def spec(self) -> dict:
@@ -190,10 +289,30 @@ class Field:
             "type": type(self).__name__,
             "params": {k: np.asarray(v, np.float64).tolist() for k, v in self.own_params().items()},
             "children": [c.spec() for c in self.children],
+            **({"static": st} if (st := self._static_spec()) else {}),
         }
+
+    def _static_spec(self) -> dict:
+        """Fixed (non-parameter) settings that change the scene, e.g. a plane's normal."""
+        if not dataclasses.is_dataclass(self):
+            return {}
+        params = self.own_params()
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name not in params and not isinstance(v, Field):
+                out[f.name] = np.asarray(v, np.float64).tolist()
+        return out
 
     def content_hash(self) -> str:
         return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _points(x, name: str = "x") -> np.ndarray:
+    a = np.asarray(x, np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {a.shape}; reshape with {name}.reshape(-1, 3)")
+    return a
 
 
 def first_hit_from_intervals(intervals: list[np.ndarray], t_min: float = 0.0) -> np.ndarray:
