@@ -19,8 +19,8 @@ from bench.claims.c07_implicit_dt import _truth, hit_to_tolerance
 from bench.claims.c09_volume_bound import lecture_bound
 from bench.claims.rendering import composite, window_samples
 from bench.claims.stats import central_laplacian, fit_power
-from bench.claims.tracing import dense_first_hit, sphere_trace_signed
-from reference import Sphere
+from bench.claims.tracing import sphere_trace_signed
+from reference import MLPField, Sphere
 
 
 def test_fit_power_recovers_planted_rates():
@@ -81,6 +81,11 @@ def test_composite_matches_hand_computation_and_rejects_bad_alpha():
     C, T = composite(a, c)
     assert C[0] == pytest.approx(0.5 * 1 + 0.25 * 2 + 0.25 * 4)
     assert T[0] == 0.0
+    rgb = np.stack([c, 2 * c, -c], axis=-1)  # channels composite independently with the same weights
+    C3, _ = composite(a, rgb)
+    assert C3.shape == (1, 3) and np.allclose(C3[0], [C[0], 2 * C[0], -C[0]])
+    with pytest.raises(ValueError, match="shapes"):
+        composite(a, np.ones((1, 2)))
     with pytest.raises(ValueError, match="alpha"):
         composite(np.array([[1.5]]), np.array([[1.0]]))
     mids, lo, hi, dl = window_samples(np.array([2.0]), 0.5, 4)
@@ -98,21 +103,30 @@ def test_density_models_are_opacities():
     for m in adapters.DENSITY_MODELS:
         a = adapters.density_alphas(m, phi, phi + 0.01, phi - 0.01, np.full(phi.shape, 0.02), 50.0)
         assert np.all((a >= 0) & (a <= 1)), m
-    with pytest.raises(ValueError, match="density model"):
+    with pytest.raises(ValueError, match="model must be one of"):
         adapters.density_alphas("nope", phi, phi, phi, phi, 1.0)
 
 
-def test_tracer_and_dense_reference_on_the_exact_sphere():
+def test_neus_alpha_deep_inside_is_the_exact_limit():
+    """Where Φ_s(sφ) underflows (sφ < −745) the NeuS ratio is 1 − e^{s(φ_end − φ_start)}, not NaN."""
+    s = 1000.0
+    lo, hi = np.array([-10.0, -0.001]), np.array([-10.001, -0.002])
+    a = adapters.density_alphas("neus", lo, lo, hi, np.full(2, 0.001), s)
+    assert np.all(np.isfinite(a))
+    assert a[0] == pytest.approx(-np.expm1(s * (hi[0] - lo[0])), rel=1e-12)
+    sig = lambda z: 1 / (1 + np.exp(-z))  # noqa: E731 - moderate arguments: the plain formula is exact enough
+    assert a[1] == pytest.approx((sig(s * lo[1]) - sig(s * hi[1])) / sig(s * lo[1]), rel=1e-12)
+
+
+def test_tracer_on_the_exact_sphere():
     s = Sphere()
     rng = np.random.default_rng(1)
     d = rng.normal(size=(50, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = -3 * d + 0.5 * rng.uniform(-1, 1, (50, 3))
+    o = -3 * d + 1.5 * rng.uniform(-1, 1, (50, 3))  # some rays miss
     exact = s.first_hit(o, d)
-    dense = dense_first_hit(s.value, o, d, t_max=10.0)
     hit = np.isfinite(exact)
-    assert np.array_equal(hit, np.isfinite(dense))
-    assert np.max(np.abs(dense[hit] - exact[hit])) < 1e-12
+    assert hit.any() and not hit.all()
     r = sphere_trace_signed(s.value, o, d, tol=1e-12)
     assert np.all(r.converged[hit]) and np.max(np.abs(r.t[hit] - exact[hit])) < 1e-9
     assert not np.any(r.converged[~hit])
@@ -139,12 +153,36 @@ def test_laplacian_stencil_on_a_quadratic():
     assert np.allclose(central_laplacian(lambda p: np.sum(p * p, -1), x), 6.0, atol=1e-6)
 
 
-def test_mlp_gradient_matches_finite_differences():
-    net = adapters.mlp_field(3)
-    x = np.random.default_rng(3).uniform(-1, 1, (20, 3))
-    from bench.claims.stats import central_gradient
+def test_lecture_lipschitz_formula_is_the_reference_bound():
+    """The claim's Π‖W_i‖₂ (sup|σ'| = 1) equals the reference MLP's bound, and bounds its gradient."""
+    from bench.claims.c04_lipschitz import lipschitz_bound
 
-    assert np.allclose(net.grad(x), central_gradient(net.value, x, 1e-6), atol=1e-7)
+    net = MLPField()
+    L = lipschitz_bound(net)
+    assert L == pytest.approx(net.lipschitz_bound, rel=1e-14)
+    x = np.random.default_rng(3).uniform(-2, 2, (2000, 3))
+    assert np.max(np.linalg.norm(net.jet(x)[1], axis=1)) <= L
+
+
+def test_csg_distance_bracket_contains_the_closed_form_and_catches_a_wrong_distance():
+    """On the sphere pair (closed-form CSG distance known) the certified bracket contains the truth
+    everywhere and pins it where it decides; a planted wrong distance (0.9×) falls outside it."""
+    from bench.claims.c01_boolean import OPS, sdf_bracket, sphere_pair
+
+    a, b = sphere_pair()
+    x = np.random.default_rng(5).uniform(-2.2, 2.2, (20_000, 3))
+    for op in OPS:
+        sdf, inside = exact_csg_sdf(x, op)
+        lo, up, ins = sdf_bracket(op, a, b, x)
+        d = np.abs(sdf)
+        ok = d > 1e-9
+        assert np.array_equal(ins[ok], inside[ok]), op
+        assert np.all(lo <= d + 1e-12) and np.all(d <= up + 1e-12), op
+        decided = up - lo <= 1e-12 * (1 + lo)
+        assert decided.mean() > 0.5, op
+        assert np.all(np.abs(d[decided] - lo[decided]) <= 1e-12), op
+        wrong = 0.9 * d
+        assert np.any(((wrong < lo - 1e-12) | (wrong > up + 1e-12)) & ok), op
 
 
 def test_ledger_covers_the_lecture_claims():
@@ -179,11 +217,11 @@ def test_mesh_distance_instrument_detects_a_wrong_surface():
     pytest.importorskip("igl")
     from bench.claims.c12_marching_cubes import mesh_distances
 
-    sph = adapters.sphere_shape()
+    sph = Sphere()
     rng = np.random.default_rng(4)
-    h, haus, cham, _ = mesh_distances(sph, sph.f, "sphere", 32, rng, n_surface=2000)
+    h, haus, cham, _ = mesh_distances(sph, sph.value, "sphere", 32, rng, n_surface=2000)
     assert haus < h**2 and cham < haus
-    wrong = adapters.sphere_shape(1.05)
+    wrong = Sphere(radius=1.05)
     # distances measured against the wrong exact surface (mesh → surface part) reveal the offset
-    _, haus_w, _, _ = mesh_distances(sph, wrong.f, "sphere", 32, rng, n_surface=2000)
+    _, haus_w, _, _ = mesh_distances(sph, wrong.value, "sphere", 32, rng, n_surface=2000)
     assert haus_w > 0.04

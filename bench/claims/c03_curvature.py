@@ -1,7 +1,7 @@
 """Claim 3: "the mean curvature of the interface is Δφ = φxx + φyy + φzz" (lecture, "Properties -
 Mean Curvature").
 
-Convention (isobench, ``reference.scene.Field.curvatures_exact``): principal curvatures κ1, κ2 with
+Convention (isobench, ``reference.curvature``; truth from the reference scenes' ``curvatures_exact``): principal curvatures κ1, κ2 with
 the outward normal, a sphere of radius r has κ = +1/r.  Mean curvature H = (κ1 + κ2)/2; the level-set
 literature (Osher & Fedkiw, *Level Set Methods*, §1.4) calls κ = ∇·(∇φ/|∇φ|) = κ1 + κ2 "the
 curvature".  For an exact SDF (|∇φ| = 1) ∇·(∇φ/|∇φ|) = Δφ, so on its zero set Δφ = κ1 + κ2 = 2H; for
@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import adapters
-from .c02_normals import _surface_points
+from reference import AlgebraicSphere, Scaled, Sphere
+
+from .adapters import curvature_sum, label
+from .c02_normals import _surface_points, torus
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
 from .stats import central_gradient, central_laplacian
@@ -54,31 +56,33 @@ def _div_normal(f, x, h=1e-4):
 def check_laplacian(ctx):
     rng = np.random.default_rng(ctx.seed + 3)
     n = 500 if ctx.quick else 20_000
-    sph = adapters.sphere_shape()
+    sph = Sphere()
     cases = [
         ("sphere", sph, 1.0),
-        ("sphere", adapters.sphere_shape(0.5), 0.5),
-        ("torus", adapters.torus_shape(), 1.0),
-        ("sphere", adapters.algebraic_sphere_shape(), 1.0),
-        ("sphere", adapters.scaled_shape(sph, 2.0), 1.0),
+        ("sphere", Sphere(radius=0.5), 0.5),
+        ("torus", torus(), 1.0),
+        ("sphere", AlgebraicSphere(), 1.0),
+        ("sphere", Scaled(sph, 2.0), 1.0),
     ]
     trials, key, pts = [], {}, []
     for fam, shape, scale in cases:
         x = scale * _surface_points(fam, n, rng)
-        lap = central_laplacian(shape.f, x, H_LAP)
-        ksum = shape.curv_sum(x)
+        lap = central_laplacian(shape.value, x, H_LAP)
+        ksum = curvature_sum(shape, x)
+        name = label(shape)
         for conv, truth in (("sum κ1+κ2", ksum), ("mean (κ1+κ2)/2", ksum / 2)):
             err = float(np.max(np.abs(lap - truth) / np.maximum(1.0, np.abs(truth))))
-            trials.append(Trial(f"{shape.name}, curvature read as {conv}", err <= RTOL,
+            trials.append(Trial(f"{name}, curvature read as {conv}", err <= RTOL,
                                 {"max_rel_err": err, "lap_median": float(np.median(lap)),
                                  "truth_median": float(np.median(truth))}))
-        key[f"{shape.name}: median Δφ"] = float(np.median(lap))
-        key[f"{shape.name}: median κ1+κ2"] = float(np.median(ksum))
-        pts.append((shape.name, ksum, lap))
+        key[f"{name}: median Δφ"] = float(np.median(lap))
+        key[f"{name}: median κ1+κ2"] = float(np.median(ksum))
+        pts.append((name, ksum, lap))
     # the formula that does hold for any φ with ∇φ ≠ 0: κ1 + κ2 = ∇·(∇φ/|∇φ|)
-    alg = adapters.algebraic_sphere_shape()
+    alg = AlgebraicSphere()
     x = _surface_points("sphere", 50, rng)
-    key["x²+y²+z²−1: max |∇·(∇φ/|∇φ|) − (κ1+κ2)|"] = float(np.max(np.abs(_div_normal(alg.f, x) - alg.curv_sum(x))))
+    key["x²+y²+z²−1: max |∇·(∇φ/|∇φ|) − (κ1+κ2)|"] = float(
+        np.max(np.abs(_div_normal(alg.value, x) - curvature_sum(alg, x))))
     key["convention"] = "κ>0 for a sphere with outward normal; H=(κ1+κ2)/2"
 
     fig, (ax,) = figure(1, 1, 6.5, 4.5)

@@ -11,14 +11,15 @@ within the step budget.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
-from . import adapters
+from reference import AlgebraicSphere, Difference, Ellipsoid, Scaled, Sphere, Union
+
+from .adapters import label
+from .c02_normals import AXES, torus
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
-from .tracing import camera_rays, dense_first_hit, sphere_trace_signed
+from .tracing import camera_rays, sphere_trace_signed
 
 TOL = 1e-10
 R_DOMAIN = 4.0  # every ray starts within |x| ≤ 4, so L = 2·4 bounds |∇(|x|²−1)| where it matters
@@ -33,29 +34,27 @@ def _grazing_rays(ks):
 
 
 def _cases():
-    sph = adapters.sphere_shape()
-    alg = adapters.algebraic_sphere_shape(domain_radius=R_DOMAIN)
-    ell = adapters.ellipsoid_shape()
-    a_min = 0.5
-    sA, sB = adapters.sphere_shape(0.7, (-0.4, 0, 0)), adapters.sphere_shape(0.6, (0.5, 0.2, 0))
-    union = adapters.Shape("union of two sphere SDFs (distance bound)", lambda x: np.minimum(sA.f(x), sB.f(x)), False,
-                           1.0, first_hit=lambda o, d: np.minimum(sA.first_hit(o, d), sB.first_hit(o, d)))
-    outer = adapters.sphere_shape(1.01)
-    shell = adapters.Shape("thin shell SDF ||x|−1|−0.01", lambda x: np.abs(sph.f(x)) - 0.01, True, 1.0,
-                           first_hit=outer.first_hit)
-    tor = adapters.torus_shape()
+    """(reference scene, display name, step divisor L, label); the Lipschitz steps use the scenes' own
+    stated bounds (``info.lipschitz``, valid on |x| ≤ R_DOMAIN)."""
+    sph = Sphere()
+    alg = AlgebraicSphere(domain_radius=R_DOMAIN)
+    ell = Ellipsoid(AXES, domain_radius=R_DOMAIN)
+    union = Union(Sphere((-0.4, 0, 0), 0.7), Sphere((0.5, 0.2, 0), 0.6))
+    # max(|x|−1.01, 0.99−|x|) = ||x|−1| − 0.01: a thin spherical shell, an exact SDF
+    shell = Difference(Sphere(radius=1.01), Sphere(radius=0.99))
+    la, le = alg.info.lipschitz, ell.info.lipschitz
     return [
-        (sph, 1.0, "SDF, step φ"),
-        (union, 1.0, "SDF bound, step φ"),
-        (shell, 1.0, "SDF, step φ"),
-        (tor, 1.0, "SDF, step φ"),
-        (adapters.scaled_shape(sph, 0.5), 1.0, "non-SDF 0.5·SDF, step φ (L=0.5 ≤ 1)"),
-        (adapters.scaled_shape(sph, 2.0), 1.0, "non-SDF 2·SDF, step φ (no Lipschitz step)"),
-        (adapters.scaled_shape(sph, 2.0), 2.0, "non-SDF 2·SDF, Lipschitz step φ/2"),
-        (alg, 1.0, "non-SDF |x|²−1, step φ (no Lipschitz step)"),
-        (alg, alg.lipschitz, f"non-SDF |x|²−1, Lipschitz step φ/{alg.lipschitz:g}"),
-        (ell, 1.0, "non-SDF ellipsoid quadric, step φ (no Lipschitz step)"),
-        (ell, 2 * R_DOMAIN / a_min**2, f"non-SDF ellipsoid quadric, Lipschitz step φ/{2 * R_DOMAIN / a_min**2:g}"),
+        (sph, label(sph), 1.0, "SDF, step φ"),
+        (union, "union of two sphere SDFs (distance bound)", 1.0, "SDF bound, step φ"),
+        (shell, "thin shell SDF ||x|−1|−0.01 (difference of spheres)", 1.0, "SDF, step φ"),
+        (torus(), label(torus()), 1.0, "SDF, step φ"),
+        (Scaled(sph, 0.5), label(Scaled(sph, 0.5)), 1.0, "non-SDF 0.5·SDF, step φ (L=0.5 ≤ 1)"),
+        (Scaled(sph, 2.0), label(Scaled(sph, 2.0)), 1.0, "non-SDF 2·SDF, step φ (no Lipschitz step)"),
+        (Scaled(sph, 2.0), label(Scaled(sph, 2.0)), Scaled(sph, 2.0).info.lipschitz, "non-SDF 2·SDF, Lipschitz step φ/2"),
+        (alg, label(alg), 1.0, "non-SDF |x|²−1, step φ (no Lipschitz step)"),
+        (alg, label(alg), la, f"non-SDF |x|²−1, Lipschitz step φ/{la:g}"),
+        (ell, label(ell), 1.0, "non-SDF ellipsoid quadric, step φ (no Lipschitz step)"),
+        (ell, label(ell), le, f"non-SDF ellipsoid quadric, Lipschitz step φ/{le:g}"),
     ]
 
 
@@ -77,32 +76,32 @@ def _judge(r, t_ref):
     equation="slide 'Ray marching: Sphere Tracing'",
     how_checked=f"signed steps from t=0, ε={TOL:g}; pinhole rays on SDFs (sphere, union, thin shell, torus) and "
     "non-SDFs (k·SDF, |x|²−1, ellipsoid quadric) with step φ and φ/L (L valid on |x| ≤ 4); grazing rays at "
-    "impact 1±10^-k on the sphere; exact first hits (quadratic) or dense sampling + bisection (torus, "
-    "ellipsoid); a trial holds if every ray stops at its first hit (or leaves, for a miss) within the budget",
+    "impact 1±10^-k on the sphere; exact first hits of the reference scenes (quadratic, quartic, CSG interval "
+    "algebra); a trial holds if every ray stops at its first hit (or leaves, for a miss) within the budget",
 )
 def check_tracing(ctx):
     n_side = 12 if ctx.quick else 48
     budget = 5000 if ctx.quick else 50_000
     o, d = camera_rays(n_side, eye=(0.3, 0.4, 3.0), fov_deg=50.0)
     trials, key, rows = [], {}, []
-    for shape, lip, label in _cases():
-        t_ref = shape.first_hit(o, d) if shape.first_hit is not None else dense_first_hit(shape.f, o, d, t_max=10.0)
+    for scene, name, lip, how in _cases():
+        t_ref = scene.first_hit(o, d)  # exact: closed-form roots / interval algebra of the reference
         t_ref = np.where(t_ref <= 10.0, t_ref, np.inf)
-        r = sphere_trace_signed(shape.f, o, d, lipschitz=lip, tol=TOL, max_steps=budget, t_max=10.0)
+        r = sphere_trace_signed(scene.value, o, d, lipschitz=lip, tol=TOL, max_steps=budget, t_max=10.0)
         nums = _judge(r, t_ref)
         nums["mean_steps"] = float(r.iterations.mean())
-        cond = f"{shape.name}: {label}, camera rays ({budget} steps)"
+        cond = f"{name}: {how}, camera rays ({budget} steps)"
         trials.append(Trial(cond, nums["correct"] == nums["rays"], nums))
-        key[f"{shape.name} [{label}]: correct/rays"] = f"{nums['correct']}/{nums['rays']}"
-        key[f"{shape.name} [{label}]: passed through"] = nums["passed_through"]
-        rows.append((f"{shape.name[:22]} / {label.split(',')[-1].strip()[:24]}", nums["correct"] / nums["rays"],
+        key[f"{name} [{how}]: correct/rays"] = f"{nums['correct']}/{nums['rays']}"
+        key[f"{name} [{how}]: passed through"] = nums["passed_through"]
+        rows.append((f"{name[:22]} / {how.split(',')[-1].strip()[:24]}", nums["correct"] / nums["rays"],
                      nums["mean_steps"]))
     # grazing hits and near misses on the exact sphere SDF
     ks = np.arange(2, 13)
     og, dg, b = _grazing_rays(ks)
-    sph = adapters.sphere_shape()
+    sph = Sphere()
     t_ref = sph.first_hit(og, dg)
-    r = sphere_trace_signed(sph.f, og, dg, lipschitz=1.0, tol=TOL, max_steps=budget * 4, t_max=10.0)
+    r = sphere_trace_signed(sph.value, og, dg, lipschitz=1.0, tol=TOL, max_steps=budget * 4, t_max=10.0)
     nums = _judge(r, t_ref)
     false_at = b[(~np.isfinite(t_ref)) & r.converged]
     nums["false_hit_min_miss_distance"] = float((false_at - 1).min()) if false_at.size else 0.0

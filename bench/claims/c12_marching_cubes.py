@@ -17,20 +17,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import adapters
-from .c02_normals import _surface_points
+from reference import AlgebraicSphere, Sphere
+
+from .adapters import label
+from .c02_normals import _surface_points, torus
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
 from .stats import fit_power
 
 
 def _shapes():
-    sph = adapters.sphere_shape()
+    sph, tor = Sphere(), torus()
     return [
-        ("sphere", sph, sph.f),
-        ("torus", adapters.torus_shape(), adapters.torus_shape().f),
+        ("sphere", sph, sph.value),
+        ("torus", tor, tor.value),
         # the lecture's non-SDF x²+y²+z²−1: same surface, distances from the sphere's exact SDF
-        ("sphere", adapters.algebraic_sphere_shape(), sph.f),
+        ("sphere", AlgebraicSphere(), sph.value),
     ]
 
 
@@ -41,7 +43,7 @@ def mesh_distances(shape, sdf, fam, n, rng, n_surface=20_000):
     h = 3.0 / (n - 1)
     g = -1.5 + 0.1234 * h + h * np.arange(n)
     X = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
-    vol = shape.f(X)
+    vol = shape.value(X)
     verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(h, h, h))
     verts = verts + g[0]
     tri = verts[faces]
@@ -74,13 +76,14 @@ def check_mc(ctx):
         rate_h, _ = fit_power(h, haus)
         rate_c, _ = fit_power(h, cham)
         mono = bool(np.all(np.diff(haus) < 0))
-        trials.append(Trial(shape.name, mono and rate_h > 0, {"hausdorff_rate": rate_h, "chamfer_rate": rate_c,
+        name = label(shape)
+        trials.append(Trial(name, mono and rate_h > 0, {"hausdorff_rate": rate_h, "chamfer_rate": rate_c,
                                                               "hausdorff_finest": float(haus[-1])}))
-        key[f"{shape.name}: Hausdorff rate in h"] = rate_h
-        key[f"{shape.name}: Chamfer rate in h"] = rate_c
-        key[f"{shape.name}: Hausdorff at n={ns[0]}, n={ns[-1]}"] = [float(haus[0]), float(haus[-1])]
-        key[f"{shape.name}: triangles at n={ns[-1]}"] = int(rows[-1][3])
-        curves.append((shape.name, h, haus, cham))
+        key[f"{name}: Hausdorff rate in h"] = rate_h
+        key[f"{name}: Chamfer rate in h"] = rate_c
+        key[f"{name}: Hausdorff at n={ns[0]}, n={ns[-1]}"] = [float(haus[0]), float(haus[-1])]
+        key[f"{name}: triangles at n={ns[-1]}"] = int(rows[-1][3])
+        curves.append((name, h, haus, cham))
     fig, (ax,) = figure(1, 1, 6.5, 4.5)
     for name, h, haus, cham in curves:
         line = ax.loglog(h, haus, "o-", label=f"Hausdorff, {name}")[0]

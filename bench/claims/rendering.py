@@ -4,7 +4,8 @@
 
 (the lecture's "σ(x_i) = 1 − exp(−σ_θ(x_i)δ_i)", density → occupancy).  No background term: light
 that is not absorbed contributes nothing, as in eq. (9).  This is the object of study of claims 8–10,
-so it lives here; reference/rendering.py (continuous integral) is the truth for the backends.
+so it lives here, written with the lecture's cumulative product; the continuous integral it discretises
+is ``reference.rendering.render_exact`` (claims 8 and 10 compare with it).
 """
 
 from __future__ import annotations
@@ -13,15 +14,20 @@ import numpy as np
 
 
 def composite(alpha: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(C, T_{N+1}) for opacities ``alpha`` and colours ``colour`` of shape (rays, N), front to back."""
+    """(C, T_{N+1}) for opacities ``alpha`` (rays, N) and colours ``colour`` of shape (rays, N) (scalar) or
+    (rays, N, channels) (e.g. RGB), front to back; C has shape (rays,) or (rays, channels)."""
     alpha = np.asarray(alpha, float)
-    if alpha.shape != np.shape(colour):
-        raise ValueError(f"alpha {alpha.shape} and colour {np.shape(colour)} must have the same shape (rays, N)")
+    colour = np.asarray(colour, float)
+    if colour.shape[: alpha.ndim] != alpha.shape or colour.ndim > alpha.ndim + 1:
+        raise ValueError(f"alpha {alpha.shape} and colour {colour.shape} must have shapes (rays, N) and "
+                         "(rays, N) or (rays, N, channels)")
     if np.any((alpha < 0) | (alpha > 1)):
         raise ValueError("alpha must lie in [0, 1]; clip the opacities or fix the density model")
     trans = np.cumprod(np.concatenate([np.ones(alpha.shape[:-1] + (1,)), 1.0 - alpha], axis=-1), axis=-1)
     w = trans[..., :-1] * alpha
-    return np.sum(w * colour, axis=-1), trans[..., -1]
+    if colour.ndim > alpha.ndim:
+        w = w[..., None]
+    return np.sum(w * colour, axis=alpha.ndim - 1), trans[..., -1]
 
 
 def window_samples(t_s: np.ndarray, delta: float, n: int):

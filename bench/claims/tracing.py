@@ -1,4 +1,4 @@
-"""Sphere tracing exactly as the lecture writes it, and a dense-sampling reference for first hits.
+"""Sphere tracing exactly as the lecture writes it.
 
 The tracer is the object of study of claims 4c and 5 (its step rule is varied), so it is written
 here rather than taken from a backend: t ← t + φ(o + t d)/L (signed step, the lecture's
@@ -52,38 +52,6 @@ def sphere_trace_signed(f, o, d, *, lipschitz: float = 1.0, tol: float = 1e-10, 
         t[out] = np.inf
         active[out] = False
     return TraceResult(t=t, converged=conv, t_furthest=far, iterations=iters)
-
-
-def dense_first_hit(f, o, d, *, t_min: float = 0.0, t_max: float = 10.0, h: float = 1e-3, bisect: int = 60):
-    """First sign change of φ along each ray on a grid of spacing ``h``, refined by bisection.
-
-    Error bound: the bracket after ``bisect`` halvings is h/2^bisect (≈ 1e-21 · h for 60), so the
-    depth is exact to rounding *provided* no two crossings lie within one grid cell — a pair of
-    crossings closer than h is missed (reported by the callers as the reference's limitation).
-    Returns depth per ray (inf: no sign change in [t_min, t_max]).
-    """
-    ts = np.arange(t_min, t_max + h, h)
-    n = o.shape[0]
-    out = np.full(n, np.inf)
-    chunk = max(1, 2_000_000 // ts.size)
-    for s in range(0, n, chunk):
-        oo, dd = o[s : s + chunk], d[s : s + chunk]
-        vals = f(oo[:, None, :] + ts[None, :, None] * dd[:, None, :])
-        sign = vals > 0
-        change = sign[:, :-1] != sign[:, 1:]
-        has = change.any(axis=1)
-        k = np.argmax(change, axis=1)
-        lo, hi = ts[k].copy(), ts[k + 1].copy()
-        flo = vals[np.arange(len(k)), k]
-        for _ in range(bisect):
-            mid = 0.5 * (lo + hi)
-            fm = f(oo + mid[:, None] * dd)
-            same = (fm > 0) == (flo > 0)
-            lo = np.where(same, mid, lo)
-            flo = np.where(same, fm, flo)
-            hi = np.where(same, hi, mid)
-        out[s : s + chunk] = np.where(has, 0.5 * (lo + hi), np.inf)
-    return out
 
 
 def camera_rays(n_side: int, eye=(0.3, 0.4, 3.5), fov_deg: float = 45.0):
