@@ -164,6 +164,21 @@ def test_lecture_lipschitz_formula_is_the_reference_bound():
     assert np.max(np.linalg.norm(net.jet(x)[1], axis=1)) <= L
 
 
+def test_interval_membership_tells_the_right_csg_formula_from_a_wrong_one():
+    """Signs of min(φ1, φ2) agree with the union's exact ray intervals and disagree with the intersection's."""
+    from reference import Intersection, Union
+
+    from bench.claims.c01_boolean import random_ray_points, ray_membership, torus_box_pair
+
+    a, b = torus_box_pair()
+    o, d, t, x = random_ray_points(6, 300)
+    phi = Union(a, b).value(x)
+    for node, expect_agree in ((Union(a, b), True), (Intersection(a, b), False)):
+        inside, near = ray_membership(node, o, d, t)
+        wrong = np.sum(((phi < 0) != inside) & ~near)
+        assert (wrong == 0) == expect_agree, (type(node).__name__, wrong)
+
+
 def test_csg_distance_bracket_contains_the_closed_form_and_catches_a_wrong_distance():
     """On the sphere pair (closed-form CSG distance known) the certified bracket contains the truth
     everywhere and pins it where it decides; a planted wrong distance (0.9×) falls outside it."""

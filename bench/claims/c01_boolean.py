@@ -102,27 +102,35 @@ def _fields(x):
     return {op: node.value(x) for op, node in csg_nodes(*sphere_pair()).items()}
 
 
-def _ray_points(ctx, n_rays):
-    """Points on random rays through [−2, 2]³ with their membership in each CSG region of the torus/box
-    pair, read off the nodes' exact ray intervals; ``near`` marks points within 1e-9 of a boundary."""
-    rng = np.random.default_rng(ctx.seed + 100)
+def ray_membership(node, o, d, t):
+    """Membership of the points o + t d (t: (rays, k)) in the node's region, read off its exact ray
+    intervals, and a mask of points within 1e-9 (in t) of an interval boundary."""
+    inside = np.zeros(t.shape, bool)
+    near = np.zeros(t.shape, bool)
+    for i, b in enumerate(node.ray_intervals(o, d)):
+        for lo, hi in zip(b[0::2], b[1::2]):
+            inside[i] |= (t[i] > lo) & (t[i] < hi)
+        fin = b[np.isfinite(b)]
+        if fin.size:
+            near[i] = np.min(np.abs(t[i][:, None] - fin[None, :]), axis=1) <= 1e-9
+    return inside.ravel(), near.ravel()
+
+
+def random_ray_points(seed, n_rays, k=16):
+    """Random rays through [−2, 2]³ and k random depths in [−3, 3] on each: (o, d, t, points (rays·k, 3))."""
+    rng = np.random.default_rng(seed)
     o = rng.uniform(-2.0, 2.0, (n_rays, 3))
     d = rng.normal(size=(n_rays, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    t = rng.uniform(-3.0, 3.0, (n_rays, 16))
-    x = o[:, None, :] + t[..., None] * d[:, None, :]
-    out = {}
-    for op, node in csg_nodes(*torus_box_pair()).items():
-        inside = np.zeros(t.shape, bool)
-        near = np.zeros(t.shape, bool)
-        for i, b in enumerate(node.ray_intervals(o, d)):
-            for lo, hi in zip(b[0::2], b[1::2]):
-                inside[i] |= (t[i] > lo) & (t[i] < hi)
-            fin = b[np.isfinite(b)]
-            if fin.size:
-                near[i] = np.min(np.abs(t[i][:, None] - fin[None, :]), axis=1) <= 1e-9
-        out[op] = (node.value(x.reshape(-1, 3)), inside.ravel(), near.ravel())
-    return out
+    t = rng.uniform(-3.0, 3.0, (n_rays, k))
+    return o, d, t, (o[:, None, :] + t[..., None] * d[:, None, :]).reshape(-1, 3)
+
+
+def _ray_points(ctx, n_rays):
+    """Per operation on the torus/box pair: (φ_op at points of random rays, membership from the node's
+    exact ray intervals, near-boundary mask)."""
+    o, d, t, x = random_ray_points(ctx.seed + 100, n_rays)
+    return {op: (node.value(x), *ray_membership(node, o, d, t)) for op, node in csg_nodes(*torus_box_pair()).items()}
 
 
 def sdf_bracket(op: str, a, b, x):
@@ -204,7 +212,7 @@ def check_sdf(ctx):
             err = float(np.max(np.abs(phi[m] - sdf[m]))) if m.any() else 0.0
             bound = bool(np.all(np.abs(phi[m]) <= np.abs(sdf[m]) + 1e-12))
             short = op.split()[0]
-            trials.append(Trial(f"{op} {side}", err <= 1e-12, {"max_abs_err": err, "is_distance_bound": bound}))
+            trials.append(Trial(f"two spheres: {op} {side}", err <= 1e-12, {"max_abs_err": err, "is_distance_bound": bound}))
             key[f"{short}_{side}_max_err"] = err
             key[f"{short}_{side}_bound"] = bound
     rng = np.random.default_rng(ctx.seed + 101)
