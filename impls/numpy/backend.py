@@ -19,7 +19,7 @@ class NumpyBackend(ArrayBackend):
         jit=False,
         notes=("no autodiff: derivatives are analytic where the scene provides them, else central finite differences",),
     )
-    _impl = {"sphere_trace": tracing.sphere_trace}
+    _impl = {**tracing.IMPLS}
 
     def asarray(self, a, dtype):
         return np.ascontiguousarray(a, dtype=np.dtype(dtype))

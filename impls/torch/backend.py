@@ -22,7 +22,7 @@ def _devices() -> tuple[str, ...]:
 class TorchBackend(ArrayBackend):
     lib = "torch"
     xp = xp_torch
-    _impl = {"sphere_trace": tracing.sphere_trace}
+    _impl = {**tracing.IMPLS}
 
     def __init__(self, device: str = "cpu"):
         self.capabilities = Capabilities(

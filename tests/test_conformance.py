@@ -1,0 +1,304 @@
+"""Backend conformance suite, generated from the method catalog and the capabilities table.
+
+Every registered backend (built-ins, entry points, and any ``--backend module:attr`` plug-in via
+``ISOBENCH_EXTRA_BACKENDS``) is checked, method × applicable scene, against exact answers in
+float64.  A backend's known failures come from ``Capabilities.expected_failures`` (one place,
+with reasons) and are marked ``xfail(strict=True)``.
+
+The test scenes are small :class:`reference.Field` subclasses with exact answers (until the
+reference catalog's wider scenes land): an off-centre sphere (exact SDF), a union of two
+spheres (a distance bound, not an SDF), and the lecture's algebraic sphere |x − c|² − r²
+(not an SDF: Δφ = 6 while κ1 + κ2 = 2/r).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import os
+
+import numpy as np
+import pytest
+
+from impls import METHODS, Status, registry
+from reference import Sphere
+from reference.rays import normalize, pinhole
+from reference.scene import Field, SceneInfo, norm
+
+# -- test scenes with exact answers -------------------------------------------------------------
+
+SPHERE = Sphere(center=(0.1, -0.2, 0.05), radius=0.8)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class AlgebraicSphere(Field):
+    """φ(x) = |x − c|² − r² (lecture's implicit sphere).  |∇φ| = 2|x − c| ≤ 2(R + |c|) on the ball
+    |x| ≤ R = 4: that is the Lipschitz bound stated; beyond it the sphere lies behind the ray."""
+
+    center: tuple = (0.1, -0.2, 0.05)
+    radius: float = 0.8
+    kind = "algebraic_sphere"
+
+    def own_params(self):
+        return {"center": np.array(self.center), "radius": np.array(self.radius)}
+
+    @property
+    def info(self):
+        return SceneInfo(exact_sdf=False, lipschitz=2 * (4.0 + float(np.linalg.norm(self.center))),
+                         distance_bound=False, smooth=True, exact_hits=True, exact_normals=True,
+                         exact_curvature=True, exact_hit_param_grad=True)
+
+    def _eval(self, x, xp, cursor):
+        c = cursor.take(self.own_params()["center"])
+        r = cursor.take(self.own_params()["radius"])
+        v = x - c
+        return xp.sum(v * v, axis=-1) - r * r
+
+    def _sphere(self):
+        return Sphere(center=self.center, radius=self.radius)
+
+    def first_hit(self, o, d, t_min=0.0):
+        return self._sphere().first_hit(o, d, t_min)
+
+    def normal_exact(self, x):
+        return self._sphere().normal_exact(x)
+
+    def curvatures_exact(self, x):
+        return self._sphere().curvatures_exact(x)
+
+    def laplacian_exact(self, x):
+        return np.full(np.shape(x)[:-1], 6.0)
+
+    def hit_param_grad(self, o, d, t):
+        return self._sphere().hit_param_grad(o, d, t)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SphereUnion(Field):
+    """min(φ_a, φ_b) of two spheres: a distance bound (L = 1), exact first hit from outside =
+    the smaller of the two first hits."""
+
+    a: Sphere = Sphere(center=(-0.4, 0.0, 0.0), radius=0.6)
+    b: Sphere = Sphere(center=(0.5, 0.1, 0.0), radius=0.5)
+    kind = "union"
+
+    @property
+    def children(self):
+        return (self.a, self.b)
+
+    @property
+    def info(self):
+        return SceneInfo(exact_sdf=False, lipschitz=1.0, distance_bound=True, smooth=False, exact_hits=True,
+                         exact_normals=False, exact_curvature=False, exact_hit_param_grad=False)
+
+    def _eval(self, x, xp, cursor):
+        return xp.minimum(self.a._eval(x, xp, cursor), self.b._eval(x, xp, cursor))
+
+    def first_hit(self, o, d, t_min=0.0):
+        return np.minimum(self.a.first_hit(o, d, t_min), self.b.first_hit(o, d, t_min))
+
+
+SCENES = {"sphere": SPHERE, "algebraic": AlgebraicSphere(), "union": SphereUnion()}
+
+
+def camera(n=12):
+    """n×n pinhole rays from distance 3; the corners miss every test scene."""
+    return pinhole(eye=(0.3, 0.2, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=45.0, width=n, height=n)
+
+
+# -- backends: built-ins, entry points, and plug-in specs from the environment -------------------
+
+BACKEND_IDS = registry.default_ids() + [s for s in os.environ.get("ISOBENCH_EXTRA_BACKENDS", "").split(",") if s]
+
+
+@pytest.fixture(scope="module", params=BACKEND_IDS)
+def any_backend(request):
+    b = registry.resolve(request.param)
+    if isinstance(b, registry.Unavailable):
+        lib = request.param.split(":")[0]
+        if lib in ("numpy", "torch", "jax") and importlib.util.find_spec(lib) is not None:
+            pytest.fail(f"built-in backend {request.param} is installed but failed to load: {b.reason}")
+        pytest.skip(b.reason)
+    return b
+
+
+def xfail_if_expected(request, backend, check: str):
+    """Mark the test xfail(strict) when ``backend`` lists ``check`` among its expected failures."""
+    reason = backend.capabilities.expected_failure(check)
+    if reason:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=f"{backend.id}: {reason}"))
+
+
+def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **knobs):
+    prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, t_hit=t_hit, **knobs)
+    out = prep.run()
+    backend.synchronize(out)
+    return prep.result(out)
+
+
+# -- root finders ---------------------------------------------------------------------------------
+
+ROOT_METHODS = [m for m, s in METHODS.items() if s.family == "root"]
+TIGHT = {"sphere_trace": dict(tol=1e-13, max_steps=20000), "hybrid_secant": dict(xtol=1e-13),
+         "march_bisect": dict(xtol=1e-13, step=0.01), "march_secant": dict(xtol=1e-13, step=0.01),
+         "march_newton": dict(xtol=1e-13, step=0.01)}
+
+
+def applicable(method, scene) -> bool:
+    return METHODS[method].skip_reason(scene) is None
+
+
+@pytest.mark.parametrize("scene_name", sorted(SCENES))
+@pytest.mark.parametrize("method", ROOT_METHODS)
+def test_root_depth_against_exact(any_backend, method, scene_name):
+    scene = SCENES[scene_name]
+    if not applicable(method, scene):
+        pytest.skip(METHODS[method].skip_reason(scene))
+    o, d = camera()
+    exact = scene.first_hit(o, d, 0.0)
+    hit = np.isfinite(exact)
+    assert hit.any() and (~hit).any()
+    r = run(any_backend, method, scene, o, d, **TIGHT[method])
+    assert np.all(r.status[hit] == Status.CONVERGED), r.status_counts()
+    assert np.all(r.status[~hit] == Status.MISS), r.status_counts()
+    assert np.all(np.isinf(r.t[~hit]))
+    err = np.abs(r.t[hit] - exact[hit])
+    assert err.max() <= 1e-9, f"max depth error {err.max():.3g}"
+    assert np.all(r.evals >= 1) and np.all(r.iterations >= 0)
+
+
+@pytest.mark.parametrize("method", ROOT_METHODS)
+def test_root_batched_equals_per_ray_loop(any_backend, method):
+    o, d = camera(5)
+    r = run(any_backend, method, SPHERE, o, d, **TIGHT[method])
+    for i in range(0, len(o), 3):
+        ri = run(any_backend, method, SPHERE, o[i:i + 1], d[i:i + 1], **TIGHT[method])
+        assert ri.status[0] == r.status[i] and ri.iterations[0] == r.iterations[i] and ri.evals[0] == r.evals[i]
+        np.testing.assert_allclose(ri.t[0], r.t[i], rtol=1e-14, atol=0)
+
+
+class CountingField(Field):
+    """Wraps a scene and counts the points φ is evaluated at (the ground truth for ``evals``)."""
+
+    kind = "counting"
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.points = 0
+
+    @property
+    def info(self):
+        return self.inner.info
+
+    def value(self, x, xp=np, theta=None):
+        self.points += int(np.prod(tuple(x.shape[:-1])))
+        return self.inner.value(x, xp, theta)
+
+
+@pytest.mark.parametrize("method", ROOT_METHODS)
+def test_reported_evals_equal_counted_calls(request, any_backend, method):
+    xfail_if_expected(request, any_backend, "eval_count")
+    scene = CountingField(SPHERE)
+    o, d = camera(6)
+    r = run(any_backend, method, scene, o, d, **TIGHT[method])
+    assert int(r.evals.sum()) == scene.points
+
+
+def grazing_rays():
+    """Rays tangent-ish to the sphere (impact parameter 1 ± 1e-3), plus one NaN ray."""
+    o = np.tile([[-3.0, 0.0, 0.0]], (3, 1))
+    b = np.array([0.8 * (1 - 1e-3), 0.8 * (1 + 1e-3), 0.0])
+    o[:, 1] = b - 0.2
+    o[:, 2] = 0.05
+    o[:, 0] += 0.1
+    d = np.tile([[1.0, 0.0, 0.0]], (3, 1))
+    o[2] = np.nan
+    return o, d
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # the NaN field below, on purpose
+def test_every_root_status_is_produced_on_purpose(any_backend):
+    o, d = grazing_rays()
+    seen = set()
+    r = run(any_backend, "sphere_trace", SPHERE, o, d, tol=1e-12, max_steps=5)  # budget too small
+    assert r.status[0] == Status.MAX_ITER and r.status[2] == Status.BAD_INPUT
+    seen |= set(r.status.tolist())
+    r = run(any_backend, "hybrid_secant", SPHERE, o, d, xtol=1e-12)
+    assert r.status[0] == Status.CONVERGED and r.status[1] == Status.MISS
+    seen |= set(r.status.tolist())
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class NaNField(Field):
+        kind = "nan"
+
+        @property
+        def info(self):
+            return SPHERE.info
+
+        def _eval(self, x, xp, cursor):
+            return xp.log(x[..., 0] - 100.0)  # NaN everywhere here
+
+    r = run(any_backend, "sphere_trace", NaNField(), o[:2], d[:2], tol=1e-9, max_steps=10)
+    assert np.all(r.status == Status.NON_FINITE) and np.all(np.isnan(r.t))
+    seen |= set(r.status.tolist())
+    assert {Status.CONVERGED, Status.MISS, Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT} <= seen
+
+
+def test_over_relaxation_is_safe(any_backend):
+    o, d = camera(10)
+    exact = SPHERE.first_hit(o, d, 0.0)
+    hit = np.isfinite(exact)
+    plain = run(any_backend, "sphere_trace", SPHERE, o, d, tol=1e-12, max_steps=5000, omega=1.0)
+    relaxed = run(any_backend, "sphere_trace", SPHERE, o, d, tol=1e-12, max_steps=5000, omega=1.6)
+    assert np.all(relaxed.status[hit] == Status.CONVERGED) and np.all(relaxed.status[~hit] == Status.MISS)
+    assert np.abs(relaxed.t[hit] - exact[hit]).max() <= 1e-9
+    # (not asserted: fewer evaluations; on this convex scene ω = 1.6 costs ~3% more than ω = 1)
+    assert plain.evals.sum() > 0
+
+
+def test_over_relaxation_does_not_tunnel_through_a_thin_shell(any_backend):
+    """A shell of thickness 0.02 (|φ_sphere| − 0.01): ω close to 2 would jump across it."""
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class Shell(Field):
+        kind = "shell"
+
+        @property
+        def info(self):
+            return SPHERE.info
+
+        def _eval(self, x, xp, cursor):
+            return xp.abs(norm(xp, x) - 1.0) - 0.01
+
+    o = np.array([[0.0, 0.0, 3.0]])
+    d = normalize(np.array([[0.0, 0.3, -1.0]]))
+    r = run(any_backend, "sphere_trace", Shell(), o, d, tol=1e-12, max_steps=5000, omega=1.95)
+    # exact first hit of |x| = 1.01 along the ray
+    exact = Sphere(radius=1.01).first_hit(o, d)[0]
+    assert r.status[0] == Status.CONVERGED and abs(r.t[0] - exact) <= 1e-9
+
+
+def test_jax_jitted_equals_eager():
+    b = registry.resolve("jax:cpu")
+    if isinstance(b, registry.Unavailable):
+        pytest.skip(b.reason)
+    import jax.numpy as jnp
+
+    o, d = camera(6)
+    jitted = run(b, "march_newton", SPHERE, o, d, xtol=1e-13, step=0.01)
+    from impls.jax import tracing
+
+    eager = tracing.IMPLS["march_newton"](b, SPHERE, jnp.asarray(o), jnp.asarray(d), t_min=0.0, t_max=10.0, t_hit=None,
+                                          **METHODS["march_newton"].validate(dict(xtol=1e-13, step=0.01)))
+    np.testing.assert_array_equal(np.asarray(eager["status"]), jitted.status)
+    np.testing.assert_allclose(np.asarray(eager["t"]), jitted.t, rtol=1e-14)
+
+
+def test_bad_knobs_name_the_knob(any_backend):
+    o, d = camera(2)
+    with pytest.raises(ValueError, match="omega"):
+        any_backend.prepare("sphere_trace", SPHERE, o, d, omega=2.5)
+    with pytest.raises(ValueError, match="step"):
+        any_backend.prepare("march_bisect", SPHERE, o, d, step=0.0)
+    with pytest.raises(ValueError, match="unknown knob"):
+        any_backend.prepare("march_bisect", SPHERE, o, d, tol=1e-3)
