@@ -18,7 +18,7 @@ from ..core.methods_root import ROOT_METHODS, make_root_finder
 CHUNK = 64
 
 
-def ray_eval(scene, theta=None):
+def ray_eval(backend, scene, theta=None):
     def ev(o, d, t, deriv):
         if not deriv:
             return scene.value(o + t[:, None] * d, jnp, theta), None, 1
@@ -56,7 +56,7 @@ def run_loop(alg, o, d, ev, chunk=CHUNK):
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
     alg = make_root_finder(method, scene, t_min, t_max, knobs)
-    return run_loop(alg, o, d, ray_eval(scene, theta))
+    return run_loop(alg, o, d, ray_eval(backend, scene, theta))
 
 
 def _root_impl(method):

@@ -12,7 +12,7 @@ from ..core import rootfind
 from ..core.methods_root import ROOT_METHODS, make_root_finder
 
 
-def ray_eval(scene, theta=None):
+def ray_eval(backend, scene, theta=None):
     """``ev(o, d, t, deriv) -> (φ, dφ/dt, cost)`` for numpy.
 
     numpy has no autodiff and scenes give no analytic gradient, so dφ/dt = ⟨∇φ, d⟩ is the
@@ -50,7 +50,7 @@ def run_loop(alg, o, d, ev):
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
     alg = make_root_finder(method, scene, t_min, t_max, knobs)
-    return run_loop(alg, o, d, ray_eval(scene, theta))
+    return run_loop(alg, o, d, ray_eval(backend, scene, theta))
 
 
 def _root_impl(method):
