@@ -117,7 +117,7 @@ def make_impls(grad_hess, theta_jacobian, solve, ray_eval, fori_loop=python_fori
         g, _, c1 = grad_hess(backend, scene, x, False)
         _, status = _guard(xp, status, g, d, min_cos)
         J, c2 = theta_jacobian(backend, t_of, th0)
-        out = _finish_dt(xp, status, J, t, c1 + c2 * steps + steps + 1)
+        out = _finish_dt(xp, status, J, xp.where(far, xp.full_like(t, float("inf")), t), c1 + c2 * steps + steps + 1)
         out["iterations"] = xp.full_like(out["iterations"], steps)
         return out
 

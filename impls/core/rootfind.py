@@ -179,7 +179,9 @@ class MarchRefine:
                 if self.refine == "newton":
                     c = xp.where(s["phase"] == 2, t - f / s["df"], c)
             lo, hi = xp.minimum(a, b), xp.maximum(a, b)
-            c = xp.where(xp.isfinite(c) & (c > lo) & (c < hi), c, mid)
+            # safeguard: outside the closed bracket → bisect.  (Closed: near convergence the secant
+            # step can round to the bracket end itself; that is then a converged step, not a failure.)
+            c = xp.where(xp.isfinite(c) & (c >= lo) & (c <= hi), c, mid)
         t_eval = xp.where(march, t_m, c)
         t_eval = xp.where(s["status"] == IN, t_eval, xp.zeros_like(t_eval))  # finished rays (masked drivers)
         f_new, df_new, cost = ev(o, d, t_eval, self.deriv)
@@ -196,7 +198,7 @@ class MarchRefine:
         width_ok = xp.abs(nb - na) <= self.xtol
         step_ok = (xp.abs(c - t) <= self.xtol) if self.refine != "bisect" else width_ok
         conv = (f_new == 0) | (~march & (width_ok | step_ok)) | (cross & width_ok)
-        phase = xp.where(march, xp.where(cross, 1, 0), xp.where(s["phase"] == 1, 2, 2))
+        phase = xp.where(march, xp.where(cross, 1, 0), 2)
         phase = xp.astype(phase, xp.int32)
         iters = s["iterations"] + 1
         s2 = dict(s, status=xp.astype(xp.where(miss, MISS, s["status"]), xp.int32))

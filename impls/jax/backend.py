@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 
 from ..base import ArrayBackend  # noqa: E402
 from ..protocol import Capabilities  # noqa: E402
-from . import gradients, param_grad, tracing  # noqa: E402
+from . import gradients, param_grad, rendering, tracing  # noqa: E402
 
 
 def _devices() -> tuple[str, ...]:
@@ -33,7 +33,7 @@ def _devices() -> tuple[str, ...]:
 class JaxBackend(ArrayBackend):
     lib = "jax"
     xp = jnp
-    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS}
+    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 
     def __init__(self, device: str = "cpu"):
         self.capabilities = Capabilities(

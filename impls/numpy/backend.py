@@ -6,7 +6,7 @@ import numpy as np
 
 from ..base import ArrayBackend
 from ..protocol import Capabilities
-from . import gradients, param_grad, tracing
+from . import gradients, param_grad, rendering, tracing
 
 
 class NumpyBackend(ArrayBackend):
@@ -19,7 +19,7 @@ class NumpyBackend(ArrayBackend):
         jit=False,
         notes=("no autodiff: derivatives are analytic where the scene provides them, else central finite differences",),
     )
-    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS}
+    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 
     def asarray(self, a, dtype):
         return np.ascontiguousarray(a, dtype=np.dtype(dtype))

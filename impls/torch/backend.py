@@ -8,7 +8,7 @@ import torch
 
 from ..base import ArrayBackend
 from ..protocol import Capabilities
-from . import gradients, param_grad, tracing
+from . import gradients, param_grad, rendering, tracing
 
 
 def _devices() -> tuple[str, ...]:
@@ -22,7 +22,7 @@ def _devices() -> tuple[str, ...]:
 class TorchBackend(ArrayBackend):
     lib = "torch"
     xp = xp_torch
-    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS}
+    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 
     def __init__(self, device: str = "cpu"):
         self.capabilities = Capabilities(
