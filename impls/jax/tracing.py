@@ -29,10 +29,10 @@ def ray_eval(backend, scene, theta=None):
 
 
 def run_loop(alg, o, d, ev, chunk=CHUNK):
-    """Run ``alg`` per chunk of rays (``lax.map`` of ``lax.while_loop``); returns the final state."""
+    """Run ``alg`` per chunk of rays (``lax.map`` of ``lax.while_loop``); returns the per-ray outputs."""
     n = o.shape[0]
     if n == 0:
-        return alg.init(jnp, o, d, ev)
+        return rootfind.outputs(alg.init(jnp, o, d, ev))
     chunk = min(chunk, n)
     pad = (-n) % chunk
     if pad:  # pad with copies of the first ray; their results are dropped
@@ -50,7 +50,7 @@ def run_loop(alg, o, d, ev, chunk=CHUNK):
 
         return lax.while_loop(lambda s: jnp.any(s["status"] == rootfind.IN), body, s)
 
-    out = lax.map(one, (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
+    out = lax.map(lambda a: rootfind.outputs(one(a)), (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
     return {k: v.reshape(-1)[:n] for k, v in out.items()}
 
 
@@ -61,7 +61,7 @@ def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
 
 def _root_impl(method):
     def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-        return rootfind.outputs(solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs))
+        return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
 
     impl.__name__ = method
     impl.__doc__ = f"{method} in jax (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."

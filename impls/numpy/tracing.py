@@ -34,28 +34,45 @@ def ray_eval(backend, scene, theta=None):
     return ev
 
 
-def run_loop(alg, o, d, ev):
-    """Run ``alg`` to completion, stepping only the rays still IN_PROGRESS (compaction)."""
-    # copies: init may alias one array under several names, and the scatter below is in place
-    s = {k: np.array(v, copy=True) for k, v in alg.init(np, o, d, ev).items()}
+def run_loop(alg, o, d, ev, slack=0.0):
+    """Run ``alg`` to completion on the active set; returns the per-ray outputs.
+
+    The state is kept compacted to the active rays (not gathered from and scattered back to
+    full-size arrays each step); a ray's outputs are written out the step it finishes.  With
+    ``slack`` > 0 the set is re-compacted only once more than that fraction has finished —
+    less copying, but finished rays are then stepped (φ evaluated) without being counted in
+    ``evals``, so the default 0 keeps ``evals`` equal to the evaluations made.
+    """
+    s = alg.init(np, o, d, ev)
+    out = {k: np.array(s[k], copy=True) for k in rootfind.STATE_OUT}
     idx = np.flatnonzero(s["status"] == rootfind.IN)
+    sub = {k: v[idx] for k, v in s.items()}
+    oo, dd = o[idx], d[idx]
+    live = np.ones(idx.size, dtype=bool)
     while idx.size:
-        sub = {k: v[idx] for k, v in s.items()}
-        new = alg.step(np, sub, o[idx], d[idx], ev)
-        for k, v in new.items():
-            s[k][idx] = v
-        idx = idx[new["status"] == rootfind.IN]
-    return s
+        # finished-but-not-yet-dropped rays may step from t = inf/NaN: harmless, and silenced
+        with np.errstate(invalid="ignore", over="ignore"):
+            sub = alg.step(np, sub, oo, dd, ev)
+        done = live & (sub["status"] != rootfind.IN)
+        if done.any():
+            for k in rootfind.STATE_OUT:
+                out[k][idx[done]] = sub[k][done]
+            live &= ~done
+            if live.sum() < (1 - slack) * live.size:
+                idx, oo, dd = idx[live], oo[live], dd[live]
+                sub = {k: v[live] for k, v in sub.items()}
+                live = np.ones(idx.size, dtype=bool)
+    return out
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
     alg = make_root_finder(method, scene, t_min, t_max, knobs)
-    return run_loop(alg, o, d, ray_eval(backend, scene, theta))
+    return run_loop(alg, o, d, ray_eval(backend, scene, theta))  # the outputs of rootfind.STATE_OUT
 
 
 def _root_impl(method):
     def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-        return rootfind.outputs(solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs))
+        return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
 
     impl.__name__ = method
     impl.__doc__ = f"{method} on numpy (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."

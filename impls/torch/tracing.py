@@ -25,19 +25,32 @@ def ray_eval(backend, scene, theta=None):
     return ev
 
 
-def run_loop(backend, alg, o, d, ev):
+def run_loop(backend, alg, o, d, ev, slack=0.0):
+    """Active-set loop with lazy re-compaction; see ``impls/numpy/tracing.py:run_loop``."""
     xp = backend.xp
     with torch.no_grad():
-        # clones: init may alias one tensor under several names, and the scatter below is in place
-        s = {k: v.clone() for k, v in alg.init(xp, o, d, ev).items()}
+        s = alg.init(xp, o, d, ev)
+        out = {k: s[k].clone() for k in rootfind.STATE_OUT}
         idx = torch.nonzero(s["status"] == rootfind.IN).flatten()
-        while idx.numel():
-            sub = {k: v[idx] for k, v in s.items()}
-            new = alg.step(xp, sub, o[idx], d[idx], ev)
-            for k, v in new.items():
-                s[k][idx] = v
-            idx = idx[new["status"] == rootfind.IN]
-    return s
+        sub = {k: v[idx] for k, v in s.items()}
+        oo, dd = o[idx], d[idx]
+        live = torch.ones(idx.numel(), dtype=torch.bool, device=o.device)
+        n_live = idx.numel()
+        while n_live:
+            sub = alg.step(xp, sub, oo, dd, ev)
+            done = live & (sub["status"] != rootfind.IN)
+            di = torch.nonzero(done).flatten()
+            if di.numel():
+                for k in rootfind.STATE_OUT:
+                    out[k][idx[di]] = sub[k][di]
+                live &= ~done
+                n_live -= di.numel()
+                if n_live < (1 - slack) * live.numel():
+                    keep = torch.nonzero(live).flatten()
+                    idx, oo, dd = idx[keep], oo[keep], dd[keep]
+                    sub = {k: v[keep] for k, v in sub.items()}
+                    live = torch.ones(keep.numel(), dtype=torch.bool, device=o.device)
+    return out
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
@@ -47,7 +60,7 @@ def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
 
 def _root_impl(method):
     def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-        return rootfind.outputs(solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs))
+        return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
 
     impl.__name__ = method
     impl.__doc__ = f"{method} on torch (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."
