@@ -98,6 +98,23 @@ class SphereUnion(Field):
         return np.minimum(self.a.first_hit(o, d, t_min), self.b.first_hit(o, d, t_min))
 
 
+class LambdaField(Field):
+    """A parameter-free field φ(x) = fn(x, xp) with the sphere's stated properties (L = 1): a test
+    double for fields that are odd on purpose (NaN everywhere, a thin shell)."""
+
+    kind = "lambda"
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    @property
+    def info(self):
+        return SPHERE.info
+
+    def _eval(self, x, xp, cursor):
+        return self.fn(x, xp)
+
+
 SCENES = {"sphere": SPHERE, "algebraic": AlgebraicSphere(), "union": SphereUnion()}
 
 
@@ -227,18 +244,8 @@ def test_every_root_status_is_produced_on_purpose(any_backend):
     assert r.status[0] == Status.CONVERGED and r.status[1] == Status.MISS
     seen |= set(r.status.tolist())
 
-    @dataclasses.dataclass(frozen=True, eq=False)
-    class NaNField(Field):
-        kind = "nan"
-
-        @property
-        def info(self):
-            return SPHERE.info
-
-        def _eval(self, x, xp, cursor):
-            return xp.log(x[..., 0] - 100.0)  # NaN everywhere here
-
-    r = run(any_backend, "sphere_trace", NaNField(), o[:2], d[:2], tol=1e-9, max_steps=10)
+    nan_field = LambdaField(lambda x, xp: xp.log(x[..., 0] - 100.0))  # NaN everywhere here
+    r = run(any_backend, "sphere_trace", nan_field, o[:2], d[:2], tol=1e-9, max_steps=10)
     assert np.all(r.status == Status.NON_FINITE) and np.all(np.isnan(r.t))
     seen |= set(r.status.tolist())
     assert {Status.CONVERGED, Status.MISS, Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT} <= seen
@@ -259,20 +266,10 @@ def test_over_relaxation_is_safe(any_backend):
 def test_over_relaxation_does_not_tunnel_through_a_thin_shell(any_backend):
     """A shell of thickness 0.02 (|φ_sphere| − 0.01): ω close to 2 would jump across it."""
 
-    @dataclasses.dataclass(frozen=True, eq=False)
-    class Shell(Field):
-        kind = "shell"
-
-        @property
-        def info(self):
-            return SPHERE.info
-
-        def _eval(self, x, xp, cursor):
-            return xp.abs(norm(xp, x) - 1.0) - 0.01
-
+    shell = LambdaField(lambda x, xp: xp.abs(norm(xp, x) - 1.0) - 0.01)
     o = np.array([[0.0, 0.0, 3.0]])
     d = normalize(np.array([[0.0, 0.3, -1.0]]))
-    r = run(any_backend, "sphere_trace", Shell(), o, d, tol=1e-12, max_steps=5000, omega=1.95)
+    r = run(any_backend, "sphere_trace", shell, o, d, tol=1e-12, max_steps=5000, omega=1.95)
     # exact first hit of |x| = 1.01 along the ray
     exact = Sphere(radius=1.01).first_hit(o, d)[0]
     assert r.status[0] == Status.CONVERGED and abs(r.t[0] - exact) <= 1e-9

@@ -27,3 +27,17 @@ def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict
 
 
 ROOT_METHODS = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton")
+
+
+def root_impls(solve, lib: str) -> dict:
+    """``{method: impl}`` for every root method, each a thin call of the backend's ``solve``."""
+
+    def bind(method):
+        def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+            return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
+
+        impl.__name__ = method
+        impl.__doc__ = f"{method} on {lib} (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."
+        return impl
+
+    return {m: bind(m) for m in ROOT_METHODS}

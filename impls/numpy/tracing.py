@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core import rootfind
-from ..core.methods_root import ROOT_METHODS, make_root_finder
+from ..core.methods_root import make_root_finder, root_impls
 
 
 def ray_eval(backend, scene, theta=None):
@@ -70,14 +70,5 @@ def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
     return run_loop(alg, o, d, ray_eval(backend, scene, theta))  # the outputs of rootfind.STATE_OUT
 
 
-def _root_impl(method):
-    def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-        return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
-
-    impl.__name__ = method
-    impl.__doc__ = f"{method} on numpy (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."
-    return impl
-
-
-IMPLS = {m: _root_impl(m) for m in ROOT_METHODS}
+IMPLS = root_impls(solve, "numpy")
 sphere_trace = IMPLS["sphere_trace"]
