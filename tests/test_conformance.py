@@ -513,3 +513,24 @@ def test_every_method_agrees_with_numpy(any_backend, method):
     assert set(a.outputs) == set(b.outputs) == set(METHODS[method].outputs)
     for k in a.outputs:
         np.testing.assert_allclose(b.outputs[k], a.outputs[k], rtol=0, atol=1e-6, err_msg=k)
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_runs_in_float32(any_backend, method):
+    """float32 is a stress dtype: every method runs, returns every output and a valid status, and
+    hits are where float64 puts them to float32 accuracy."""
+    o, d, t, hit, x = hits(SPHERE, 4)
+    kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
+    if METHODS[method].family == "root":
+        kw.update({k: v for k, v in {"tol": 1e-5, "xtol": 1e-5}.items() if k in {kn.name for kn in METHODS[method].knobs}})
+    prep = any_backend.prepare(method, SPHERE, o, d, dtype="float32", **kw)
+    r = prep.result(prep.run())
+    assert set(r.outputs) == set(METHODS[method].outputs)
+    assert set(np.unique(r.status)) <= {int(s) for s in Status if s != Status.IN_PROGRESS}
+    assert not np.any(np.isnan(r.t) & (r.status == Status.CONVERGED))
+    if METHODS[method].family == "root":
+        assert np.all((r.status == Status.CONVERGED) == hit)
+        # |φ| ≤ tol bounds the depth error only by tol/|cos| (grazing); bracketing bounds it by xtol
+        cos = np.abs(np.einsum("ij,ij->i", SPHERE.normal_exact(x[hit]), d[hit]))
+        bound = (1e-5 / cos if method == "sphere_trace" else 1e-5) + 1e-5
+        assert np.all(np.abs(r.t[hit] - t[hit]) <= bound)
