@@ -17,7 +17,10 @@ class NumpyBackend(ArrayBackend):
         devices=("cpu",),
         autodiff=None,
         jit=False,
-        notes=("no autodiff: derivatives are analytic where the scene provides them, else central finite differences",),
+        notes=("no autodiff (scenes provide no analytic gradient yet): every derivative is a central difference — "
+               "dφ/dt and ∇φ with h = ε^(1/3)·max(1,|·|) (≈1e-10 relative), the Hessian with h = ε^(1/4)·max(1,|x|) "
+               "(≈1e-8), ∂φ/∂θ and the IDR/unrolled Jacobians in θ with h = ε^(1/3)·max(1,|θ_i|)",
+               "active-set loops: only rays still iterating are evaluated; early-terminated volume rays are dropped"),
     )
     _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 

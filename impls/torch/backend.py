@@ -30,7 +30,11 @@ class TorchBackend(ArrayBackend):
             devices=_devices(),
             autodiff="both",
             jit=False,
-            notes=("eager; torch.compile is not used for timing",),
+            notes=("eager; torch.compile is not used for timing",
+                   "active-set loops (one host sync per iteration); dφ/dt by torch.func.jvp, ∇φ and the Hessian by "
+                   "double backward, θ-Jacobians by torch.func.jacfwd",
+                   "on a loaded 2-core machine torch's intra-op thread pool oversubscribes: set torch.set_num_threads(1) "
+                   "(or OMP_NUM_THREADS=1) for timings — measured 40× slower otherwise"),
         )
         super().__init__(device)
         self.torch_device = torch.device(device)
