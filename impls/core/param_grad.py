@@ -64,7 +64,7 @@ def idr_depth(xp, scene, x, t_hit, gd, theta):
 def unrolled_depth(xp, scene, o, d, t_min, steps, theta, fori_loop=None):
     """t after ``steps`` differentiable sphere-tracing steps t ← t + φ(o + t d; θ)/L (eq. 16)."""
     inv_lip = 1.0 / float(scene.info.lipschitz)
-    t = xp.full((o.shape[0],), t_min, dtype=o.dtype)
+    t = xp.full_like(o[:, 0], t_min)
     return (fori_loop or python_fori)(0, steps, lambda _, t: t + scene.value(o + t[:, None] * d, xp, theta) * inv_lip, t)
 
 
@@ -143,7 +143,7 @@ def make_impls(grad_hess, theta_jacobian, solve, ray_eval, fori_loop=python_fori
                     cost += c
                 ts.append(t)
             cols.append((ts[0] - ts[1]) / (2 * hi))
-        dt = xp.stack(cols, axis=1) if cols else xp.zeros((o.shape[0], 0), dtype=o.dtype)
+        dt = xp.stack(cols, axis=1) if cols else xp.zeros_like(o[:, :0])
         out = _finish_dt(xp, status, dt, t_hit, cost)
         out["iterations"] = xp.full_like(out["iterations"], NEWTON_STEPS)
         return out

@@ -49,9 +49,7 @@ def finish(xp, status, values: dict, t_hit, cost):
     for k, v in values.items():
         mask = ok if v.ndim == 1 else xp.reshape(ok, (-1,) + (1,) * (v.ndim - 1))
         out[k] = xp.where(mask, v, xp.full_like(v, float("nan")))
-    n = status.shape[0]
-    out.update(t=t_hit, status=status, iterations=xp.zeros((n,), dtype=xp.int32),
-               evals=xp.full((n,), cost, dtype=xp.int32))
+    out.update(t=t_hit, status=status, iterations=xp.zeros_like(status), evals=xp.full_like(status, cost))
     return out
 
 

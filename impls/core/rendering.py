@@ -108,8 +108,8 @@ def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs):
     """(edges (n, N + 1), sample points (n, N), status) for the samplers that fix bins up front."""
     n = o.shape[0]
     status = xp.astype(xp.where(bad_rays(xp, o, d), BAD, CONV), xp.int32)
-    t0 = xp.full((n,), t_min, dtype=o.dtype)
-    t1 = xp.full((n,), t_max, dtype=o.dtype)
+    t0 = xp.full_like(o[:, 0], t_min)
+    t1 = xp.full_like(o[:, 0], t_max)
     if sampler == "band":
         ok = xp.isfinite(t_hit)
         th = xp.where(ok, t_hit, t0)
@@ -171,8 +171,8 @@ def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, stat
         C = xp.sum(w[..., None] * rho.value(x, xp), axis=1)
         depth = xp.sum(w * pts, axis=1)
         T = xp.prod(1 - a * keep, axis=-1)
-        used = xp.zeros((n,), dtype=xp.int32)
-        evals = xp.zeros((n,), dtype=xp.int32)
+        used = xp.zeros_like(o[:, 0], dtype=xp.int32)
+        evals = xp.zeros_like(o[:, 0], dtype=xp.int32)
         for j0 in range(0, N, BLOCK):
             size = min(BLOCK, N - j0)
             on = live & (Ti[:, j0] >= threshold) if threshold > 0 else live
@@ -180,11 +180,11 @@ def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, stat
             used = used + on * size
             evals = evals + on * (2 * size + 1 if model == "neus" else size)
         return C, 1 - T, depth, used, evals
-    C = xp.zeros((n, 3), dtype=o.dtype)
-    T = xp.ones((n,), dtype=o.dtype)
-    depth = xp.zeros((n,), dtype=o.dtype)
-    used = xp.zeros((n,), dtype=xp.int32)
-    evals = xp.zeros((n,), dtype=xp.int32)
+    C = xp.zeros_like(o)
+    T = xp.ones_like(o[:, 0])
+    depth = xp.zeros_like(o[:, 0])
+    used = xp.zeros_like(o[:, 0], dtype=xp.int32)
+    evals = xp.zeros_like(o[:, 0], dtype=xp.int32)
     for j0 in range(0, N, BLOCK):
         j1 = min(j0 + BLOCK, N)
         active = live & (T >= threshold) if threshold > 0 else live

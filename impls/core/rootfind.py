@@ -84,12 +84,12 @@ class SphereTrace:
 
     def init(self, xp, o, d, ev):
         n = o.shape[0]
-        t = xp.full((n,), self.t_min, dtype=o.dtype)
+        t = xp.full_like(o[:, 0], self.t_min)
         bad = bad_rays(xp, o, d)
         f, _, cost = ev(o, d, t, False)
         s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega),
-             "status": xp.astype(xp.where(bad, BAD, IN), xp.int32), "iterations": xp.zeros((n,), dtype=xp.int32),
-             "evals": xp.full((n,), cost, dtype=xp.int32)}
+             "status": xp.astype(xp.where(bad, BAD, IN), xp.int32), "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
+             "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32)}
         status, t = _finish(xp, s, t, f, xp.abs(f) <= self.tol, s["iterations"], self.max_steps + 1)
         s.update(status=status, t=t)
         return s
@@ -151,13 +151,13 @@ class MarchRefine:
 
     def init(self, xp, o, d, ev):
         n = o.shape[0]
-        t = xp.full((n,), self.t_min, dtype=o.dtype)
+        t = xp.full_like(o[:, 0], self.t_min)
         bad = bad_rays(xp, o, d)
         f, df, cost = ev(o, d, t, self.deriv)
         zero = xp.zeros_like(t)
         s = {"t": t, "f": f, "df": zero if df is None else df, "a": t, "fa": f, "b": t, "fb": f, "p": t, "fp": f,
-             "phase": xp.zeros((n,), dtype=xp.int32), "status": xp.astype(xp.where(bad, BAD, IN), xp.int32),
-             "iterations": xp.zeros((n,), dtype=xp.int32), "evals": xp.full((n,), cost, dtype=xp.int32)}
+             "phase": xp.zeros_like(o[:, 0], dtype=xp.int32), "status": xp.astype(xp.where(bad, BAD, IN), xp.int32),
+             "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32), "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32)}
         status, t = _finish(xp, s, t, f, f == 0, s["iterations"], self.max_steps + 1)
         s.update(status=status, t=t)
         return s
