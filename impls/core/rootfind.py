@@ -43,7 +43,7 @@ def _quiet(xp):
 def _typed(xp, new: dict, old: dict) -> dict:
     """``new`` with the dtypes of ``old`` (python scalars in ``where`` may promote, e.g. to int64
     in torch; loop carries and scatter targets need fixed dtypes)."""
-    return {k: xp.astype(v, old[k].dtype) for k, v in new.items()}
+    return {k: xp.astype(v, old[k].dtype, copy=False) for k, v in new.items()}
 
 
 def _finish(xp, s, t_new, f_new, conv, iters, max_steps):
