@@ -18,6 +18,7 @@ class Knob:
     kind: type
     low: float  # inclusive lower bound
     doc: str
+    high: float = math.inf  # inclusive upper bound
 
     def check(self, method: str, value: Any) -> Any:
         try:
@@ -26,8 +27,9 @@ class Knob:
             raise ValueError(f"{method}: knob {self.name}={value!r} must be {self.kind.__name__} ({self.doc})") from None
         if self.kind is int and v != value:
             raise ValueError(f"{method}: knob {self.name}={value!r} must be an integer ({self.doc})")
-        if not (math.isfinite(v) and v >= self.low):
-            raise ValueError(f"{method}: knob {self.name}={value!r} must be finite and ≥ {self.low} ({self.doc})")
+        if not (math.isfinite(v) and self.low <= v <= self.high):
+            bounds = f"≥ {self.low}" if self.high == math.inf else f"in [{self.low}, {self.high}]"
+            raise ValueError(f"{method}: knob {self.name}={value!r} must be finite and {bounds} ({self.doc})")
         return v
 
 
@@ -67,22 +69,129 @@ class MethodSpec:
         return {k.name: k.check(self.name, knobs.get(k.name, k.default)) for k in self.knobs}
 
 
-METHODS: dict[str, MethodSpec] = {
-    m.name: m
-    for m in [
+# -- the catalog --------------------------------------------------------------------------------
+# Knob bounds are validity bounds (prepare rejects values outside them); defaults are the
+# "good" setting.  The first knob of each method is its main accuracy dial.
+
+_MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)")
+_XTOL = Knob("xtol", 1e-12, float, 0.0, "stop refining when the bracket or the last step is ≤ xtol (depth units)")
+_MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
+_REFINE_DOC = {
+    "bisect": "bisection (linear, ratio 1/2)",
+    "secant": "safeguarded secant (order ≈ 1.618)",
+    "newton": "safeguarded Newton with φ' = ⟨∇φ, d⟩ (order 2; autodiff, or central differences in numpy)",
+}
+DENSITIES = {
+    "nerf": "NeRF-style density σ = s·sigmoid(−sφ) from the field, α = 1 − exp(−σδ)",
+    "unisurf": "UNISURF occupancy as alpha, α = sigmoid(−sφ) at each sample",
+    "neus": "NeuS discrete opacity α = max((Φ_s(φ_i) − Φ_s(φ_{i+1}))/Φ_s(φ_i), 0), Φ_s = sigmoid(s·)",
+    "volsdf": "VolSDF Laplace density σ = s·Ψ(−sφ) (Ψ the Laplace CDF, β = 1/s), α = 1 − exp(−σδ)",
+}
+SAMPLERS = {
+    "uniform": "bin midpoints of N equal bins of [t_min, t_max]",
+    "stratified": "one uniform random point per bin (seeded)",
+    "band": "N equal bins of the near-surface band [t̂ − Δ, t̂ + Δ] around the given hit t̂",
+    "importance": "n_coarse uniform samples, then N more by inverse-CDF of their weights (NeRF hierarchical)",
+}
+
+
+def _specs() -> list[MethodSpec]:
+    specs = [
         MethodSpec(
             name="sphere_trace",
             family="root",
             knobs=(
                 Knob("tol", 1e-10, float, 0.0, "stop when |φ(o + t d)| ≤ tol"),
-                Knob("max_steps", 512, int, 1, "step budget per ray"),
+                _MAX_STEPS,
+                Knob("omega", 1.0, float, 1.0, "over-relaxation factor ω (Keinert et al. 2014; 1 = plain)", 1.99),
             ),
             requires=("lipschitz",),
-            description="Hart's sphere tracing t ← t + |φ|/L from t_min until |φ| ≤ tol "
-            "(lecture: 'Sphere Tracing'); L is the scene's Lipschitz bound",
+            description="Hart's sphere tracing t ← t + ω|φ|/L from t_min until |φ| ≤ tol "
+            "(lecture: 'Sphere Tracing'); L is the scene's Lipschitz bound; ω > 1 with the safe fallback",
+        ),
+        MethodSpec(
+            name="hybrid_secant",
+            family="root",
+            knobs=(_XTOL, Knob("min_step", 1e-3, float, 1e-9, "floor Δ on the sphere-tracing step"), _MAX_STEPS),
+            requires=("lipschitz",),
+            description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, "
+            "then safeguarded secant on the bracket",
         ),
     ]
-}
+    for refine, doc in _REFINE_DOC.items():
+        specs.append(MethodSpec(
+            name=f"march_{refine}",
+            family="root",
+            knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)"),
+                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps")),
+            requires=(),
+            description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
+        ))
+    specs += [
+        MethodSpec(
+            name="normal", family="gradient", knobs=(), requires=("smooth",), needs_t_hit=True,
+            outputs=("normal",),
+            description="unit normal n = ∇φ/|∇φ| at x = o + t_hit d (lecture 'Properties - Normal')",
+        ),
+        MethodSpec(
+            name="curvature", family="gradient", knobs=(), requires=("smooth",), needs_t_hit=True,
+            outputs=("curvature_laplacian", "curvature_divergence", "gaussian_curvature", "normal"),
+            description="Δφ = tr H (lecture's 'mean curvature'), ∇·(∇φ/|∇φ|) = (tr H − nᵀHn)/|∇φ| "
+            "(= κ1 + κ2 for any φ), Gaussian K = ∇φᵀ adj(H) ∇φ / |∇φ|⁴ (Goldman 2005)",
+        ),
+        MethodSpec(
+            name="dt_implicit", family="param_grad", knobs=(_MIN_COS,), requires=("smooth",), needs_t_hit=True,
+            outputs=("dt_dtheta",),
+            description="implicit differentiation dt/dθ = −∂φ/∂θ / ⟨∇φ, d⟩ at the hit (lecture eq. 7–8)",
+        ),
+        MethodSpec(
+            name="dt_idr", family="param_grad", knobs=(_MIN_COS,), requires=("smooth",), needs_t_hit=True,
+            outputs=("dt_dtheta",),
+            description="IDR's forward trick t(θ) = t̂ − φ(x̂; θ)/sg(⟨∇φ(x̂; θ0), d⟩) differentiated by autodiff "
+            "(lecture, 'Forward implementation'); t is the corrected depth",
+        ),
+        MethodSpec(
+            name="dt_unrolled", family="param_grad",
+            knobs=(Knob("steps", 64, int, 1, "number of unrolled sphere-tracing steps"), _MIN_COS),
+            requires=("lipschitz", "smooth"), needs_t_hit=False, outputs=("dt_dtheta",),
+            description="differentiable sphere tracing t_{k+1} = t_k + φ(x_k; θ)/L from t_min (lecture eq. 16), "
+            "differentiated through every step; t is t_steps",
+        ),
+        MethodSpec(
+            name="dt_finite_diff", family="param_grad",
+            knobs=(Knob("h", 1e-6, float, 1e-14, "central-difference step on each θ_i (relative to max(1, |θ_i|))"),
+                   _MIN_COS),
+            requires=("smooth",), needs_t_hit=True, outputs=("dt_dtheta",),
+            description="central differences (t(θ + h e_i) − t(θ − h e_i))/2h, each t re-solved by Newton from t_hit",
+        ),
+        MethodSpec(
+            name="render_surface", family="render",
+            knobs=(_XTOL, Knob("min_step", 1e-3, float, 1e-9, "floor Δ on the sphere-tracing step"), _MAX_STEPS),
+            requires=("lipschitz",), outputs=("color",),
+            description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
+        ),
+    ]
+    for density, ddoc in DENSITIES.items():
+        for sampler, sdoc in SAMPLERS.items():
+            knobs = [Knob("n_samples", 64, int, 1, "samples per ray N"),
+                     Knob("sharpness", 50.0, float, 1e-9, "density sharpness s (1/β)"),
+                     Knob("t_threshold", 0.0, float, 0.0, "early termination when transmittance < this (0: off)", 1.0)]
+            if sampler == "band":
+                knobs.append(Knob("delta", 0.1, float, 1e-12, "half-width Δ of the band [t̂ − Δ, t̂ + Δ]"))
+            if sampler == "stratified":
+                knobs.append(Knob("seed", 0, int, 0, "seed of the stratified jitter"))
+            if sampler == "importance":
+                knobs.append(Knob("n_coarse", 32, int, 1, "coarse uniform samples that build the importance pdf"))
+            specs.append(MethodSpec(
+                name=f"volume_{density}_{sampler}", family="render", knobs=tuple(knobs), requires=(),
+                needs_t_hit=sampler == "band", outputs=("color", "opacity", "samples_used", "work_saved"),
+                description=f"volume rendering by alpha compositing C = Σ T_i α_i ρ(x_i), T_i = Π_{{j<i}}(1 − α_j) "
+                f"(lecture eq. 9–10); {ddoc}; samples: {sdoc}",
+            ))
+    return specs
+
+
+METHODS: dict[str, MethodSpec] = {m.name: m for m in _specs()}
 
 
 def get_method(name: str) -> MethodSpec:

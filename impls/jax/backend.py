@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 
 from ..base import ArrayBackend  # noqa: E402
 from ..protocol import Capabilities  # noqa: E402
-from . import tracing  # noqa: E402
+from . import gradients, param_grad, rendering, tracing  # noqa: E402
 
 
 def _devices() -> tuple[str, ...]:
@@ -33,7 +33,7 @@ def _devices() -> tuple[str, ...]:
 class JaxBackend(ArrayBackend):
     lib = "jax"
     xp = jnp
-    _impl = {"sphere_trace": tracing.sphere_trace}
+    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 
     def __init__(self, device: str = "cpu"):
         self.capabilities = Capabilities(
@@ -41,7 +41,12 @@ class JaxBackend(ArrayBackend):
             devices=_devices(),
             autodiff="both",
             jit=True,
-            notes=("methods run under jax.jit; fixed-shape masked loops (lax.while_loop)",),
+            notes=("methods run under jax.jit; fixed-shape masked loops: lax.map over chunks of "
+                   f"{tracing.CHUNK} rays, each with its own lax.while_loop",),
+            expected_failures=(
+                ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
+                 "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
+            ),
         )
         super().__init__(device)
         self.jax_device = jax.devices(device)[0]

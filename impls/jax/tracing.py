@@ -1,56 +1,63 @@
 """Ray root finders in jax (mirror of ``impls/numpy/tracing.py``), jit-compatible.
 
-Fixed-shape masked updates inside ``lax.while_loop``: finished rays keep their values while
-the others iterate; the loop ends when no ray is active or the budget is spent.
+Fixed-shape masked updates: rays are split into chunks of ``CHUNK`` and ``lax.map`` runs one
+``lax.while_loop`` per chunk, so a chunk stops as soon as *its* rays are done (a single
+whole-batch loop would run every ray to the slowest ray's count).  Finished rays keep their
+values (``jnp.where`` on the status).  dφ/dt = ⟨∇φ, d⟩ by ``jax.jvp`` (one evaluation).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ..protocol import Status
+from ..core import rootfind
+from ..core.methods_root import make_root_finder, root_impls
+
+CHUNK = 64
 
 
-def sphere_trace(backend, scene, o, d, *, t_min, t_max, t_hit, tol, max_steps):
-    """Sphere tracing t ← t + |φ|/L; contract as in the numpy module."""
+def ray_eval(backend, scene, theta=None):
+    def ev(o, d, t, deriv):
+        if not deriv:
+            return scene.value(o + t[:, None] * d, jnp, theta), None, 1
+        f, df = jax.jvp(lambda tt: scene.value(o + tt[:, None] * d, jnp, theta), (t,), (jnp.ones_like(t),))
+        return f, df, 1
+
+    return ev
+
+
+def run_loop(alg, o, d, ev, chunk=CHUNK):
+    """Run ``alg`` per chunk of rays (``lax.map`` of ``lax.while_loop``); returns the per-ray outputs."""
     n = o.shape[0]
-    inv_lip = 1.0 / scene.info.lipschitz
-    IN, CONV, MISS, MAXI, NONF, BAD = (int(s) for s in (Status.IN_PROGRESS, Status.CONVERGED, Status.MISS,
-                                                         Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT))
-    bad = ~(jnp.all(jnp.isfinite(o), axis=1) & jnp.all(jnp.isfinite(d), axis=1))
-    t0 = jnp.full((n,), t_min, dtype=o.dtype)
-    status0 = jnp.where(bad, BAD, IN).astype(jnp.int32)
-    f0 = scene.value(o + t0[:, None] * d, jnp)
-    state = (t0, f0, status0, jnp.zeros(n, jnp.int32), jnp.ones(n, jnp.int32))
+    if n == 0:
+        return rootfind.outputs(alg.init(jnp, o, d, ev))
+    chunk = min(chunk, n)
+    pad = (-n) % chunk
+    if pad:  # pad with copies of the first ray; their results are dropped
+        o = jnp.concatenate([o, jnp.broadcast_to(o[:1], (pad, 3))])
+        d = jnp.concatenate([d, jnp.broadcast_to(d[:1], (pad, 3))])
 
-    def classify(t, f, status, iters):
-        active = status == IN
-        af = jnp.abs(f)
-        status = jnp.where(active & (af <= tol), CONV, status)
-        status = jnp.where(active & ~jnp.isfinite(f), NONF, status)
-        status = jnp.where((status == IN) & (iters >= max_steps), MAXI, status)
-        t = jnp.where(status == NONF, jnp.nan, t)
-        return t, status
+    def one(args):
+        oc, dc = args
+        s = alg.init(jnp, oc, dc, ev)
 
-    def cond(state):
-        t, f, status, iters, evals = state
-        _, status = classify(t, f, status, iters)
-        return jnp.any(status == IN)
+        def body(s):
+            new = alg.step(jnp, s, oc, dc, ev)
+            active = s["status"] == rootfind.IN
+            return {k: jnp.where(active, new[k], s[k]) for k in s}
 
-    def body(state):
-        t, f, status, iters, evals = state
-        t, status = classify(t, f, status, iters)
-        active = status == IN
-        t_new = jnp.where(active, t + jnp.abs(f) * inv_lip, t)
-        out = active & (t_new > t_max)
-        status = jnp.where(out, MISS, status)
-        t_new = jnp.where(out, jnp.inf, t_new)
-        stepping = active & ~out
-        f_new = scene.value(o + jnp.where(stepping, t_new, t_min)[:, None] * d, jnp)
-        f = jnp.where(stepping, f_new, f)
-        return t_new, f, status, iters + active, evals + stepping
+        return lax.while_loop(lambda s: jnp.any(s["status"] == rootfind.IN), body, s)
 
-    t, f, status, iters, evals = lax.while_loop(cond, body, state)
-    t, status = classify(t, f, status, iters)
-    return {"t": t, "status": status, "iterations": iters, "evals": evals}
+    out = lax.map(lambda a: rootfind.outputs(one(a)), (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
+    return {k: v.reshape(-1)[:n] for k, v in out.items()}
+
+
+def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
+    alg = make_root_finder(method, scene, t_min, t_max, knobs)
+    return run_loop(alg, o, d, ray_eval(backend, scene, theta))
+
+
+IMPLS = root_impls(solve, "jax")
+sphere_trace = IMPLS["sphere_trace"]

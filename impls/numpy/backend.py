@@ -6,7 +6,7 @@ import numpy as np
 
 from ..base import ArrayBackend
 from ..protocol import Capabilities
-from . import tracing
+from . import gradients, param_grad, rendering, tracing
 
 
 class NumpyBackend(ArrayBackend):
@@ -17,9 +17,12 @@ class NumpyBackend(ArrayBackend):
         devices=("cpu",),
         autodiff=None,
         jit=False,
-        notes=("no autodiff: derivatives are analytic where the scene provides them, else central finite differences",),
+        notes=("no autodiff (scenes provide no analytic gradient yet): every derivative is a central difference — "
+               "dφ/dt and ∇φ with h = ε^(1/3)·max(1,|·|) (≈1e-10 relative), the Hessian with h = ε^(1/4)·max(1,|x|) "
+               "(≈1e-8), ∂φ/∂θ and the IDR/unrolled Jacobians in θ with h = ε^(1/3)·max(1,|θ_i|)",
+               "active-set loops: only rays still iterating are evaluated; early-terminated volume rays are dropped"),
     )
-    _impl = {"sphere_trace": tracing.sphere_trace}
+    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 
     def asarray(self, a, dtype):
         return np.ascontiguousarray(a, dtype=np.dtype(dtype))

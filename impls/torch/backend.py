@@ -8,7 +8,7 @@ import torch
 
 from ..base import ArrayBackend
 from ..protocol import Capabilities
-from . import tracing
+from . import gradients, param_grad, rendering, tracing
 
 
 def _devices() -> tuple[str, ...]:
@@ -22,7 +22,7 @@ def _devices() -> tuple[str, ...]:
 class TorchBackend(ArrayBackend):
     lib = "torch"
     xp = xp_torch
-    _impl = {"sphere_trace": tracing.sphere_trace}
+    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
 
     def __init__(self, device: str = "cpu"):
         self.capabilities = Capabilities(
@@ -30,7 +30,11 @@ class TorchBackend(ArrayBackend):
             devices=_devices(),
             autodiff="both",
             jit=False,
-            notes=("eager; torch.compile is not used for timing",),
+            notes=("eager; torch.compile is not used for timing",
+                   "active-set loops (one host sync per iteration); dφ/dt by torch.func.jvp, ∇φ and the Hessian by "
+                   "double backward, θ-Jacobians by torch.func.jacfwd",
+                   "on a loaded 2-core machine torch's intra-op thread pool oversubscribes: set torch.set_num_threads(1) "
+                   "(or OMP_NUM_THREADS=1) for timings — measured 40× slower otherwise"),
         )
         super().__init__(device)
         self.torch_device = torch.device(device)

@@ -1,0 +1,43 @@
+"""Build the root-finder state machine of a ``root``-family method from its knobs."""
+
+from __future__ import annotations
+
+from .rootfind import MarchRefine, SphereTrace
+
+
+def lipschitz_step(scene) -> float:
+    lip = scene.info.lipschitz
+    if not lip:
+        raise ValueError(f"{type(scene).__name__} states no Lipschitz bound; sphere tracing needs one")
+    return 1.0 / float(lip)
+
+
+def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict):
+    """The algorithm object (``init``/``step``) of root method ``method`` with validated knobs."""
+    if method == "sphere_trace":
+        return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
+                           omega=knobs["omega"], t_min=t_min, t_max=t_max)
+    if method in ("hybrid_secant", "render_surface"):
+        return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
+                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max)
+    if method.startswith("march_"):
+        return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
+                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max)
+    raise ValueError(f"{method!r} is not a root finder")
+
+
+ROOT_METHODS = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton")
+
+
+def root_impls(solve, lib: str) -> dict:
+    """``{method: impl}`` for every root method, each a thin call of the backend's ``solve``."""
+
+    def bind(method):
+        def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+            return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
+
+        impl.__name__ = method
+        impl.__doc__ = f"{method} on {lib} (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."
+        return impl
+
+    return {m: bind(m) for m in ROOT_METHODS}

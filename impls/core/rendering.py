@@ -1,0 +1,270 @@
+"""Renderers, written once against ``xp``: surface rendering and volume rendering by alpha
+compositing (lecture eq. 9–10) with four density models and four samplers.
+
+Compositing.  A ray's samples t_1 < … < t_N lie in bins [e_{i−1}, e_i] of width δ_i; with
+opacities α_i, the weights are w_i = T_i α_i with T_i = Π_{j<i} (1 − α_j) (eq. 10) and
+C = Σ_i w_i ρ(x_i) (eq. 9); ``opacity`` = Σ w_i = 1 − T_{N+1}.  Uniform bins with midpoint
+samples make this the midpoint rule for C = ∫ T(t) σ(t) ρ(t) dt when α_i = 1 − exp(−σ_i δ_i).
+
+Density models (s = ``sharpness``; sigmoid(z) = 1/(1 + e^{−z})):
+
+* ``nerf``    σ = s·sigmoid(−sφ) (a logistic density of the field), α = 1 − exp(−σδ);
+* ``volsdf``  σ = s·Ψ(−sφ), Ψ the unit Laplace CDF (VolSDF, Yariv et al. 2021, β = 1/s);
+* ``unisurf`` α = sigmoid(−sφ(x_i)) (UNISURF, Oechsle et al. 2021: occupancy *is* alpha; not a
+  density, so there is no δ → 0 limit);
+* ``neus``    α_i = max((Φ(φ(e_{i−1})) − Φ(φ(e_i)))/Φ(φ(e_{i−1})), 0), Φ = sigmoid(s·) at the bin
+  edges (NeuS, Wang et al. 2021, eq. 13): exact per bin for the opaque density
+  ρ_NeuS = max(−(d/dt)Φ(φ)/Φ(φ), 0) where φ is monotone over the bin.
+
+Samplers: ``uniform`` (N equal bins of [t_min, t_max], midpoints), ``stratified`` (one uniform
+random point per bin, seeded numpy generator so every backend sees the same points),
+``band`` (N equal bins of [t̂ − Δ, t̂ + Δ] ∩ [t_min, ∞) around the given hit t̂; rays with no
+hit get colour 0 and status MISS), ``importance`` (NeRF hierarchical sampling: ``n_coarse``
+uniform samples, their weights (+1e-5, as NeRF) as a piecewise-constant pdf, N more samples by
+inverse CDF at u_k = (k + ½)/N, then all N + n_coarse composited, sorted, with bin edges
+halfway between neighbours).
+
+Early termination: samples are processed in blocks of ``BLOCK``; a sample contributes only
+while T_i ≥ ``t_threshold``, and a ray whose T fell below it takes no further blocks.  numpy
+and torch then evaluate nothing more for that ray (``samples_used`` counts the samples
+evaluated, ``work_saved`` = 1 − samples_used/samples planned); jax computes every block under
+masks (same colours and counts; the saving is reported, not realised).
+
+Colour ρ: ``scene.color_field`` when the scene has one (``value(x, xp) -> (..., 3)``), else
+:data:`DEFAULT_COLOR`.  Outputs ``color`` (n, 3), ``opacity``, ``samples_used``,
+``work_saved``; ``t`` is the expected depth Σ w_i t_i.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .rootfind import BAD, CONV, MISS, bad_rays
+
+BLOCK = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearColor:
+    """ρ(x) = 0.5 + k·x per channel (Lipschitz constant k per channel); the fallback colour field."""
+
+    k: float = 0.25
+
+    def value(self, x, xp):
+        return 0.5 + self.k * x
+
+
+DEFAULT_COLOR = LinearColor()
+
+
+def color_field(scene):
+    return getattr(scene, "color_field", None) or DEFAULT_COLOR
+
+
+def sigmoid(xp, z):
+    e = xp.exp(-xp.abs(z))  # overflow-free form
+    return xp.where(z >= 0, 1 / (1 + e), e / (1 + e))
+
+
+def laplace_cdf(xp, z):
+    e = 0.5 * xp.exp(-xp.abs(z))
+    return xp.where(z <= 0, e, 1 - e)
+
+
+def alpha(xp, model, phi, delta, s):
+    """Opacity per bin.  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS."""
+    if model == "nerf":
+        return -xp.expm1(-s * sigmoid(xp, -s * phi) * delta)
+    if model == "volsdf":
+        return -xp.expm1(-s * laplace_cdf(xp, -s * phi) * delta)
+    if model == "unisurf":
+        return sigmoid(xp, -s * phi)
+    if model == "neus":
+        big = sigmoid(xp, s * phi)
+        a = (big[..., :-1] - big[..., 1:]) / big[..., :-1]
+        return xp.clip(a, 0.0, 1.0)
+    raise ValueError(f"unknown density model {model!r}")
+
+
+# -- samplers ----------------------------------------------------------------------------------
+
+
+def _grid(xp, t0, t1, n):
+    """Edges (rays, n + 1) of n equal bins of [t0, t1] per ray."""
+    u = xp.asarray(np.linspace(0.0, 1.0, n + 1), dtype=t0.dtype, device=_device(t0))
+    return t0[:, None] + (t1 - t0)[:, None] * u[None, :]
+
+
+def _device(a):
+    import array_api_compat
+
+    return array_api_compat.device(a)
+
+
+def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs):
+    """(edges (n, N + 1), sample points (n, N), status) for the samplers that fix bins up front."""
+    n = o.shape[0]
+    status = xp.astype(xp.where(bad_rays(xp, o, d), BAD, CONV), xp.int32)
+    t0 = xp.full_like(o[:, 0], t_min)
+    t1 = xp.full_like(o[:, 0], t_max)
+    if sampler == "band":
+        ok = xp.isfinite(t_hit)
+        th = xp.where(ok, t_hit, t0)
+        t0 = xp.maximum(th - knobs["delta"], t0)
+        t1 = th + knobs["delta"]
+        status = xp.astype(xp.where((status == CONV) & ~ok, MISS, status), xp.int32)
+    edges = _grid(xp, t0, t1, n_samples)
+    if sampler == "stratified":
+        u = np.random.default_rng(knobs["seed"]).random((n, n_samples))
+        u = xp.asarray(u, dtype=o.dtype, device=_device(o))
+    else:
+        u = 0.5
+    pts = edges[:, :-1] + (edges[:, 1:] - edges[:, :-1]) * u
+    return edges, pts, status
+
+
+def inverse_cdf(xp, edges, weights, n_fine):
+    """n_fine samples of the piecewise-constant pdf ∝ weights on the bins ``edges`` at the
+    deterministic quantiles u_k = (k + ½)/n_fine (one-hot gather: no library-specific indexing)."""
+    w = weights + 1e-5
+    pdf = w / xp.sum(w, axis=-1, keepdims=True)
+    cdf = xp.cumulative_sum(pdf, axis=-1, include_initial=True)  # (n, Nc + 1)
+    u = xp.asarray((np.arange(n_fine) + 0.5) / n_fine, dtype=edges.dtype, device=_device(edges))
+    nc = pdf.shape[-1]
+    k = xp.sum(xp.astype(cdf[:, None, 1:-1] <= u[None, :, None], xp.int32), axis=-1)  # (n, Nf) bin index
+    onehot = xp.astype(k[..., None] == xp.arange(nc, device=_device(edges))[None, None, :], edges.dtype)
+    pick = lambda a: xp.sum(onehot * a[:, None, :], axis=-1)  # noqa: E731
+    lo, width, c0, p = pick(edges[:, :-1]), pick(edges[:, 1:] - edges[:, :-1]), pick(cdf[:, :-1]), pick(pdf)
+    return lo + xp.clip((u[None, :] - c0) / p, 0.0, 1.0) * width
+
+
+# -- compositing -------------------------------------------------------------------------------
+
+
+def _block_alpha(xp, scene, model, s, o, d, p, e):
+    """Opacities, sample points and φ evaluations per ray for samples ``p`` in bins ``e``."""
+    x = o[:, None, :] + p[..., None] * d[:, None, :]
+    if model == "neus":
+        xe = o[:, None, :] + e[..., None] * d[:, None, :]
+        return alpha(xp, model, scene.value(xe, xp), None, s), x, 2 * p.shape[1] + 1
+    return alpha(xp, model, scene.value(x, xp), e[:, 1:] - e[:, :-1], s), x, p.shape[1]
+
+
+def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, status):
+    """Front-to-back compositing with early termination (see the module docstring).
+
+    ``compact`` (numpy, torch): blocks of ``BLOCK`` samples, each evaluated only on the rays whose
+    T is still ≥ threshold.  Otherwise (jax): all samples at once under masks, with the same
+    per-sample contributions and the same counts (a block counts if T at its start is ≥ threshold).
+    """
+    n, N = pts.shape
+    rho = color_field(scene)
+    live = status == CONV
+    if not compact:
+        a, x, _ = _block_alpha(xp, scene, model, s, o, d, pts, edges)
+        Ti = xp.cumulative_prod(1 - a, axis=-1, include_initial=True)
+        keep = xp.astype(Ti[:, :-1] >= threshold, a.dtype) if threshold > 0 else xp.ones_like(a)
+        w = Ti[:, :-1] * a * keep * xp.astype(live, a.dtype)[:, None]
+        C = xp.sum(w[..., None] * rho.value(x, xp), axis=1)
+        depth = xp.sum(w * pts, axis=1)
+        T = xp.prod(1 - a * keep, axis=-1)
+        used = xp.zeros_like(o[:, 0], dtype=xp.int32)
+        evals = xp.zeros_like(o[:, 0], dtype=xp.int32)
+        for j0 in range(0, N, BLOCK):
+            size = min(BLOCK, N - j0)
+            on = live & (Ti[:, j0] >= threshold) if threshold > 0 else live
+            on = xp.astype(on, xp.int32)
+            used = used + on * size
+            evals = evals + on * (2 * size + 1 if model == "neus" else size)
+        return C, 1 - T, depth, used, evals
+    C = xp.zeros_like(o)
+    T = xp.ones_like(o[:, 0])
+    depth = xp.zeros_like(o[:, 0])
+    used = xp.zeros_like(o[:, 0], dtype=xp.int32)
+    evals = xp.zeros_like(o[:, 0], dtype=xp.int32)
+    for j0 in range(0, N, BLOCK):
+        j1 = min(j0 + BLOCK, N)
+        active = live & (T >= threshold) if threshold > 0 else live
+        idx = xp.nonzero(active)[0]
+        if idx.shape[0] == 0:
+            break
+        p = pts[idx, j0:j1]
+        a, x, cost = _block_alpha(xp, scene, model, s, o[idx], d[idx], p, edges[idx, j0:j1 + 1])
+        Ti = T[idx][:, None] * xp.cumulative_prod(1 - a, axis=-1, include_initial=True)  # (m, B + 1)
+        keep = xp.astype(Ti[:, :-1] >= threshold, a.dtype) if threshold > 0 else xp.ones_like(a)
+        w = Ti[:, :-1] * a * keep
+        C[idx] = C[idx] + xp.sum(w[..., None] * rho.value(x, xp), axis=1)
+        depth[idx] = depth[idx] + xp.sum(w * p, axis=1)
+        # T after the samples that contributed (a terminated sample leaves T unchanged)
+        T[idx] = T[idx] * xp.prod(1 - a * keep, axis=-1)
+        used[idx] = used[idx] + (j1 - j0)
+        evals[idx] = evals[idx] + cost
+    return C, 1 - T, depth, used, evals
+
+
+def make_volume_impl(model, sampler, compact):
+    """A ``volume_<model>_<sampler>`` implementation; ``compact``: drop terminated rays (numpy, torch)."""
+
+    def impl(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, sharpness, t_threshold, **knobs):
+        xp = backend.xp
+        if not math.isfinite(t_max):
+            raise ValueError("volume rendering needs a finite t_max (the far end of the sampled interval)")
+        if sampler == "importance":
+            nc = knobs["n_coarse"]
+            e0, p0, status = bins(xp, backend, "uniform", o, d, t_min, t_max, t_hit, nc, knobs)
+            o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
+            d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
+            xc = o_safe[:, None, :] + (e0 if model == "neus" else p0)[..., None] * d_safe[:, None, :]
+            a = alpha(xp, model, scene.value(xc, xp), e0[:, 1:] - e0[:, :-1], sharpness)
+            w = xp.cumulative_prod(1 - a, axis=-1, include_initial=True)[:, :-1] * a
+            fine = inverse_cdf(xp, e0, w, n_samples)
+            pts = xp.sort(xp.concat([p0, fine], axis=1), axis=1)
+            mids = 0.5 * (pts[:, 1:] + pts[:, :-1])
+            edges = xp.concat([e0[:, :1], mids, e0[:, -1:]], axis=1)
+            planned = nc + n_samples
+            coarse_cost = nc + (1 if model == "neus" else 0)
+        else:
+            edges, pts, status = bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs)
+            planned, coarse_cost = n_samples, 0
+        o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
+        d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
+        C, opacity, depth, used, evals = composite(xp, scene, o_safe, d_safe, edges, pts, model=model, s=sharpness,
+                                                   threshold=t_threshold, compact=compact, status=status)
+        ok = status == CONV
+        evals = evals + xp.astype(ok, xp.int32) * coarse_cost
+        return {"t": xp.where(ok, depth, xp.full_like(depth, math.inf)), "status": status,
+                "iterations": used, "evals": evals, "color": C, "opacity": opacity, "samples_used": used,
+                "work_saved": xp.astype(planned - used, o.dtype) / planned}
+
+    impl.__name__ = f"volume_{model}_{sampler}"
+    return impl
+
+
+def make_surface_impl(solve):
+    """``render_surface``: ρ at the first hit found by the backend's hybrid root finder; 0 on a miss."""
+
+    def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+        xp = backend.xp
+        s = solve("render_surface", backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
+        ok = s["status"] == CONV
+        t = xp.where(ok, s["t"], xp.zeros_like(s["t"]))
+        x = xp.where(xp.isfinite(o), o, xp.zeros_like(o)) + t[:, None] * xp.where(xp.isfinite(d), d, xp.zeros_like(d))
+        rgb = color_field(scene).value(x, xp)
+        color = xp.where(ok[:, None], rgb, xp.zeros_like(rgb))
+        return {"t": s["t"], "status": s["status"], "iterations": s["iterations"], "evals": s["evals"],
+                "color": color}
+
+    return render_surface
+
+
+def make_impls(solve, compact):
+    from ..methods import DENSITIES, SAMPLERS
+
+    out = {"render_surface": make_surface_impl(solve)}
+    for model in DENSITIES:
+        for sampler in SAMPLERS:
+            out[f"volume_{model}_{sampler}"] = make_volume_impl(model, sampler, compact)
+    return out
