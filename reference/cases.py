@@ -119,6 +119,20 @@ class Case:
             raise ValueError(f"case {self.id}: scene {type(self.scene).__name__} has no closed-form dt/dθ")
         return self.scene.hit_param_grad(self.origins, self.directions, self.exact_t)
 
+    def exact_colors(self, model: str, sharpness: float):
+        """The continuous volume-rendering reference of this case's rays with its colour field:
+        ``(colors (n, 3), error_bound (n,), T(t_max) (n,))`` from
+        :func:`reference.rendering.render_exact` on [max(t_min, 0), t_max]; cached per
+        (model, sharpness).  Seconds per few tens of rays: ask for it on small cases."""
+        key = (model, float(sharpness))
+        cache = self.__dict__.setdefault("_colors_cache", {})
+        if key not in cache:
+            from .rendering import render_exact
+
+            cache[key] = render_exact(self.scene, self.color_field, model, sharpness, self.origins, self.directions,
+                                      max(self.t_min, 0.0), self.t_max, return_transmittance=True)
+        return cache[key]
+
     @functools.cached_property
     def color_field(self):
         """The case's colour field ρ(x) (:class:`reference.rendering.SineColor`), with its

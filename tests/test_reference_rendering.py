@@ -130,3 +130,14 @@ def test_bad_inputs_are_named():
         R.render_exact(Plane(), ConstColor(), "nerf", 10.0, RAYS_O, RAYS_D, 0.0, np.inf)
     with pytest.raises(ValueError, match="dphi_dt"):
         R.density("neus", np.zeros(3), 1.0)
+
+
+def test_case_exact_colors_are_cached_and_match_render_exact():
+    from reference.cases import Case
+
+    case = Case(id="tmp.plane", scene=Plane(), origins=RAYS_O, directions=RAYS_D, t_min=T_MIN, t_max=T_MAX)
+    C, err, T = case.exact_colors("volsdf", S)
+    assert case.exact_colors("volsdf", S)[0] is C
+    C2, err2 = R.render_exact(Plane(), case.color_field, "volsdf", S, RAYS_O, RAYS_D, T_MIN, T_MAX)
+    np.testing.assert_array_equal(C, C2)
+    np.testing.assert_allclose(T, np.exp(-_tau_plane("volsdf", T_MAX)), atol=1e-12)
