@@ -1,7 +1,9 @@
 """``python -m bench``: run suites, compare runs, list cases and backends.
 
-    python -m bench run --suite quick [--backend numpy,jax:cpu] [--case 'sphere.*'] [--out DIR]
+    python -m bench run --suite quick [--backend numpy,jax:cpu] [--method sphere_trace] [--case 'sphere.*']
+                        [--dtype float64] [--out DIR] [--resume] [--threads 1] [--accuracy-only] [--no-claims]
     python -m bench compare BASE NEW [--timing] [--factor 1.1]
+    python -m bench claims [--out DIR] [--full]
     python -m bench cases [--tag grazing]
     python -m bench backends
     python -m bench report RUN_DIR
@@ -33,29 +35,60 @@ def _console():
     return Console(highlight=False, width=None if os.isatty(1) else 200)
 
 
+def run_claims_into(out: Path, *, quick: bool, console) -> str:
+    """Call the claims ledger (``bench.claims.run_claims``) into ``out``; never raises.  Returns
+    a one-line note for the report and the console ("" when it worked)."""
+    try:
+        from .claims import run_claims
+
+        df = run_claims(out, quick=quick)
+        n = 0 if df is None else len(df)
+        console.print(f"claims: {n} checked, ledger in {out / 'claims.csv'}")
+        return ""
+    except Exception as exc:  # the ledger is a section of the report, never a reason to crash
+        note = f"claims failed: {type(exc).__name__}: {exc}"
+        console.print(f"[yellow]{note}[/]")
+        return note
+
+
 def cmd_run(args) -> int:
+    from .environment import configure_threads
+
+    configure_threads(args.threads)  # before any array library is imported
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
     from impls import registry
 
     from . import report, runner
+    from .results import write_json
     from .suites import get_suite
     from .timing import TimingPolicy
 
     suite = get_suite(args.suite)
+    console = _console()
+    if args.resume and not args.out:
+        console.print("[red]--resume needs --out DIR: the run directory to finish[/]")
+        return 2
     ids = _split(args.backend) or registry.default_ids()
     backends = {bid: registry.resolve(bid) for bid in ids}
-    console = _console()
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(args.threads)
     for bid, b in backends.items():
         if isinstance(b, registry.Unavailable):
             console.print(f"[yellow]backend {bid} unavailable, its rows are skipped:[/] {b.reason}")
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
-    if (out / "results.parquet").exists():
-        console.print(f"[red]{out} already holds results; results are never overwritten. Pass another --out.[/]")
+    if (out / "results.parquet").exists() and not args.resume:
+        console.print(f"[red]{out} already holds results; results are never overwritten. "
+                      "Pass another --out, or --resume to finish an interrupted run.[/]")
         return 2
-    policy = TimingPolicy(min_repeats=args.min_repeats, min_time_s=args.min_time)
+    try:
+        policy = TimingPolicy(min_repeats=args.min_repeats, min_time_s=args.min_time, timeout_s=args.timeout,
+                              accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, args.min_time))
+    except ValueError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        return 2
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, disable=args.no_progress or not console.is_terminal) as prog:
         task = prog.add_task("planning", total=None)
@@ -65,20 +98,28 @@ def cmd_run(args) -> int:
 
         try:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
-                            dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress)
+                            dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
+                            resume=args.resume, env_extra={"threads": str(args.threads)})
         except ValueError as exc:
             console.print(f"[red]error:[/] {exc}")
             return 2
     env = json.loads((out / "environment.json").read_text())
+    if not args.no_claims:
+        note = run_claims_into(out, quick=suite.name == "quick", console=console)
+        env["claims"] = note or "ran"
+        write_json(out / "environment.json", env)
     report.build(df, env, out)
     summ = report.summary_table(df)
-    table = Table(title=f"isobench {suite.name} — run {run_id}")
+    table = Table(title=f"isobench {suite.name} — run {env['run_id']}")
+    from rich.markup import escape
+
     for c in summ.columns:
-        table.add_column(c, justify="left" if c in ("case", "method", "dtype", "backend", "at knob") else "right")
+        table.add_column(escape(c), justify="left" if c in ("case", "method", "quantity", "dtype", "backend", "at knob") else "right")
     for _, r in summ.iterrows():
         table.add_row(*[f"{v:.3g}" if isinstance(v, float) else str(v) for v in r])
     console.print(table)
-    n_ok, n_skip, n_fail = ((df["outcome"] == o).sum() for o in ("ok", "skipped", "failed"))
+    configs = report.config_outcomes(df)
+    n_ok, n_skip, n_fail = ((configs["outcome"] == o).sum() for o in ("ok", "skipped", "failed"))
     console.print(f"{n_ok} configurations ran, {n_skip} skipped, {n_fail} failed. Report: {out / 'report.html'}")
     return 0
 
@@ -112,6 +153,24 @@ def cmd_compare(args) -> int:
         return 1
     console.print("no regression")
     return 0
+
+
+def cmd_claims(args) -> int:
+    from .results import write_json
+    from .runner import new_run_id
+    from .environment import collect
+
+    out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
+    console = _console()
+    note = run_claims_into(out, quick=not args.full, console=console)
+    if not (out / "environment.json").exists():
+        write_json(out / "environment.json", {**collect(), "run_id": out.name, "suite": "claims"})
+    if (out / "claims.csv").exists():
+        from .report import build_from_dir
+
+        build_from_dir(out)
+        console.print(f"Report: {out / 'report.html'}")
+    return 1 if note else 0
 
 
 def cmd_cases(args) -> int:
@@ -155,7 +214,16 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--dtype", action="append", help="float64 and/or float32 (default: the suite's)")
     r.add_argument("--out", help="output directory (default: reports/<run-id>/)")
     r.add_argument("--min-time", type=float, default=0.2, help="seconds of timed calls per configuration (default 0.2)")
-    r.add_argument("--min-repeats", type=int, default=5, help="timed calls per configuration at least (default 5)")
+    r.add_argument("--max-time", type=float, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
+    r.add_argument("--min-repeats", type=int, default=5, help="timing samples per configuration at least (default 5)")
+    r.add_argument("--timeout", type=float, default=120.0, help="hard limit per configuration in seconds; past it the "
+                   "configuration is a failed 'timeout' row and the run goes on (default 120, 0: none)")
+    r.add_argument("--threads", type=int, default=1, help="threads per library (BLAS/OpenMP, torch, XLA), fixed and "
+                   "recorded (default 1)")
+    r.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
+                   "(deterministic, for baselines)")
+    r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR")
+    r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)
 
@@ -168,6 +236,11 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--timing", action="store_true", help="also fail on significant timing regressions")
     c.add_argument("--out", help="write the comparison table as csv")
     c.set_defaults(fn=cmd_compare)
+
+    cl = sub.add_parser("claims", help="check the lecture's claims; writes claims.csv, plots and a report")
+    cl.add_argument("--out", help="output directory (default: reports/claims-<run-id>/)")
+    cl.add_argument("--full", action="store_true", help="the full (slower) checks instead of the quick ones")
+    cl.set_defaults(fn=cmd_claims)
 
     k = sub.add_parser("cases", help="list the case catalog")
     k.add_argument("--case", help="glob on ids")

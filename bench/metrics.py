@@ -1,19 +1,207 @@
-"""Accuracy of a root finder's depths against the exact first hit.
+"""Accuracy of any method against the reference, generic over method families.
 
-Error per ray e = |t − t*| where t* is the exact depth; a ray that both the method and the
-reference call a miss has e = 0, a false hit or false miss has e = inf (so a max error is
-honest: it cannot hide a wrong answer).  Also reported in units of the dtype's eps relative to
-the depth: e / (eps · max(|t*|, 1)).
+Every method returns a :class:`impls.protocol.RayResult`; what it is checked against depends on
+its family (:attr:`impls.methods.MethodSpec.family`) and on the per-ray outputs it declares
+(:attr:`MethodSpec.outputs`).  Each checked *quantity* becomes one long-format result row:
+
+=====================  ================================  =========================================
+output                 quantity (unit)                   reference
+=====================  ================================  =========================================
+``t`` (family root)    ``depth`` (scene units)           exact first hit t* (``case.exact_t``)
+``normal``             ``normal_angle`` (rad)            exact unit normal N(x*) at x* = o + t* d
+``curvature_sum``,     ``<name>`` (1/scene units)        κ1 + κ2 (the lecture's "mean curvature")
+``curvature_divergence``
+``curvature_laplacian``  ``curvature_laplacian``         κ1 + κ2, only for exact SDFs (|∇φ| = 1
+                                                         makes Δφ = ∇·(∇φ/|∇φ|) = κ1 + κ2;
+                                                         elsewhere Δφ is a different quantity)
+``mean_curvature``     ``mean_curvature``                (κ1 + κ2)/2
+``gaussian_curvature`` ``gaussian_curvature`` (1/u²)     κ1 κ2
+``dt_dtheta``          ``dt_dtheta`` (units per param)   exact dt/dθ (n, P) of the hit depth
+``color``              ``color_vs_integral``             C = ∫ T σ ρ dt, ``render_exact`` with the
+                                                         method's density model and sharpness
+``color``              ``color_vs_surface``              ρ(x*), the surface colour at the hit
+=====================  ================================  =========================================
+
+Conventions (the reference's, ``reference/scene.py``): κ > 0 where the surface bends away
+from its outward normal (a sphere of radius r has κ1 = κ2 = 1/r, Δφ = 2/r).
+
+Errors per ray: e = |got − exact| for scalars, the Euclidean norm of the difference for
+vectors (dt/dθ, colour), and the angle atan2(|n × n*|, n·n*) for normals (stable at 0 and π).
+Columns per quantity: ``error_max``, ``error_p99``, ``error_median`` (absolute),
+``error_rel_max`` = max e/|exact| (|exact| floored at the dtype's smallest normal),
+``error_ulps_max`` = max e/ulp(exact) with ulp the spacing of |exact| in the run's dtype (ulp(1)
+where exact = 0), and ``error_max_eps`` = max e/(eps·max(|exact|, 1)).
+
+Honesty rules: a root finder's false hit or false miss has e = inf (a max error cannot hide a
+wrong answer); a non-finite output on a ray whose status says ``CONVERGED`` (a silent NaN) has
+e = inf; rays a method *declined* with a failure status (e.g. ``ILL_CONDITIONED`` for grazing
+dt/dθ) are left out of the error and counted in ``n_declined`` and the status histogram.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import inspect
+from typing import Callable
 
 import numpy as np
 
 from impls.protocol import RayResult, Status
 
 
+class NotApplicable(Exception):
+    """The reference has no answer for this quantity on this case (the message says why)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Quantity:
+    """One checked quantity: per-ray errors against an exact answer."""
+
+    name: str
+    unit: str
+    got: np.ndarray  # (n,) or (n, k)
+    exact: np.ndarray  # same shape
+    rays: np.ndarray  # bool (n,): rays the error is taken over
+    angle: bool = False
+
+
+# -- exact answers, from the case (preferred) or its scene -------------------------------------
+
+
+def _exact_points(case) -> tuple[np.ndarray, np.ndarray]:
+    """Exact hit points x* = o + t* d (rows for misses are NaN) and the hit mask."""
+    t = np.asarray(case.exact_t, np.float64)
+    hit = np.isfinite(t)
+    x = case.origins + np.where(hit, t, np.nan)[:, None] * case.directions
+    return x, hit
+
+
+def _from_case_or_scene(case, attr: str, scene_method: str, what: str) -> np.ndarray:
+    """``case.<attr>`` when the reference provides it, else ``scene.<scene_method>`` at the exact
+    hits; :class:`NotApplicable` when neither knows the answer."""
+    try:
+        val = getattr(case, attr)
+    except AttributeError:
+        val = None
+    except NotImplementedError as exc:
+        raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
+    if val is not None:
+        return val
+    fn = getattr(case.scene, scene_method, None)
+    if fn is None:
+        raise NotApplicable(f"no exact {what} for {case.id}: neither case.{attr} nor scene.{scene_method} exists")
+    x, hit = _exact_points(case)
+    try:
+        if scene_method == "hit_param_grad":
+            out = np.full((case.n_rays, case.scene.param_vector().size), np.nan)
+            if hit.any():
+                out[hit] = fn(case.origins[hit], case.directions[hit], case.exact_t[hit])
+            return out
+        if not hit.any():
+            raise NotApplicable(f"no ray of {case.id} hits the surface")
+        res = fn(x[hit])
+    except NotImplementedError as exc:
+        raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
+    if isinstance(res, tuple):
+        return tuple(_scatter(r, hit) for r in res)
+    return _scatter(res, hit)
+
+
+def _scatter(vals: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    vals = np.asarray(vals, np.float64)
+    out = np.full((hit.size,) + vals.shape[1:], np.nan)
+    out[hit] = vals
+    return out
+
+
+def exact_normals(case) -> np.ndarray:
+    return np.asarray(_from_case_or_scene(case, "exact_normals", "normal_exact", "normals"), np.float64)
+
+
+def exact_curvatures(case) -> tuple[np.ndarray, np.ndarray]:
+    """(κ1, κ2) per ray; accepts the reference's tuple or an (n, 2) array."""
+    k = _from_case_or_scene(case, "exact_curvatures", "curvatures_exact", "curvatures")
+    if isinstance(k, tuple):
+        return np.asarray(k[0], np.float64), np.asarray(k[1], np.float64)
+    k = np.asarray(k, np.float64)
+    if k.ndim == 2 and k.shape[1] >= 2:
+        return k[:, 0], k[:, 1]
+    raise NotApplicable(f"case.exact_curvatures of {case.id} has shape {k.shape}, expected (n, 2) or (κ1, κ2)")
+
+
+def exact_dt_dtheta(case) -> np.ndarray:
+    return np.asarray(_from_case_or_scene(case, "exact_dt_dtheta", "hit_param_grad", "dt/dθ"), np.float64)
+
+
+# -- per-ray error statistics -----------------------------------------------------------------
+
+
+def _ulp(x: np.ndarray, dtype: str) -> np.ndarray:
+    a = np.abs(x).astype(dtype)
+    a = np.where(a == 0, np.asarray(1, dtype), a)
+    return np.spacing(a).astype(np.float64)
+
+
+def _per_ray(q: Quantity) -> tuple[np.ndarray, np.ndarray]:
+    """(errors, |exact|) over ``q.rays``; non-finite output → inf."""
+    got, ex = q.got[q.rays], q.exact[q.rays]
+    if q.angle:
+        cross = np.linalg.norm(np.cross(got, ex), axis=-1)
+        dot = np.einsum("ij,ij->i", got, ex)
+        e = np.arctan2(cross, dot)
+        mag = np.ones(e.shape)
+    elif got.ndim == 2:
+        e = np.linalg.norm(got - ex, axis=1)
+        mag = np.linalg.norm(ex, axis=1)
+    else:
+        e = np.abs(got - ex)
+        mag = np.abs(ex)
+    bad = ~np.all(np.isfinite(got.reshape(got.shape[0], -1)), axis=1)
+    e = np.where(bad, np.inf, e)
+    return e, mag
+
+
+def error_stats(e: np.ndarray, mag: np.ndarray, dtype: str) -> dict:
+    """Summary columns of per-ray errors ``e`` against answers of magnitude ``mag``."""
+    if e.size == 0:
+        nan = float("nan")
+        return {"error_max": nan, "error_p99": nan, "error_median": nan, "error_max_finite": nan,
+                "error_rel_max": nan, "error_ulps_max": nan, "error_max_eps": nan, "n_checked": 0}
+    eps = float(np.finfo(dtype).eps)
+    tiny = float(np.finfo(dtype).tiny)
+    finite = e[np.isfinite(e)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.where(e == 0, 0.0, e / np.maximum(mag, tiny))
+        ulps = np.where(e == 0, 0.0, e / _ulp(mag, dtype))
+        in_eps = np.where(e == 0, 0.0, e / (eps * np.maximum(mag, 1.0)))
+    return {
+        "error_max": float(e.max()),
+        "error_p99": float(np.percentile(e, 99, method="inverted_cdf")),
+        "error_median": float(np.percentile(e, 50, method="inverted_cdf")),
+        "error_max_finite": float(finite.max()) if finite.size else float("nan"),
+        "error_rel_max": float(rel.max()),
+        "error_ulps_max": float(ulps.max()),
+        "error_max_eps": float(in_eps.max()),
+        "n_checked": int(e.size),
+    }
+
+
+def work_stats(res: RayResult) -> dict:
+    """Evaluations per ray (mean, p99, max) and the largest iteration count."""
+    ev = np.asarray(res.evals)
+    return {
+        "evals_per_ray": float(ev.mean()) if ev.size else 0.0,
+        "evals_p99": float(np.percentile(ev, 99)) if ev.size else 0.0,
+        "evals_max": int(ev.max()) if ev.size else 0,
+        "iterations_max": int(np.max(res.iterations)) if ev.size else 0,
+    }
+
+
+# -- per-family quantities --------------------------------------------------------------------
+
+
 def depth_errors(res: RayResult, exact_t: np.ndarray) -> np.ndarray:
+    """|t − t*| per ray; 0 where both call a miss, inf for a false hit or false miss."""
     exact_hit = np.isfinite(exact_t)
     got_hit = (res.status == Status.CONVERGED) & np.isfinite(res.t)
     e = np.full(exact_t.shape, np.inf)
@@ -23,23 +211,184 @@ def depth_errors(res: RayResult, exact_t: np.ndarray) -> np.ndarray:
     return e
 
 
-def summarize(res: RayResult, exact_t: np.ndarray, dtype: str) -> dict:
+def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> list[dict]:
+    exact_t = np.asarray(case.exact_t, np.float64)
     e = depth_errors(res, exact_t)
     exact_hit = np.isfinite(exact_t)
     got_hit = res.status == Status.CONVERGED
-    eps = float(np.finfo(dtype).eps)
-    scale = np.where(exact_hit, np.maximum(np.abs(np.where(exact_hit, exact_t, 1.0)), 1.0), 1.0)
-    finite = e[np.isfinite(e)]
-    return {
-        "error_max": float(e.max()) if e.size else 0.0,
-        "error_p99": float(np.percentile(e, 99, method="inverted_cdf")) if e.size else 0.0,
-        "error_median": float(np.percentile(e, 50, method="inverted_cdf")) if e.size else 0.0,
-        "error_max_finite": float(finite.max()) if finite.size else float("nan"),
-        "error_max_eps": float((e / (eps * scale)).max()) if e.size else 0.0,
-        "n_false_hit": int(np.sum(got_hit & ~exact_hit)),
-        "n_false_miss": int(np.sum(~got_hit & exact_hit)),
-        "evals_per_ray": float(res.evals.mean()),
-        "evals_p99": float(np.percentile(res.evals, 99)),
-        "evals_max": int(res.evals.max()),
-        "iterations_max": int(res.iterations.max()),
-    }
+    mag = np.where(exact_hit, np.abs(np.where(exact_hit, exact_t, 0.0)), 0.0)
+    row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
+           "n_false_hit": int(np.sum(got_hit & ~exact_hit)), "n_false_miss": int(np.sum(~got_hit & exact_hit))}
+    return [row]
+
+
+def _declined(res: RayResult) -> np.ndarray:
+    return (res.status != Status.CONVERGED) & (res.status != Status.MISS)
+
+
+_CURVATURE_OUTPUTS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "curvature_sum": lambda k1, k2: k1 + k2,
+    "curvature_divergence": lambda k1, k2: k1 + k2,
+    "curvature_laplacian": lambda k1, k2: k1 + k2,
+    "mean_curvature": lambda k1, k2: 0.5 * (k1 + k2),
+    "gaussian_curvature": lambda k1, k2: k1 * k2,
+}
+
+
+def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tuple[list[Quantity], list[dict]]:
+    """Quantities of a method evaluated at the exact hits (gradient, param_grad families)."""
+    _, hit = _exact_points(case)
+    rays = hit & ~_declined(res)
+    qs: list[Quantity] = []
+    notes: list[dict] = []
+    for name in outputs:
+        if name not in res.outputs:
+            raise ValueError(f"method declared output {name!r} but returned only {sorted(res.outputs)}")
+        got = np.asarray(res.outputs[name], np.float64)
+        try:
+            if name == "normal":
+                qs.append(Quantity("normal_angle", "rad", got, exact_normals(case), rays, angle=True))
+            elif name in _CURVATURE_OUTPUTS:
+                info = case.scene.info
+                if name == "curvature_laplacian" and not info.exact_sdf:
+                    raise NotApplicable("Δφ equals κ1+κ2 only for exact SDFs (|∇φ| = 1); this scene is not one")
+                k1, k2 = exact_curvatures(case)
+                qs.append(Quantity(name, "1/scene units" if name != "gaussian_curvature" else "1/scene units²",
+                                   got, _CURVATURE_OUTPUTS[name](k1, k2), rays))
+            elif name == "dt_dtheta":
+                ex = exact_dt_dtheta(case)
+                if got.shape != ex.shape:
+                    raise ValueError(f"dt_dtheta has shape {got.shape}, the reference {ex.shape}")
+                qs.append(Quantity(name, "scene units per parameter unit", got, ex, rays & np.all(np.isfinite(ex), 1)))
+            else:
+                notes.append({"quantity": name, "skip": f"no reference comparison for output {name!r}"})
+        except NotApplicable as exc:
+            notes.append({"quantity": name, "skip": str(exc)})
+    return qs, notes
+
+
+def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, outputs=()) -> list[dict]:
+    qs, notes = _pointwise_quantities(res, case, outputs)
+    n_declined = int(np.sum(_declined(res) & _exact_points(case)[1]))
+    rows = []
+    for q in qs:
+        if q.got.shape[0] != case.n_rays:
+            raise ValueError(f"output for {q.name} has {q.got.shape[0]} rows, expected {case.n_rays}")
+        e, mag = _per_ray(q)
+        rows.append({"quantity": q.name, "unit": q.unit, **error_stats(e, mag, dtype), "n_declined": n_declined})
+    return rows + notes
+
+
+def _render_exact_fn():
+    try:
+        from reference import rendering
+    except ImportError as exc:
+        raise NotApplicable(f"reference.rendering is not available ({exc})") from None
+    fn = getattr(rendering, "render_exact", None)
+    if fn is None:
+        raise NotApplicable("reference.rendering.render_exact is not available")
+    return fn
+
+
+def exact_color(case, knobs: dict, cache: dict) -> np.ndarray:
+    """``render_exact`` for the case with the render knobs it accepts (density model, sharpness…),
+    cached per case × those knobs (sample counts and samplers do not change the integral)."""
+    fn = _render_exact_fn()
+    params = inspect.signature(fn).parameters
+    passed = {k: v for k, v in knobs.items() if k in params}
+    for k, v in (("t_min", case.t_min), ("t_max", case.t_max)):
+        if k in params:
+            passed[k] = v
+    key = ("render_exact", case.id, tuple(sorted(passed.items())))
+    if key not in cache:
+        if "case" in params:
+            cache[key] = np.asarray(fn(case=case, **passed), np.float64)
+        else:
+            cache[key] = np.asarray(fn(case.scene, case.origins, case.directions, **passed), np.float64)
+    return cache[key]
+
+
+def surface_color(case) -> np.ndarray:
+    """ρ(x*) at the exact first hit (NaN rows for misses)."""
+    color = getattr(case.scene, "color", None)
+    if color is None:
+        raise NotApplicable(f"the scene of {case.id} has no colour field ρ")
+    x, hit = _exact_points(case)
+    out = np.full((case.n_rays, 3), np.nan)
+    if hit.any():
+        c = np.asarray(color(x[hit]) if not hasattr(color, "value") else color.value(x[hit]), np.float64)
+        out[hit] = c.reshape(int(hit.sum()), -1)
+    return out
+
+
+def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, outputs=()) -> list[dict]:
+    if "color" not in res.outputs:
+        raise ValueError(f"render method returned no 'color' output (outputs: {sorted(res.outputs)})")
+    got = np.asarray(res.outputs["color"], np.float64)
+    got = got.reshape(case.n_rays, -1)
+    rows: list[dict] = []
+    everywhere = ~_declined(res)
+    for name, exact_fn, rays in (
+        ("color_vs_integral", lambda: exact_color(case, knobs, cache).reshape(case.n_rays, -1), everywhere),
+        ("color_vs_surface", lambda: surface_color(case), everywhere & _exact_points(case)[1]),
+    ):
+        try:
+            ex = exact_fn()
+        except NotApplicable as exc:
+            rows.append({"quantity": name, "skip": str(exc)})
+            continue
+        if ex.shape != got.shape:
+            raise ValueError(f"color has shape {got.shape}, the reference {ex.shape}")
+        e, mag = _per_ray(Quantity(name, "colour units", got, ex, rays))
+        rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype)})
+    return rows
+
+
+#: family → metric function ``(res, case, dtype, knobs, cache, outputs) -> list of row dicts``;
+#: a row with a ``skip`` key records a quantity that could not be checked, and why.
+FAMILY_METRICS: dict[str, Callable[..., list[dict]]] = {
+    "root": lambda res, case, dtype, knobs, cache, outputs=(): root_metrics(res, case, dtype, knobs, cache),
+    "gradient": pointwise_metrics,
+    "param_grad": pointwise_metrics,
+    "render": render_metrics,
+}
+
+#: the main quantity of each family (the one a skipped/failed row is filed under)
+PRIMARY_QUANTITY = {"root": "depth", "gradient": "normal_angle", "param_grad": "dt_dtheta", "render": "color_vs_integral"}
+
+
+def primary_quantity(spec) -> str:
+    if spec.family == "gradient" and spec.outputs and "normal" not in spec.outputs:
+        return spec.outputs[0]
+    return PRIMARY_QUANTITY.get(spec.family, "")
+
+
+def family_skip_reason(spec, case) -> str | None:
+    """Why a method's family cannot be checked on ``case`` at all (before running it)."""
+    if spec.family not in FAMILY_METRICS:
+        return f"no accuracy metric for method family {spec.family!r} (known: {sorted(FAMILY_METRICS)})"
+    try:
+        exact_t = case.exact_t
+    except NotImplementedError as exc:
+        return f"{case.id} has no exact hits: {exc}"
+    if spec.needs_t_hit and not np.isfinite(np.asarray(exact_t)).any():
+        return f"{spec.name} evaluates at exact hits and no ray of {case.id} hits"
+    if spec.family == "render":
+        try:
+            _render_exact_fn()
+        except NotApplicable as exc:
+            if getattr(case.scene, "color", None) is None:
+                return f"no colour reference: {exc}; and the scene has no colour field ρ"
+    return None
+
+
+def measure_accuracy(spec, res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> list[dict]:
+    """All quantity rows for one method result (see the module docstring)."""
+    fn = FAMILY_METRICS[spec.family]
+    rows = fn(res, case, dtype, knobs, cache, tuple(spec.outputs))
+    work = work_stats(res)
+    return [{**r, **work} if "skip" not in r else r for r in rows]
+
+
+__all__ = ["FAMILY_METRICS", "NotApplicable", "Quantity", "depth_errors", "error_stats", "family_skip_reason",
+           "measure_accuracy", "primary_quantity", "work_stats"]

@@ -1,9 +1,13 @@
-"""The runner: plan (cases × backends × methods × dtypes × knobs), measure, record.
+"""The runner: plan (cases × methods × dtypes × knobs × backends), measure, record.
 
-Every planned configuration becomes exactly one row: ``ok`` (measured), ``skipped`` (with the
-reason: backend unavailable, method not implemented, scene lacks what the method needs, dtype
-unsupported) or ``failed`` (the exception, and the run goes on).  Rows are written to disk
-after every case, atomically, so a run that dies keeps what it finished.
+Every planned configuration becomes rows, never nothing: ``ok`` (measured; one row per checked
+quantity, see :mod:`bench.metrics`), ``skipped`` (with the reason: backend unavailable, method
+not implemented, dtype unsupported, scene lacks what the method needs, no reference answer) or
+``failed`` (the exception, a wrong shape, a silent NaN or a timeout; the run goes on).
+
+Rows are written to disk atomically at least every ``flush_s`` seconds and after every case,
+so a run that dies keeps what it finished, and ``resume=True`` finishes it: configurations
+already in the run directory are kept, the others are run under the same run id.
 """
 
 from __future__ import annotations
@@ -12,21 +16,26 @@ import dataclasses
 import datetime as _dt
 import json
 import secrets
+import time
 import traceback
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from impls import Unavailable, get_method
+from impls import METHODS, Unavailable, get_method
+from impls.protocol import RayResult, Status
 from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
 from . import environment
-from .metrics import summarize
-from .results import SCHEMA_VERSION, knob_string, to_frame, write_json, write_results
+from .metrics import family_skip_reason, measure_accuracy, primary_quantity
+from .results import SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
 from .suites import Suite
-from .timing import TimingPolicy, measure
+from .timing import TimingPolicy, measure, time_limit
+
+#: columns that identify a configuration (a row is a configuration × quantity)
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +46,10 @@ class Config:
     dtype: str
     knobs: dict
 
+    @property
+    def key(self) -> tuple[str, str, str, str, str]:
+        return (self.case.id, self.backend_id, self.dtype, self.method, knob_string(self.knobs))
+
 
 def new_run_id() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(3)
@@ -44,83 +57,169 @@ def new_run_id() -> str:
 
 def closed_form_time(case: Case, policy: TimingPolicy) -> float:
     """Median time of the exact closed-form ray–sphere intersection of ``case.n_rays`` rays in
-    numpy float64 (:func:`reference.quadric.ray_sphere_roots`): the run's unit of time."""
+    numpy float64 (:func:`reference.quadric.ray_sphere_roots`, unit sphere at the origin, whatever
+    the case's scene): the run's unit of time, measured with the same policy as the methods."""
     o, d = case.origins, case.directions
-    timing, _ = measure(lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0), lambda _: None, policy)
+    pol = dataclasses.replace(policy, accuracy_only=False)
+    timing, _ = measure(lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0), lambda _: None, pol)
     return timing.median_s
 
 
 def _base_row(run_id: str, cfg: Config, backend: Any) -> dict:
     device = getattr(backend, "device", cfg.backend_id.partition(":")[2] or "cpu")
+    spec = METHODS.get(cfg.method)
     return {
         "schema_version": SCHEMA_VERSION, "run_id": run_id, "case_id": cfg.case.id, "case_version": cfg.case.version,
         "backend": cfg.backend_id, "device": device, "dtype": cfg.dtype, "method": cfg.method,
-        "knob": knob_string(cfg.knobs), "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "n_rays": cfg.case.n_rays,
+        "family": spec.family if spec else "", "knob": knob_string(cfg.knobs),
+        "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "n_rays": cfg.case.n_rays,
+        "quantity": primary_quantity(spec) if spec else "",
     }
 
 
 def skip_reason(cfg: Config, backend: Any) -> str | None:
+    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it."""
     if isinstance(backend, Unavailable):
         return f"backend unavailable: {backend.reason}"
     if cfg.method not in backend.methods():
         return f"{cfg.backend_id} does not implement {cfg.method}"
     if cfg.dtype not in backend.capabilities.dtypes:
         return f"{cfg.backend_id} does not support {cfg.dtype}"
-    return get_method(cfg.method).skip_reason(cfg.case.scene)
+    spec = get_method(cfg.method)
+    return spec.skip_reason(cfg.case.scene) or family_skip_reason(spec, cfg.case)
 
 
-def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float) -> dict:
+def check_result(res: RayResult, n: int, outputs: tuple[str, ...]) -> None:
+    """The per-ray contract: shapes (n, …) and no silent NaN (a non-finite value on a ray whose
+    status is CONVERGED).  Raises ValueError naming the offending array."""
+    for name in ("t", "status", "iterations", "evals"):
+        a = getattr(res, name)
+        if np.shape(a) != (n,):
+            raise ValueError(f"wrong shape: result {name} has shape {np.shape(a)}, expected ({n},)")
+    conv = res.status == Status.CONVERGED
+    bad = int(np.sum(conv & ~np.isfinite(res.t)))
+    if bad:
+        raise ValueError(f"silent NaN: {bad} rays have non-finite t with status CONVERGED")
+    for name in outputs:
+        a = res.outputs.get(name)
+        if a is None:
+            raise ValueError(f"missing output {name!r}; returned {sorted(res.outputs)}")
+        a = np.asarray(a)
+        if a.shape[:1] != (n,):
+            raise ValueError(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
+        bad = int(np.sum(conv & ~np.all(np.isfinite(a.reshape(n, -1)), axis=1)))
+        if bad:
+            raise ValueError(f"silent NaN: {bad} rays have non-finite {name} with status CONVERGED")
+
+
+def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
+            cache: dict | None = None) -> list[dict]:
+    """Rows for one configuration (one per quantity; one row when skipped or failed)."""
+    cache = {} if cache is None else cache
     row = _base_row(run_id, cfg, backend)
-    reason = skip_reason(cfg, backend)
-    if reason:
-        return {**row, "outcome": "skipped", "reason": reason}
-    case = cfg.case
     try:
-        prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
-                               t_min=case.t_min, t_max=case.t_max, **cfg.knobs)
-        timing, out = measure(prep.run, backend.synchronize, policy)
-        res = prep.result(out)
-        if res.t.shape != (case.n_rays,):
-            raise ValueError(f"result t has shape {res.t.shape}, expected ({case.n_rays},)")
-        acc = summarize(res, case.exact_t, cfg.dtype)
+        reason = skip_reason(cfg, backend)
+    except Exception as exc:  # e.g. the reference cannot answer for this case
+        return [{**row, "outcome": "failed", "reason": f"planning: {type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    if reason:
+        return [{**row, "outcome": "skipped", "reason": reason}]
+    case, spec = cfg.case, get_method(cfg.method)
+    try:
+        with time_limit(policy.timeout_s):
+            extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+            prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
+                                   t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
+            timing, out = measure(prep.run, backend.synchronize, policy)
+            res = prep.result(out)
+        check_result(res, case.n_rays, tuple(spec.outputs))
+        quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
     except Exception as exc:  # a failing configuration becomes a row; the run goes on
-        return {**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc(limit=5)}
-    return {
-        **row, "outcome": "ok", "reason": "",
-        "status_counts": json.dumps(res.status_counts(), sort_keys=True), **acc,
+        return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    timed = {
+        "status_counts": json.dumps(res.status_counts(), sort_keys=True),
         "first_call_s": timing.first_call_s,
         "compile_s": prep.compile_s if prep.compile_s is not None else max(timing.first_call_s - timing.median_s, 0.0),
         "time_median_s": timing.median_s, "time_iqr_s": timing.iqr_s,
         "time_samples_s": json.dumps(timing.samples_s), "time_ratio_cf": timing.median_s / cf_time,
-        "n_samples": len(timing.samples_s),
+        "n_samples": len(timing.samples_s), "loops": timing.loops,
     }
+    rows = []
+    for q in quantities:
+        if "skip" in q:
+            rows.append({**row, **timed, "quantity": q["quantity"], "outcome": "skipped", "reason": q["skip"]})
+        else:
+            rows.append({**row, **timed, **q, "outcome": "ok", "reason": ""})
+    return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
+
+
+def select_cases(suite: Suite, case_pattern: str | None) -> list[Case]:
+    """``--case`` globs replace the suite's selection; otherwise the suite's glob and tags."""
+    if case_pattern:
+        return catalog(case_pattern)
+    return catalog(suite.case_pattern, set(suite.case_tags) or None)
 
 
 def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
          dtypes: list[str] | None) -> list[Config]:
-    """Configurations in measuring order: knobs outer, backends inner, so backends interleave."""
+    """Configurations in measuring order.  Per case, method and dtype the knobs are the outer loop
+    and backends the inner one, rotated by one at every knob, so backends interleave in time and
+    none is always first (drift on a shared machine spreads over all of them)."""
+    if methods:
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown:
+            raise ValueError(f"--method: unknown method(s) {unknown}; known: {sorted(METHODS)}")
+    names = [m for m in (suite.methods or tuple(METHODS)) if not methods or m in methods]
+    for dt in dtypes or ():
+        if dt not in ("float64", "float32", "float16", "bfloat16"):
+            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
     cfgs = []
-    for case in catalog(case_pattern or suite.case_pattern):
-        for method, sweep in suite.sweeps.items():
-            if methods and method not in methods:
-                continue
+    for case in select_cases(suite, case_pattern):
+        for method in names:
             for dtype in dtypes or suite.dtypes:
-                for knobs in sweep:
-                    for bid in backend_ids:
+                for k, knobs in enumerate(suite.sweep_for(METHODS[method])):
+                    r = k % max(len(backend_ids), 1)
+                    for bid in backend_ids[r:] + backend_ids[:r]:
                         cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
     return cfgs
 
 
+def _done_keys(df) -> set[tuple]:
+    if df is None or not len(df):
+        return set()
+    return set(map(tuple, df[CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
+
+
 def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: str | None = None,
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
-        run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None) -> "Any":
-    """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame."""
-    run_id = run_id or new_run_id()
+        run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
+        resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None) -> "Any":
+    """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
+
+    ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
+    the configurations it lacks are run.
+    """
     out_dir = Path(out_dir)
-    env = environment.collect()
-    env["run_id"] = run_id
+    previous = None
+    if resume:
+        if not (out_dir / "environment.json").exists():
+            raise ValueError(f"--resume: {out_dir} holds no run to resume (no environment.json); drop --resume")
+        env = json.loads((out_dir / "environment.json").read_text())
+        run_id = env["run_id"]
+        try:
+            previous = read_results(out_dir)
+        except FileNotFoundError:
+            previous = None
+        env["resumed"] = str(int(env.get("resumed", "0")) + 1)
+    else:
+        run_id = run_id or new_run_id()
+        env = environment.collect()
+        env["run_id"] = run_id
     env["suite"] = suite.name
+    env["complete"] = "false"
+    env["timing_policy"] = json.dumps(dataclasses.asdict(policy), sort_keys=True)
+    env.update(env_extra or {})
     for bid, b in backends.items():
         if not isinstance(b, Unavailable):
             env.update({f"backend.{bid}.{k}": v for k, v in b.versions().items()})
@@ -128,21 +227,35 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     cfgs = plan(suite, list(backends), case_pattern, methods, dtypes)
     if not cfgs:
         raise ValueError(f"nothing to run: no case matches {case_pattern or suite.case_pattern!r} "
-                         "or no method matches --method; `python -m bench cases` lists the cases")
-    rows: list[dict] = []
+                         f"(tags {list(suite.case_tags)}) or no method matches --method; "
+                         "`python -m bench cases` lists the cases")
+    done = _done_keys(previous)
+    rows: list[dict] = previous.to_dict("records") if previous is not None else []
+    todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
     cf_cache: dict[str, float] = {}
-    for i, cfg in enumerate(cfgs):
-        if cfg.case.id not in cf_cache:
+    ref_cache: dict = {}
+    last_write = time.monotonic()
+    current_case = None
+    for i, cfg in enumerate(todo):
+        if cfg.case.id != current_case:
+            current_case = cfg.case.id
             if rows:
                 write_results(to_frame(rows), out_dir)
+                last_write = time.monotonic()
+            ref_cache.clear()  # reference answers are cached per case
+        if cfg.case.id not in cf_cache:
             cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
         if progress:
-            progress(i, len(cfgs), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
-        rows.append(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache[cfg.case.id]))
+            progress(i, len(todo), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
+        rows.extend(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache[cfg.case.id], ref_cache))
+        if time.monotonic() - last_write > flush_s:
+            write_results(to_frame(rows), out_dir)
+            last_write = time.monotonic()
     if progress:
-        progress(len(cfgs), len(cfgs), "done")
+        progress(len(todo), len(todo), "done")
     for cid, tcf in cf_cache.items():
         env[f"closed_form_s.{cid}"] = repr(tcf)
+    env["complete"] = "true"
     write_json(out_dir / "environment.json", env)
     df = to_frame(rows)
     write_results(df, out_dir)

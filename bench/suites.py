@@ -1,41 +1,109 @@
 """Suites: which cases, methods, dtypes and knob sweeps a run crosses with the backends.
 
 A knob sweep is a list of knob dicts; each becomes one timed configuration (one point on the
-backend's time-versus-error curve).
+backend's time-versus-error curve).  A method needs no entry here: its sweep is derived from
+its knobs (:func:`default_sweep`), so a method added to ``impls.methods.METHODS`` is benchmarked
+without touching ``bench/``.  ``Suite.sweeps`` overrides the derived sweep for a method.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
+
+import numpy as np
+
+#: knob names treated as tolerances (swept over decades, tightest used while other knobs sweep)
+_TOL_NAME = re.compile(r"(^|_)(tol|atol|rtol|eps|epsilon)$")
 
 
 @dataclasses.dataclass(frozen=True)
 class Suite:
+    """name; case glob(s) and required tags; dtypes; ``sweeps`` (method → knob dicts) overriding
+    the derived sweep; ``methods`` (None: every method in ``METHODS``); ``level`` passed to
+    :func:`default_sweep` ("quick" or "full")."""
+
     name: str
     case_pattern: str
     dtypes: tuple[str, ...]
-    sweeps: dict[str, list[dict]]  # method -> knob dicts
+    sweeps: dict[str, list[dict]]
+    case_tags: tuple[str, ...] = ()
+    methods: tuple[str, ...] | None = None
+    level: str = "quick"
+
+    def sweep_for(self, spec) -> list[dict]:
+        if spec.name in self.sweeps:
+            return [dict(k) for k in self.sweeps[spec.name]]
+        return default_sweep(spec, self.level)
 
 
-def _sphere_trace_sweep(tols, budgets) -> list[dict]:
-    # A tolerance sweep at a generous budget, then a budget sweep at a tight tolerance:
-    # the two accuracy dials of sphere tracing.
-    return [{"tol": t, "max_steps": 512} for t in tols] + [{"tol": 1e-12, "max_steps": b} for b in budgets]
+def _is_tolerance(knob) -> bool:
+    return knob.kind is float and bool(_TOL_NAME.search(knob.name))
+
+
+def _int_values(knob, level: str) -> list[int]:
+    """Geometric values of an integer budget (steps, iterations, samples) up to its default
+    (quick) or 4× its default (full), at least ``max(low, 1)``; the default is always included."""
+    lo = max(int(knob.low), 1)
+    hi = max(int(knob.default), lo) * (1 if level == "quick" else 4)
+    n = 4 if level == "quick" else 9
+    # rounded to powers of two so sweeps read well and repeat across methods
+    vals = {int(2 ** round(math.log2(v))) for v in np.geomspace(max(lo, 2) if hi > 2 else lo, hi, n)}
+    vals |= {int(knob.default)}
+    return sorted(v for v in vals if v >= lo)
+
+
+def _tol_values(knob, level: str) -> list[float]:
+    ks = range(2, 13, 2) if level == "quick" else range(1, 14)
+    return [10.0 ** -k for k in ks if 10.0 ** -k >= knob.low]
+
+
+def default_sweep(spec, level: str = "quick") -> list[dict]:
+    """One-at-a-time sweep over a method's accuracy knobs, derived from its :class:`Knob` list.
+
+    * a knob may carry its own ``sweep`` (a tuple of values, optional attribute): used as is;
+    * a float knob named like a tolerance (``tol``, ``*_tol``, ``eps``): decades 1e-2 … 1e-12
+      (quick) or 1e-1 … 1e-13 (full), the others at their defaults;
+    * an integer knob (a budget: steps, iterations, samples): geometric values up to its default
+      (quick) or 4× it (full), with every tolerance at its tightest swept value so the budget
+      is what limits the error (a convergence curve in the budget);
+    * other knobs (sharpness, band width, relaxation…) stay at their defaults unless they carry
+      ``sweep``.
+    Knob dicts are complete (every knob named) and unique, in a stable order.
+    """
+    knobs = list(spec.knobs)
+    base = {k.name: k.default for k in knobs}
+    tight = {}
+    for k in knobs:
+        if getattr(k, "sweep", None) is None and _is_tolerance(k):
+            vals = _tol_values(k, level)
+            if vals:
+                tight[k.name] = min(vals)
+    out: list[dict] = []
+    for k in knobs:
+        explicit = getattr(k, "sweep", None)
+        if explicit is not None:
+            out += [{**base, k.name: v} for v in explicit]
+        elif _is_tolerance(k):
+            out += [{**base, k.name: v} for v in _tol_values(k, level)]
+        elif k.kind is int:
+            out += [{**base, **tight, k.name: v} for v in _int_values(k, level)]
+    if not out:
+        out = [dict(base)]
+    seen, unique = set(), []
+    for kd in out:
+        key = tuple(sorted((n, float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v))
+                           for n, v in kd.items()))
+        if key not in seen:
+            seen.add(key)
+            unique.append(kd)
+    return unique
 
 
 SUITES = {
-    "quick": Suite(
-        name="quick",
-        case_pattern="*",
-        dtypes=("float64",),
-        sweeps={"sphere_trace": _sphere_trace_sweep([1e-2, 1e-4, 1e-6, 1e-8, 1e-10, 1e-12], [4, 16, 64])},
-    ),
-    "full": Suite(
-        name="full",
-        case_pattern="*",
-        dtypes=("float64", "float32"),
-        sweeps={"sphere_trace": _sphere_trace_sweep([10.0 ** -k for k in range(1, 14)], [2, 4, 8, 16, 32, 64, 128, 256])},
-    ),
+    "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick"),
+    "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full"),
 }
 
 
@@ -43,4 +111,5 @@ def get_suite(name: str) -> Suite:
     try:
         return SUITES[name]
     except KeyError:
-        raise ValueError(f"unknown suite {name!r}; choose one of {sorted(SUITES)}") from None
+        raise ValueError(f"unknown suite {name!r}; choose one of {sorted(SUITES)} (--suite)") from None
+
