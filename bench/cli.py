@@ -128,7 +128,11 @@ def cmd_compare(args) -> int:
     from . import compare as cmp
     from .results import read_results, write_text
 
-    base, new = read_results(args.base), read_results(args.new)
+    try:
+        base, new = read_results(args.base), read_results(args.new)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}")
+        return 2
     same_machine = True
     try:
         from .environment import machine_key
@@ -138,14 +142,23 @@ def cmd_compare(args) -> int:
         same_machine = machine_key(eb) == machine_key(en)
     except (OSError, ValueError):
         pass
-    res = cmp.compare(base, new, factor=args.factor, alpha=args.alpha, rtol=args.rtol, same_machine=same_machine)
+    try:
+        res = cmp.compare(base, new, factor=args.factor, alpha=args.alpha, rtol=args.rtol, atol_eps=args.atol_eps,
+                          same_machine=same_machine)
+    except ValueError as exc:
+        print(f"error: {exc}")
+        return 2
     console = _console()
     counts = {col: res[col].value_counts().to_dict() for col in ("accuracy", "timing")}
     worse = res[(res["accuracy"] == "worse") | ((res["timing"] == "worse") & args.timing)]
     if args.out:
         write_text(Path(args.out), res.to_csv(index=False))
     if len(worse):
-        console.print(worse.to_string(index=False))
+        from rich.markup import escape
+
+        cols = [c for c in ["case_id", "backend", "dtype", "method", "knob", "quantity", "accuracy", "error_base",
+                            "error_new", "timing", "time_ratio", "p_value", "note"] if c in worse.columns]
+        console.print(escape(worse[cols].to_string(index=False)))
     console.print(f"accuracy: {counts['accuracy']}")
     console.print(f"timing:   {counts['timing']}" + ("" if same_machine else " (different machines: timing not compared)"))
     if len(worse):
@@ -233,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--factor", type=float, default=1.1, help="timing: slower by more than this factor … (default 1.1)")
     c.add_argument("--alpha", type=float, default=0.01, help="… and significant at this level (default 0.01)")
     c.add_argument("--rtol", type=float, default=0.1, help="accuracy: relative slack on the max error (default 0.1)")
+    c.add_argument("--atol-eps", type=float, default=1000.0, help="accuracy: absolute slack in units of the row's "
+                   "dtype eps (default 1000)")
     c.add_argument("--timing", action="store_true", help="also fail on significant timing regressions")
     c.add_argument("--out", help="write the comparison table as csv")
     c.set_defaults(fn=cmd_compare)

@@ -87,5 +87,5 @@ def collect() -> dict[str, str]:
 
 
 def machine_key(env: dict[str, str]) -> str:
-    """What must match for timings to be comparable."""
-    return f"{env.get('cpu')}|{env.get('cpu_count')}"
+    """What must match for timings to be comparable: CPU model, logical CPUs, threads per library."""
+    return f"{env.get('cpu')}|{env.get('cpu_count')}|{env.get('threads', '')}"

@@ -32,6 +32,10 @@ Columns per quantity: ``error_max``, ``error_p99``, ``error_median`` (absolute),
 ``error_ulps_max`` = max e/ulp(exact) with ulp the spacing of |exact| in the run's dtype (ulp(1)
 where exact = 0), and ``error_max_eps`` = max e/(eps·max(|exact|, 1)).
 
+Root finders also report ``error_iterate_median``: the median over rays that hit of |t − t*| for
+the returned iterate whatever its status (the convergence plot's y: a budget that ran out still
+leaves an iterate whose error shrinks with the budget).
+
 Honesty rules: a root finder's false hit or false miss has e = inf (a max error cannot hide a
 wrong answer); a non-finite output on a ray whose status says ``CONVERGED`` (a silent NaN) has
 e = inf; rays a method *declined* with a failure status (e.g. ``ILL_CONDITIONED`` for grazing
@@ -217,8 +221,13 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
     exact_hit = np.isfinite(exact_t)
     got_hit = res.status == Status.CONVERGED
     mag = np.where(exact_hit, np.abs(np.where(exact_hit, exact_t, 0.0)), 0.0)
+    # The iterate's error whatever its status (a budget that ran out leaves a finite last
+    # iterate): what a convergence plot in the step budget needs; the max error above stays inf.
+    it = np.abs(np.asarray(res.t, np.float64)[exact_hit] - exact_t[exact_hit])
+    it = it[np.isfinite(it)]
     row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
-           "n_false_hit": int(np.sum(got_hit & ~exact_hit)), "n_false_miss": int(np.sum(~got_hit & exact_hit))}
+           "n_false_hit": int(np.sum(got_hit & ~exact_hit)), "n_false_miss": int(np.sum(~got_hit & exact_hit)),
+           "error_iterate_median": float(np.median(it)) if it.size else float("nan")}
     return [row]
 
 
@@ -263,7 +272,7 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tup
             else:
                 notes.append({"quantity": name, "skip": f"no reference comparison for output {name!r}"})
         except NotApplicable as exc:
-            notes.append({"quantity": name, "skip": str(exc)})
+            notes.append({"quantity": "normal_angle" if name == "normal" else name, "skip": str(exc)})
     return qs, notes
 
 

@@ -54,13 +54,20 @@ def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
 
 
 def fit_rate(x: np.ndarray, err: np.ndarray) -> float:
-    """p in err ≈ c · x^(−p) by least squares on log err vs log x, over finite errors > 0 and at
-    least 3 distinct x; NaN otherwise."""
+    """p in err ≈ c · x^(−p) by least squares on log err vs log x (x increasing), over finite
+    errors > 0, stopping at the plateau: points after the first one that does not improve on its
+    predecessor by at least 2× (the tolerance or rounding floor) are left out, since they measure
+    the floor, not the rate.  NaN when fewer than 3 distinct x remain."""
     x, err = np.asarray(x, float), np.asarray(err, float)
     m = np.isfinite(err) & (err > 0) & (x > 0)
-    if m.sum() < 3 or np.unique(x[m]).size < 3:
+    x, err = x[m], err[m]
+    keep = 1
+    while keep < err.size and err[keep] <= err[keep - 1] / 2:
+        keep += 1
+    x, err = x[:keep], err[:keep]
+    if np.unique(x).size < 3:
         return float("nan")
-    slope = np.polyfit(np.log(x[m]), np.log(err[m]), 1)[0]
+    slope = np.polyfit(np.log(x), np.log(err), 1)[0]
     return float(-slope)
 
 
@@ -120,11 +127,20 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
     return fig
 
 
+def convergence_column(df: pd.DataFrame) -> str:
+    """The error a convergence plot shows: the root finders' iterate error (median over rays,
+    finite even when a small budget leaves rays unconverged), else the max error."""
+    if "error_iterate_median" in df and pd.to_numeric(df["error_iterate_median"], errors="coerce").notna().any():
+        return "error_iterate_median"
+    return "error_max"
+
+
 def convergence_series(df: pd.DataFrame) -> list[dict]:
     """Series of rows (one method × backend of one case × quantity × dtype) in which one integer
     knob varies and every other knob is fixed: the data of a convergence plot."""
     out = []
     ok = _ok(df)
+    col = convergence_column(ok)
     for (method, bid), g in ok.groupby(["method", "backend"]):
         knobs = [json.loads(k) for k in g["knobs_json"]]
         if not knobs:
@@ -140,13 +156,13 @@ def convergence_series(df: pd.DataFrame) -> list[dict]:
                 if np.unique(xs).size < 3:
                     continue
                 order = np.argsort(xs)
-                err = g["error_max"].to_numpy(float)[idx][order]
+                err = pd.to_numeric(g[col], errors="coerce").to_numpy(float)[np.array(idx)][order]
                 out.append({"method": method, "backend": bid, "knob": name, "fixed": rest, "x": xs[order],
                             "error": err, "rate": fit_rate(xs[order], err)})
     return out
 
 
-def plot_convergence(series: list[dict], title: str, q: str, unit: str):
+def plot_convergence(series: list[dict], title: str, q: str, unit: str, col: str = "error_max"):
     fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=100)
     positive = [e for s in series for e in s["error"] if np.isfinite(e) and e > 0]
     floor = min(positive) / 10 if positive else 1e-16
@@ -163,7 +179,8 @@ def plot_convergence(series: list[dict], title: str, q: str, unit: str):
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")
     ax.set_xlabel(" / ".join(knob_names) + " (knob value, log₂ scale) [count]")
-    ax.set_ylabel(f"max {q} error over rays [{unit}]" if unit else f"max {q} error over rays")
+    what = "median iterate" if col == "error_iterate_median" else "max"
+    ax.set_ylabel(f"{what} {q} error over rays [{unit}]" if unit else f"{what} {q} error over rays")
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
@@ -292,7 +309,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
         series = convergence_series(g)
         if series:
             qn, unit = _label_unit(g)
-            png = _save(plot_convergence(series, title, qn, unit), out_dir / "plots" / f"conv_{_slug(title)}.png")
+            png = _save(plot_convergence(series, title, qn, unit, convergence_column(g)), out_dir / "plots" / f"conv_{_slug(title)}.png")
             figs.append(("conv", title, png))
             series_all.append((title, series))
     summ, targets, supp, skipped = summary_table(df), fastest_to_target(df), support_matrix(df), not_run(df)

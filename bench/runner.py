@@ -145,6 +145,9 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
         "time_samples_s": json.dumps(timing.samples_s), "time_ratio_cf": timing.median_s / cf_time,
         "n_samples": len(timing.samples_s), "loops": timing.loops,
     }
+    if policy.accuracy_only:  # one untimed-quality call: no timing claims, no timing comparison
+        timed.update({"compile_s": prep.compile_s, "time_median_s": float("nan"), "time_iqr_s": float("nan"),
+                      "time_samples_s": "", "time_ratio_cf": float("nan"), "n_samples": 0})
     rows = []
     for q in quantities:
         if "skip" in q:
@@ -243,11 +246,12 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
                 write_results(to_frame(rows), out_dir)
                 last_write = time.monotonic()
             ref_cache.clear()  # reference answers are cached per case
-        if cfg.case.id not in cf_cache:
+        if cfg.case.id not in cf_cache and not policy.accuracy_only:
             cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
         if progress:
             progress(i, len(todo), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
-        rows.extend(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache[cfg.case.id], ref_cache))
+        rows.extend(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache.get(cfg.case.id, float("nan")),
+                            ref_cache))
         if time.monotonic() - last_write > flush_s:
             write_results(to_frame(rows), out_dir)
             last_write = time.monotonic()

@@ -1,0 +1,180 @@
+"""The runner's generic machinery, on a fake backend with fake methods of every family.
+
+Checks: every planned configuration yields rows (ok, skipped with a reason, or failed with the
+error); the metrics measure exactly the error the fake methods plant; failures (exception, wrong
+shape, silent NaN, timeout) become rows and the run goes on; sweeps derive from the knobs;
+backends interleave.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import impls.methods
+from bench import runner
+from bench.results import read_results
+from bench.suites import Suite, default_sweep
+from bench.timing import TimingPolicy
+from impls import METHODS, Unavailable
+from impls.methods import Knob, MethodSpec
+from reference import Sphere, get_case
+from reference.cases import Case
+from tests.test_bench_fakes import FAKE_METHODS, PLANTED, FakeBackend
+
+CASE = "sphere.camera.64x64"
+FAST = TimingPolicy(min_repeats=1, min_time_s=0.0, min_sample_s=0.0, warmup=0, timeout_s=5.0)
+
+
+@pytest.fixture
+def fake_methods(monkeypatch):
+    """METHODS with the fake methods added (the dict object itself, as every module holds it)."""
+    for name, spec in FAKE_METHODS.items():
+        monkeypatch.setitem(METHODS, name, spec)
+    return METHODS
+
+
+def suite(methods, sweeps=None) -> Suite:
+    return Suite(name="test", case_pattern=CASE, dtypes=("float64",), sweeps=sweeps or {}, methods=tuple(methods))
+
+
+def rows_of(cfg, backend, policy=FAST):
+    return runner.run_one("r", cfg, backend, policy, cf_time=1.0)
+
+
+def test_each_family_measures_the_planted_error(fake_methods):
+    case = get_case(CASE)
+    b = FakeBackend()
+    got = {}
+    for m in ("fake_root", "fake_normal", "fake_dt"):
+        knobs = {k.name: k.default for k in FAKE_METHODS[m].knobs}
+        for r in rows_of(runner.Config(case, "fake", m, "float64", knobs), b):
+            assert r["outcome"] == "ok", r
+            got[r["quantity"]] = r
+    assert got["depth"]["error_max"] == pytest.approx(PLANTED * (1 + 1e-6), rel=1e-6)
+    assert got["depth"]["n_false_hit"] == 0 and got["depth"]["n_false_miss"] == 0
+    assert got["normal_angle"]["error_max"] == pytest.approx(PLANTED, rel=1e-4)
+    assert got["normal_angle"]["unit"] == "rad"
+    assert got["curvature_laplacian"]["error_max"] == pytest.approx(PLANTED, rel=1e-6)
+    # dt/dθ: 4 parameters each off by PLANTED → norm 2·PLANTED; the declined grazing ray is left out
+    assert got["dt_dtheta"]["error_max"] == pytest.approx(2 * PLANTED, rel=1e-6)
+    assert got["dt_dtheta"]["n_declined"] == 1
+    assert got["dt_dtheta"]["n_checked"] == int(np.isfinite(case.exact_t).sum()) - 1
+    assert json.loads(got["dt_dtheta"]["status_counts"])["ILL_CONDITIONED"] == 1
+    # evaluations per ray come from the method's counts
+    assert got["normal_angle"]["evals_per_ray"] == 4 and got["depth"]["evals_max"] == 9
+
+
+def test_render_without_a_reference_is_skipped_with_the_reason(fake_methods):
+    case = get_case(CASE)
+    (r,) = rows_of(runner.Config(case, "fake", "fake_render", "float64", {"n_samples": 8}), FakeBackend())
+    assert r["outcome"] == "skipped" and "colour" in r["reason"]
+
+
+@pytest.mark.parametrize("behaviour, message", [(1, "planted failure"), (2, "wrong shape"), (3, "silent NaN")])
+def test_failures_become_rows(fake_methods, behaviour, message):
+    case = get_case(CASE)
+    cfg = runner.Config(case, "fake", "fake_root", "float64", {"tol": 1e-6, "max_steps": 8, "behaviour": behaviour})
+    (r,) = rows_of(cfg, FakeBackend())
+    assert r["outcome"] == "failed" and message in r["reason"], r["reason"]
+
+
+def test_a_hang_becomes_a_timeout_row(fake_methods):
+    case = get_case(CASE)
+    cfg = runner.Config(case, "fake", "fake_root", "float64", {"tol": 1e-6, "max_steps": 8, "behaviour": 4})
+    (r,) = rows_of(cfg, FakeBackend(), dataclasses.replace(FAST, timeout_s=0.3))
+    assert r["outcome"] == "failed" and "time limit" in r["reason"]
+
+
+def test_skip_reasons_name_what_is_missing(fake_methods):
+    case = get_case(CASE)
+    knobs = {"tol": 1e-6, "max_steps": 8, "behaviour": 0}
+    cfg = runner.Config(case, "gone", "fake_root", "float64", knobs)
+    (r,) = rows_of(cfg, Unavailable("gone", "not installed"))
+    assert r["outcome"] == "skipped" and "unavailable: not installed" in r["reason"]
+    (r,) = rows_of(cfg, FakeBackend(methods=("fake_dt",)))
+    assert "does not implement fake_root" in r["reason"]
+    (r,) = rows_of(dataclasses.replace(cfg, dtype="float32"), FakeBackend())
+    assert "does not support float32" in r["reason"]
+
+    class NoLipschitz(Sphere):
+        @property
+        def info(self):
+            return dataclasses.replace(Sphere.info.fget(self), lipschitz=None)
+
+    nolip = Case(id="nolip", scene=NoLipschitz(), origins=case.origins, directions=case.directions)
+    (r,) = rows_of(dataclasses.replace(cfg, case=nolip), FakeBackend())
+    assert r["outcome"] == "skipped" and "lipschitz" in r["reason"]
+
+    class NoNormals(Sphere):
+        def normal_exact(self, x):
+            raise NotImplementedError("no normals here")
+
+    nonorm = Case(id="nonorm", scene=NoNormals(), origins=case.origins, directions=case.directions)
+    rows = rows_of(runner.Config(nonorm, "fake", "fake_normal", "float64", {"n_fd": 4}), FakeBackend())
+    by_q = {r["quantity"]: r for r in rows}
+    assert by_q["normal_angle"]["outcome"] == "skipped" and "no normals here" in by_q["normal_angle"]["reason"]
+    assert by_q["curvature_laplacian"]["outcome"] == "ok"  # the other quantity is still checked
+
+
+def test_a_run_keeps_every_planned_configuration(fake_methods, tmp_path):
+    backends = {"fake": FakeBackend(), "fake2": FakeBackend("fake2", methods=("fake_root",)),
+                "gone": Unavailable("gone", "not installed")}
+    s = suite(["fake_root", "fake_normal", "fake_dt", "fake_render"],
+              sweeps={"fake_root": [{"tol": 1e-6, "max_steps": 8, "behaviour": b} for b in (0, 1, 3)]})
+    cfgs = runner.plan(s, list(backends), None, None, None)
+    df = runner.run(s, backends, tmp_path, policy=FAST)
+    keys = set(map(tuple, df[runner.CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
+    assert keys == {tuple(map(str, c.key)) for c in cfgs}  # nothing disappears
+    assert (df["outcome"] == "failed").sum() == 2 * 2  # behaviours 1 and 3 on two backends
+    assert set(df.loc[df["backend"] == "gone", "outcome"]) == {"skipped"}
+    assert set(df.loc[(df["backend"] == "fake2") & (df["method"] != "fake_root"), "outcome"]) == {"skipped"}
+    back = read_results(tmp_path)
+    assert len(back) == len(df)
+    env = json.loads((tmp_path / "environment.json").read_text())
+    assert env["complete"] == "true" and env["backend.fake.fake"] == "1"
+
+
+def test_backends_interleave_and_rotate(fake_methods):
+    s = suite(["fake_root"])
+    cfgs = runner.plan(s, ["a", "b", "c"], None, None, None)
+    n_knobs = len(default_sweep(FAKE_METHODS["fake_root"], "quick"))
+    assert len(cfgs) == 3 * n_knobs
+    firsts = [cfgs[3 * k].backend_id for k in range(n_knobs)]
+    assert firsts[:3] == ["a", "b", "c"]
+    for k in range(n_knobs):  # each knob setting runs on every backend back to back
+        assert {c.backend_id for c in cfgs[3 * k: 3 * k + 3]} == {"a", "b", "c"}
+        assert len({json.dumps(c.knobs, sort_keys=True) for c in cfgs[3 * k: 3 * k + 3]}) == 1
+
+
+def test_bad_selection_is_a_clear_error(fake_methods):
+    with pytest.raises(ValueError, match="--method: unknown method"):
+        runner.plan(suite(["fake_root"]), ["a"], None, ["nosuch"], None)
+    with pytest.raises(ValueError, match="--dtype"):
+        runner.plan(suite(["fake_root"]), ["a"], None, None, ["float63"])
+
+
+def test_default_sweep_derives_from_knobs():
+    spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t"), Knob("n_samples", 64, int, 1, "n"),
+                                      Knob("sharpness", 50.0, float, 0.0, "s")), (), "")
+    sw = default_sweep(spec, "quick")
+    assert all(set(k) == {"tol", "n_samples", "sharpness"} for k in sw)
+    assert all(k["sharpness"] == 50.0 for k in sw)  # not a tolerance, no sweep hint: fixed
+    tols = sorted({k["tol"] for k in sw if k["n_samples"] == 64})
+    assert tols[0] <= 1e-12 and tols[-1] >= 1e-2
+    budget = sorted(k["n_samples"] for k in sw if k["tol"] == min(tols))
+    assert len(budget) >= 3 and budget[-1] == 64 and budget[0] < 64
+    full = default_sweep(spec, "full")
+    assert len(full) > len(sw) and max(k["n_samples"] for k in full) == 256
+    assert len({json.dumps(k, sort_keys=True) for k in full}) == len(full)  # no duplicates
+    # an explicit hint wins
+    hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (dataclasses.make_dataclass(
+        "HKnob", [("sweep", tuple, (10.0, 100.0))], bases=(Knob,), frozen=True)("sharpness", 50.0, float, 0.0, "s"),))
+    assert {k["sharpness"] for k in default_sweep(hinted)} == {50.0, 10.0, 100.0}
+    # the real catalog: every method gets a non-empty sweep whose knobs validate
+    for m in impls.methods.METHODS.values():
+        for k in default_sweep(m, "quick"):
+            m.validate(k)
