@@ -55,20 +55,30 @@ def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
 
 def fit_rate(x: np.ndarray, err: np.ndarray) -> float:
     """p in err ≈ c · x^(−p) by least squares on log err vs log x (x increasing), over finite
-    errors > 0, stopping at the plateau: points after the first one that does not improve on its
-    predecessor by at least 2× (the tolerance or rounding floor) are left out, since they measure
-    the floor, not the rate.  NaN when fewer than 3 distinct x remain."""
+    errors > 0, stopping at the floor: the fit ends before the first step whose local slope
+    −Δlog err/Δlog x falls below a quarter of the median of the slopes before it (or below 0.05),
+    since points on a tolerance or rounding floor measure the floor, not the rate.  NaN when fewer
+    than 3 distinct x remain."""
     x, err = np.asarray(x, float), np.asarray(err, float)
     m = np.isfinite(err) & (err > 0) & (x > 0)
     x, err = x[m], err[m]
-    keep = 1
-    while keep < err.size and err[keep] <= err[keep - 1] / 2:
+    order = np.argsort(x, kind="stable")
+    x, err = x[order], err[order]
+    lx, le = np.log(x), np.log(err)
+    keep = min(2, x.size)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slopes = -np.diff(le) / np.diff(lx)
+    while keep < x.size:
+        s = slopes[keep - 1]
+        prev = slopes[: keep - 1]
+        prev = prev[np.isfinite(prev)]
+        if not np.isfinite(s) or s < 0.05 or (prev.size and s < 0.25 * np.median(prev)):
+            break
         keep += 1
-    x, err = x[:keep], err[:keep]
+    x, le = lx[:keep], le[:keep]
     if np.unique(x).size < 3:
         return float("nan")
-    slope = np.polyfit(np.log(x), np.log(err), 1)[0]
-    return float(-slope)
+    return float(-np.polyfit(x, le, 1)[0])
 
 
 def _ok(df: pd.DataFrame) -> pd.DataFrame:
