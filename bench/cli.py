@@ -186,6 +186,37 @@ def cmd_claims(args) -> int:
     return 1 if note else 0
 
 
+def cmd_baseline(args) -> int:
+    """Regenerate the committed accuracy baseline: an accuracy-only run of the suite (one call per
+    configuration, no timing), kept as ``results.csv`` + ``environment.json`` only (text, diffable)."""
+    import shutil
+    import tempfile
+
+    out = Path(args.out)
+    with tempfile.TemporaryDirectory(prefix="isobench-baseline-") as tmp:
+        rc = main(["run", "--suite", args.suite, "--accuracy-only", "--no-claims", "--no-progress", "--out",
+                   str(Path(tmp) / "run")] + sum((["--backend", b] for b in args.backend or []), []))
+        if rc != 0:
+            return rc
+        out.mkdir(parents=True, exist_ok=True)
+        from .results import read_results
+
+        df = read_results(Path(tmp) / "run")
+        # wall-clock columns differ on every run: blank them so the committed file changes only
+        # when accuracy does
+        for col in ("first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_ratio_cf"):
+            df[col] = float("nan")
+        df.to_csv(Path(tmp) / "run" / "results.csv", index=False)
+        for name in ("results.csv", "environment.json"):
+            shutil.copyfile(Path(tmp) / "run" / name, out / (name + ".tmp"))
+            (out / (name + ".tmp")).replace(out / name)
+        stale = out / "results.parquet"
+        if stale.exists():
+            stale.unlink()
+    print(f"baseline written to {out}; compare a run with: python -m bench compare {out} RUN_DIR")
+    return 0
+
+
 def cmd_cases(args) -> int:
     from reference import catalog
 
@@ -256,6 +287,12 @@ def main(argv: list[str] | None = None) -> int:
     cl.add_argument("--out", help="output directory (default: reports/claims-<run-id>/)")
     cl.add_argument("--full", action="store_true", help="the full (slower) checks instead of the quick ones")
     cl.set_defaults(fn=cmd_claims)
+
+    bl = sub.add_parser("baseline", help="regenerate the accuracy baseline that CI compares against")
+    bl.add_argument("--out", default=str(DEFAULT_REPORTS / "baseline"), help="default: reports/baseline")
+    bl.add_argument("--suite", default="quick")
+    bl.add_argument("--backend", action="append", help="backend ids (default: all available)")
+    bl.set_defaults(fn=cmd_baseline)
 
     k = sub.add_parser("cases", help="list the case catalog")
     k.add_argument("--case", help="glob on ids")

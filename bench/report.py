@@ -314,8 +314,10 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
     series_all: list[tuple[str, list[dict]]] = []
     for (fam, cid, q, dtype), g in ok.groupby(["family", "case_id", "quantity", "dtype"]):
         title = f"{fam or 'method'} · {cid} · {q} · {dtype}"
-        png = _save(plot_time_vs_error(g, title), out_dir / "plots" / f"time_{_slug(title)}.png")
-        figs.append(("time", title, png))
+        timed = g[np.isfinite(g["time_median_s"].to_numpy(float)) & (g["time_median_s"].to_numpy(float) > 0)]
+        if len(timed):  # accuracy-only runs have no timing
+            png = _save(plot_time_vs_error(timed, title), out_dir / "plots" / f"time_{_slug(title)}.png")
+            figs.append(("time", title, png))
         series = convergence_series(g)
         if series:
             qn, unit = _label_unit(g)

@@ -88,6 +88,13 @@ def test_bad_arguments_get_clear_errors(tmp_path):
     assert p.returncode == 2 and "no case matches" in p.stdout
 
 
+def test_committed_baseline_has_no_accuracy_regression(quick_run):
+    """What CI gates on: the quick run against reports/baseline (regenerate it with
+    `python -m bench baseline` when an accuracy change is intended)."""
+    p = bench("compare", str(ROOT / "reports" / "baseline"), str(quick_run))
+    assert p.returncode == 0, p.stdout + p.stderr
+
+
 def test_compare_missing_run_is_a_clear_error(tmp_path):
     p = bench("compare", str(tmp_path / "nope"), str(tmp_path / "nope2"))
     assert p.returncode == 2 and "no results at" in p.stdout
