@@ -55,7 +55,8 @@ def cmd_run(args) -> int:
     from .environment import configure_threads
 
     configure_threads(args.threads)  # before any array library is imported
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
     from rich.table import Table
 
     from impls import registry
@@ -84,13 +85,14 @@ def cmd_run(args) -> int:
                       "Pass another --out, or --resume to finish an interrupted run.[/]")
         return 2
     try:
-        policy = TimingPolicy(min_repeats=args.min_repeats, min_time_s=args.min_time, timeout_s=args.timeout,
-                              accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, args.min_time))
+        min_time = suite.min_time_s if args.min_time is None else args.min_time
+        policy = TimingPolicy(min_repeats=args.min_repeats, min_time_s=min_time, timeout_s=args.timeout,
+                              accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, min_time))
     except ValueError as exc:
         console.print(f"[red]error:[/] {exc}")
         return 2
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, disable=args.no_progress or not console.is_terminal) as prog:
+                  TimeRemainingColumn(), console=console, disable=args.no_progress or not console.is_terminal) as prog:
         task = prog.add_task("planning", total=None)
 
         def progress(i, n, what):
@@ -257,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's)")
     r.add_argument("--dtype", action="append", help="float64 and/or float32 (default: the suite's)")
     r.add_argument("--out", help="output directory (default: reports/<run-id>/)")
-    r.add_argument("--min-time", type=float, default=0.2, help="seconds of timed calls per configuration (default 0.2)")
+    r.add_argument("--min-time", type=float, default=None, help="seconds of timed calls per configuration "
+                   "(default: the suite's, 0.05 quick, 0.1 full)")
     r.add_argument("--max-time", type=float, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
     r.add_argument("--min-repeats", type=int, default=5, help="timing samples per configuration at least (default 5)")
     r.add_argument("--timeout", type=float, default=120.0, help="hard limit per configuration in seconds; past it the "

@@ -118,6 +118,8 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
         bad = ~np.isfinite(err)
         if bad.any():
             ax.scatter(t[bad], y[bad], marker="x", s=60, color="k", zorder=5)
+    if len(ok) and not np.isfinite(ok["error_max"].to_numpy(float)).all():
+        _mark_infinite(ax, top)
     if len(ok):
         err = ok["error_max"].to_numpy(float)
         fin = np.isfinite(err)
@@ -135,6 +137,13 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     fig.tight_layout()
     return fig
+
+
+def _mark_infinite(ax, top: float) -> None:
+    """Label the row where infinite errors are drawn (✕ markers)."""
+    ax.axhline(top, color="k", lw=0.6, ls=":")
+    ax.annotate("✕ = ∞ (false hit/miss)", xy=(0.01, top), xycoords=("axes fraction", "data"), xytext=(0, -12),
+                textcoords="offset points", fontsize=7, va="top")
 
 
 def convergence_column(df: pd.DataFrame) -> str:
@@ -186,6 +195,8 @@ def plot_convergence(series: list[dict], title: str, q: str, unit: str, col: str
         bad = ~np.isfinite(s["error"])
         if bad.any():
             ax.scatter(s["x"][bad], y[bad], marker="x", s=60, color="k", zorder=5)
+    if any((~np.isfinite(s["error"])).any() for s in series):
+        _mark_infinite(ax, top)
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")
     ax.set_xlabel(" / ".join(knob_names) + " (knob value, log₂ scale) [count]")
@@ -261,7 +272,9 @@ def support_matrix(df: pd.DataFrame) -> pd.DataFrame:
         return " · ".join(parts) or "—"
 
     cells = t.apply(cell, axis=1).rename("cell").reset_index()
-    return cells.pivot(index="backend", columns="method", values="cell").fillna("not planned").reset_index()
+    out = cells.pivot(index="backend", columns="method", values="cell").fillna("not planned").reset_index()
+    out.columns.name = None
+    return out
 
 
 def not_run(df: pd.DataFrame) -> pd.DataFrame:

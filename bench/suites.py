@@ -31,6 +31,7 @@ class Suite:
     case_tags: tuple[str, ...] = ()
     methods: tuple[str, ...] | None = None
     level: str = "quick"
+    min_time_s: float = 0.2  # timed seconds per configuration (CLI --min-time overrides)
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
@@ -47,7 +48,7 @@ def _int_values(knob, level: str) -> list[int]:
     (quick) or 4× its default (full), at least ``max(low, 1)``; the default is always included."""
     lo = max(int(knob.low), 1)
     hi = max(int(knob.default), lo) * (1 if level == "quick" else 4)
-    n = 4 if level == "quick" else 9
+    n = 3 if level == "quick" else 7
     # rounded to powers of two so sweeps read well and repeat across methods
     vals = {int(2 ** round(math.log2(v))) for v in np.geomspace(max(lo, 2) if hi > 2 else lo, hi, n)}
     vals |= {int(knob.default)}
@@ -55,7 +56,7 @@ def _int_values(knob, level: str) -> list[int]:
 
 
 def _tol_values(knob, level: str) -> list[float]:
-    ks = range(2, 13, 2) if level == "quick" else range(1, 14)
+    ks = (4, 8, 12) if level == "quick" else range(2, 14)  # quick: the report's error targets
     return [10.0 ** -k for k in ks if 10.0 ** -k >= knob.low]
 
 
@@ -63,11 +64,12 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
     """One-at-a-time sweep over a method's accuracy knobs, derived from its :class:`Knob` list.
 
     * a knob may carry its own ``sweep`` (a tuple of values, optional attribute): used as is;
-    * a float knob named like a tolerance (``tol``, ``*_tol``, ``eps``): decades 1e-2 … 1e-12
-      (quick) or 1e-1 … 1e-13 (full), the others at their defaults;
-    * an integer knob (a budget: steps, iterations, samples): geometric values up to its default
-      (quick) or 4× it (full), with every tolerance at its tightest swept value so the budget
-      is what limits the error (a convergence curve in the budget);
+    * a float knob named like a tolerance (``tol``, ``*_tol``, ``eps``): 1e-4, 1e-8, 1e-12 (quick:
+      the report's error targets) or every decade 1e-2 … 1e-13 (full), the others at defaults;
+    * an integer knob (a budget: steps, iterations, samples): 3 (quick) or 7 (full) geometric
+      values, rounded to powers of two, up to its default (quick) or 4× it (full), with every
+      tolerance at its tightest swept value so the budget is what limits the error (a
+      convergence curve in the budget);
     * other knobs (sharpness, band width, relaxation…) stay at their defaults unless they carry
       ``sweep``.
     Knob dicts are complete (every knob named) and unique, in a stable order.
@@ -102,8 +104,13 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
 
 
 SUITES = {
-    "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick"),
-    "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full"),
+    # quick: CI and the README's first command, < 2 min on 2 cores: cases tagged "quick", float64,
+    # 3-point sweeps, 0.05 s of timing per configuration.
+    "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
+                   min_time_s=0.05),
+    # full: every case, float64 and float32, the long sweeps, 0.1 s of timing per configuration.
+    "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
+                  min_time_s=0.1),
 }
 
 

@@ -19,7 +19,7 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     out = tmp_path / "run"
     args = [sys.executable, "-m", "bench", "run", "--suite", "quick", "--backend", "numpy", "--out", str(out),
             "--no-progress", "--no-claims"]
-    p = subprocess.Popen(args + ["--min-time", "0.5", "--min-repeats", "3"], cwd=ROOT, stdout=subprocess.DEVNULL,
+    p = subprocess.Popen(args + ["--min-time", "1.0", "--min-repeats", "3"], cwd=ROOT, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
     while not (out / "results.parquet").exists() and time.monotonic() < deadline and p.poll() is None:
