@@ -107,17 +107,26 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
     backends = sorted(ok["backend"].unique())
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for (method, bid), g in sorted(ok.groupby(["method", "backend"]), key=lambda kv: kv[0]):
-        g = g.sort_values("time_median_s")
         err = g["error_max"].to_numpy(float)
         y = np.where(np.isfinite(err), np.maximum(err, floor), top)
         t = g["time_median_s"].to_numpy(float)
         mi, bi = methods.index(method), backends.index(bid)
         label = bid if len(methods) == 1 else f"{method} · {bid}"
-        ax.plot(t, y, marker=_MARKERS[bi % len(_MARKERS)], ls=_LINESTYLES[bi % len(_LINESTYLES)], lw=1.2, ms=5,
-                color=colors[mi % len(colors)] if len(methods) > 1 else colors[bi % len(colors)], label=label)
-        bad = ~np.isfinite(err)
+        color = colors[mi % len(colors)] if len(methods) > 1 else colors[bi % len(colors)]
+        marker = _MARKERS[bi % len(_MARKERS)]
+        # every knob setting is a point; the line joins this curve's own Pareto front (the knob
+        # settings worth using), so sweeps of different knobs do not zigzag across each other
+        ax.scatter(t, y, marker=marker, s=22, color=color, alpha=0.55, zorder=3)
+        fin = np.isfinite(err)
+        if fin.any():
+            f = pareto_front(t[fin], y[fin])
+            ax.plot(t[fin][f], y[fin][f], marker=marker, ls=_LINESTYLES[bi % len(_LINESTYLES)], lw=1.3, ms=5,
+                    color=color, label=label, zorder=4)
+        else:
+            ax.plot([], [], marker=marker, color=color, label=label)
+        bad = ~fin
         if bad.any():
-            ax.scatter(t[bad], y[bad], marker="x", s=60, color="k", zorder=5)
+            ax.scatter(t[bad], y[bad], marker="x", s=50, color="k", zorder=5)
     if len(ok) and not np.isfinite(ok["error_max"].to_numpy(float)).all():
         _mark_infinite(ax, top)
     if len(ok):
@@ -127,7 +136,8 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
             t = ok["time_median_s"].to_numpy(float)[fin]
             e = np.maximum(err[fin], floor)
             f = pareto_front(t, e)
-            ax.plot(t[f], e[f], ls="--", color="0.35", lw=1, label="Pareto front", drawstyle="steps-post")
+            ax.plot(t[f], e[f], ls="--", color="0.35", lw=1, label="Pareto front (all)", drawstyle="steps-post",
+                    zorder=2)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("median time per call, all rays of the case [s]")
@@ -227,9 +237,19 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
             "best max error": best["error_max"], "at knob": best["knob"],
             "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
             "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
-            "evals/ray": best["evals_per_ray"],
+            "evals/ray mean": best["evals_per_ray"], "p99": best.get("evals_p99"), "max": best.get("evals_max"),
+            "ray statuses": _statuses(best.get("status_counts")),
         })
     return pd.DataFrame(rows)
+
+
+def _statuses(v) -> str:
+    """The status histogram as ``CONVERGED 3096 · MISS 1000``."""
+    try:
+        d = json.loads(v) if isinstance(v, str) and v else {}
+    except ValueError:
+        return str(v)
+    return " · ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1]))
 
 
 def fastest_to_target(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
