@@ -95,6 +95,19 @@ def test_committed_baseline_has_no_accuracy_regression(quick_run):
     assert p.returncode == 0, p.stdout + p.stderr
 
 
+def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
+    out = tmp_path / "plug"
+    p = bench("run", "--suite", "quick", "--accuracy-only", "--no-claims", "--no-progress", "--out", str(out),
+              "--backend", "numpy,tests.test_bench_fakes:FakeBackend,nosuch.module:Backend")
+    assert p.returncode == 0, p.stdout + p.stderr
+    df = read_results(out)
+    reasons = df.groupby("backend")["reason"].first().to_dict()
+    assert "does not implement sphere_trace" in reasons["tests.test_bench_fakes:FakeBackend"]
+    assert "backend unavailable" in reasons["nosuch.module:Backend"] and "nosuch" in reasons["nosuch.module:Backend"]
+    assert set(df.loc[df["backend"] == "numpy", "outcome"]) == {"ok"}
+    assert "does not implement sphere_trace" in (out / "report.html").read_text()
+
+
 def test_compare_missing_run_is_a_clear_error(tmp_path):
     p = bench("compare", str(tmp_path / "nope"), str(tmp_path / "nope2"))
     assert p.returncode == 2 and "no results at" in p.stdout
