@@ -139,9 +139,14 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
             ax.plot(t[f], e[f], ls="--", color="0.35", lw=1, label="Pareto front (all)", drawstyle="steps-post",
                     zorder=2)
     ax.set_xscale("log")
+    return _finish(fig, ax, "median time per call, all rays of the case [s]", f"max {q} error over rays", unit, title)
+
+
+def _finish(fig, ax, xlabel: str, ylabel: str, unit: str, title: str):
+    """Log y axis, labels with units, grid, the legend outside the axes (never over the data)."""
     ax.set_yscale("log")
-    ax.set_xlabel("median time per call, all rays of the case [s]")
-    ax.set_ylabel(f"max {q} error over rays [{unit}]" if unit else f"max {q} error over rays")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(f"{ylabel} [{unit}]" if unit else ylabel)
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
@@ -208,15 +213,9 @@ def plot_convergence(series: list[dict], title: str, q: str, unit: str, col: str
     if any((~np.isfinite(s["error"])).any() for s in series):
         _mark_infinite(ax, top)
     ax.set_xscale("log", base=2)
-    ax.set_yscale("log")
-    ax.set_xlabel(" / ".join(knob_names) + " (knob value, log₂ scale) [count]")
     what = "median iterate" if col == "error_iterate_median" else "max"
-    ax.set_ylabel(f"{what} {q} error over rays [{unit}]" if unit else f"{what} {q} error over rays")
-    ax.set_title(title, fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
-    fig.tight_layout()
-    return fig
+    return _finish(fig, ax, " / ".join(knob_names) + " (knob value, log₂ scale) [count]",
+                   f"{what} {q} error over rays", unit, title)
 
 
 def _save(fig, path: Path) -> bytes:
