@@ -101,7 +101,7 @@ def cmd_run(args) -> int:
         try:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
-                            resume=args.resume, env_extra={"threads": str(args.threads)})
+                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=args.budget)
         except ValueError as exc:
             console.print(f"[red]error:[/] {exc}")
             return 2
@@ -122,7 +122,12 @@ def cmd_run(args) -> int:
     console.print(table)
     configs = report.config_outcomes(df)
     n_ok, n_skip, n_fail = ((configs["outcome"] == o).sum() for o in ("ok", "skipped", "failed"))
-    console.print(f"{n_ok} configurations ran, {n_skip} skipped, {n_fail} failed. Report: {out / 'report.html'}")
+    console.print(f"{n_ok} configurations ran, {n_skip} skipped, {n_fail} failed in {env.get('elapsed_s', '?')} s. "
+                  f"Report: {out / 'report.html'}")
+    nominal = {"quick": 120.0, "full": 900.0}.get(suite.name)
+    if nominal and float(env.get("elapsed_s", 0)) > nominal:
+        console.print(f"[yellow]the {suite.name} suite took longer than its budget of {nominal:g} s; "
+                      "select less with --case/--method, or lower --min-time[/]")
     return 0
 
 
@@ -270,6 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
                    "(deterministic, for baselines)")
     r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR")
+    r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
+                   "when it is spent become skipped rows saying so (default: no limit)")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)

@@ -34,6 +34,8 @@ from .results import SCHEMA_VERSION, knob_string, read_results, to_frame, write_
 from .suites import Suite
 from .timing import TimingPolicy, measure, time_limit
 
+OVER_BUDGET = "over the run's time budget"
+
 #: columns that identify a configuration (a row is a configuration × quantity)
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 
@@ -197,11 +199,14 @@ def _done_keys(df) -> set[tuple]:
 def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: str | None = None,
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
         run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
-        resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None) -> "Any":
+        resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
+        budget_s: float | None = None) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
-    the configurations it lacks are run.
+    the configurations it lacks are run.  ``budget_s``: wall-clock budget; once spent, the
+    remaining configurations become ``skipped`` rows saying so (``--resume`` with a larger budget
+    finishes them, since resume re-runs only configurations without a measured row).
     """
     out_dir = Path(out_dir)
     previous = None
@@ -234,7 +239,12 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
                          "`python -m bench cases` lists the cases")
     done = _done_keys(previous)
     rows: list[dict] = previous.to_dict("records") if previous is not None else []
+    if resume and previous is not None:  # budget-skipped rows are redone
+        over = previous["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET)
+        rows = [r for r, o in zip(rows, over) if not o]
+        done = _done_keys(previous[~over])
     todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
+    started = time.monotonic()
     cf_cache: dict[str, float] = {}
     ref_cache: dict = {}
     last_write = time.monotonic()
@@ -250,6 +260,10 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
             cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
         if progress:
             progress(i, len(todo), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
+        if budget_s is not None and time.monotonic() - started > budget_s:
+            rows.append({**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
+                         "reason": f"{OVER_BUDGET} ({budget_s:g} s); finish with --resume and a larger --budget"})
+            continue
         rows.extend(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache.get(cfg.case.id, float("nan")),
                             ref_cache))
         if time.monotonic() - last_write > flush_s:
@@ -260,6 +274,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     for cid, tcf in cf_cache.items():
         env[f"closed_form_s.{cid}"] = repr(tcf)
     env["complete"] = "true"
+    env["elapsed_s"] = f"{time.monotonic() - started:.1f}"
     write_json(out_dir / "environment.json", env)
     df = to_frame(rows)
     write_results(df, out_dir)

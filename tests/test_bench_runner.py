@@ -178,3 +178,16 @@ def test_default_sweep_derives_from_knobs():
     for m in impls.methods.METHODS.values():
         for k in default_sweep(m, "quick"):
             m.validate(k)
+
+
+def test_budget_skips_the_rest_visibly_and_resume_finishes(fake_methods, tmp_path):
+    backends = {"fake": FakeBackend()}
+    s = suite(["fake_root", "fake_normal"], sweeps={"fake_root": [{"tol": 1e-6, "max_steps": m, "behaviour": 0}
+                                                                  for m in (2, 4, 8)]})
+    df = runner.run(s, backends, tmp_path, policy=FAST, budget_s=0.0)
+    over = df["reason"].fillna("").str.startswith(runner.OVER_BUDGET)
+    assert over.sum() >= len(runner.plan(s, ["fake"], None, None, None)) - 1
+    assert set(df.loc[over, "outcome"]) == {"skipped"}
+    df2 = runner.run(s, backends, tmp_path, policy=FAST, resume=True)
+    assert set(df2["outcome"]) == {"ok"}
+    assert not df2.duplicated(["case_id", "backend", "dtype", "method", "knob", "quantity"]).any()
