@@ -378,6 +378,21 @@ def primary_quantity(spec) -> str:
     return PRIMARY_QUANTITY.get(spec.family, "")
 
 
+#: output → (case attribute, SceneInfo flag) of its reference answer
+_INFO_FLAG = {"normal": ("exact_normals", "exact_normals"), "dt_dtheta": ("exact_dt_dtheta", "exact_hit_param_grad")}
+_INFO_FLAG.update({name: ("exact_curvatures", "exact_curvature") for name in _CURVATURE_OUTPUTS})
+
+
+def _known_absent(case, output: str) -> bool:
+    """The scene says it has no exact answer for ``output`` and the case offers none either."""
+    if output not in _INFO_FLAG:
+        return False
+    attr, flag = _INFO_FLAG[output]
+    if hasattr(type(case), attr):  # the reference computes it (perhaps numerically)
+        return False
+    return not getattr(case.scene.info, flag, True)
+
+
 def family_skip_reason(spec, case) -> str | None:
     """Why a method's family cannot be checked on ``case`` at all (before running it)."""
     if spec.family not in FAMILY_METRICS:
@@ -388,6 +403,12 @@ def family_skip_reason(spec, case) -> str | None:
         return f"{case.id} has no exact hits: {exc}"
     if spec.needs_t_hit and not np.isfinite(np.asarray(exact_t)).any():
         return f"{spec.name} evaluates at exact hits and no ray of {case.id} hits"
+    if spec.family in ("gradient", "param_grad") and spec.outputs:
+        # nothing runs that cannot be checked: every output needs an answer the scene lacks
+        missing = [o for o in spec.outputs if _known_absent(case, o)]
+        if len(missing) == len(spec.outputs):
+            return (f"{case.id} has no exact answer for {', '.join(missing)} "
+                    f"(scene states {', '.join(sorted({_INFO_FLAG[o][1] + '=False' for o in missing}))})")
     if spec.family == "render":
         try:
             _render_exact_fn()

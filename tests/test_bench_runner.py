@@ -191,3 +191,18 @@ def test_budget_skips_the_rest_visibly_and_resume_finishes(fake_methods, tmp_pat
     df2 = runner.run(s, backends, tmp_path, policy=FAST, resume=True)
     assert set(df2["outcome"]) == {"ok"}
     assert not df2.duplicated(["case_id", "backend", "dtype", "method", "knob", "quantity"]).any()
+
+
+def test_nothing_runs_that_cannot_be_checked(fake_methods):
+    case = get_case(CASE)
+
+    class NoAnswers(Sphere):
+        @property
+        def info(self):
+            return dataclasses.replace(Sphere.info.fget(self), exact_normals=False, exact_curvature=False)
+
+    c = Case(id="noanswers", scene=NoAnswers(), origins=case.origins, directions=case.directions)
+    b = FakeBackend()
+    (r,) = rows_of(runner.Config(c, "fake", "fake_normal", "float64", {"n_fd": 4}), b)
+    assert r["outcome"] == "skipped" and "exact_normals=False" in r["reason"] and "exact_curvature=False" in r["reason"]
+    assert b.calls == []  # skipped before running
