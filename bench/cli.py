@@ -101,7 +101,8 @@ def cmd_run(args) -> int:
         try:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
-                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=args.budget)
+                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=args.budget,
+                            rounds=args.rounds)
         except ValueError as exc:
             console.print(f"[red]error:[/] {exc}")
             return 2
@@ -275,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
                    "(deterministic, for baselines)")
     r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR")
+    r.add_argument("--rounds", type=int, default=1, help="time the whole plan this many times, round after round, "
+                   "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
     r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
                    "when it is spent become skipped rows saying so (default: no limit)")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")

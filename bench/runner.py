@@ -159,6 +159,33 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
     return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
 
 
+def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str:
+    """Timing samples of one more round for ``cfg`` (prepared afresh, compile excluded), or the
+    error message when this round failed."""
+    case, spec = cfg.case, get_method(cfg.method)
+    try:
+        with time_limit(policy.timeout_s):
+            extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+            prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
+                                   t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
+            timing, _ = measure(prep.run, backend.synchronize, policy)
+        return timing.samples_s
+    except Exception as exc:
+        return f"{type(exc).__name__}: {exc}"
+
+
+def _pool(row: dict, extra: list[float] | str, cf_time: float) -> None:
+    """Add one round's samples to a result row and recompute its timing summary."""
+    if isinstance(extra, str):
+        row["timing_note"] = (row.get("timing_note") or "") + f"a later round failed: {extra}; "
+        return
+    samples = json.loads(row["time_samples_s"]) + list(extra)
+    q1, med, q3 = np.percentile(samples, [25, 50, 75])
+    row.update({"time_samples_s": json.dumps(samples), "time_median_s": float(med), "time_iqr_s": float(q3 - q1),
+                "time_ratio_cf": float(med) / cf_time, "n_samples": len(samples),
+                "rounds": int(row.get("rounds") or 1) + 1})
+
+
 def select_cases(suite: Suite, case_pattern: str | None) -> list[Case]:
     """``--case`` globs replace the suite's selection; otherwise the suite's glob and tags."""
     if case_pattern:
@@ -200,14 +227,19 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
         run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
         resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
-        budget_s: float | None = None) -> "Any":
+        budget_s: float | None = None, rounds: int = 1) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
     the configurations it lacks are run.  ``budget_s``: wall-clock budget; once spent, the
     remaining configurations become ``skipped`` rows saying so (``--resume`` with a larger budget
     finishes them, since resume re-runs only configurations without a measured row).
+    ``rounds``: the whole plan is timed ``rounds`` times, round after round, and each
+    configuration's samples pooled (:func:`retime`), so slow drift of a shared machine's load
+    shows up as spread within a configuration instead of as a difference between runs.
     """
+    if rounds < 1:
+        raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
     out_dir = Path(out_dir)
     previous = None
     if resume:
@@ -269,10 +301,28 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         if time.monotonic() - last_write > flush_s:
             write_results(to_frame(rows), out_dir)
             last_write = time.monotonic()
+    cf_samples = {cid: [t] for cid, t in cf_cache.items()}
+    if rounds > 1 and not policy.accuracy_only:
+        index: dict[tuple, list[int]] = {}
+        for j, r in enumerate(rows):
+            if r.get("outcome") == "ok" and r.get("run_id") == run_id:
+                index.setdefault((r["case_id"], r["backend"], r["dtype"], r["method"], r["knob"]), []).append(j)
+        todo_ok = [c for c in todo if tuple(map(str, c.key)) in index]
+        for rnd in range(2, rounds + 1):
+            for i, cfg in enumerate(todo_ok):
+                if cfg.case.id not in cf_samples or len(cf_samples[cfg.case.id]) < rnd:
+                    cf_samples.setdefault(cfg.case.id, []).append(closed_form_time(cfg.case, policy))
+                if progress:
+                    progress(i, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}")
+                extra = retime(cfg, backends[cfg.backend_id], policy)
+                for j in index[tuple(map(str, cfg.key))]:
+                    _pool(rows[j], extra, float(np.median(cf_samples[cfg.case.id])))
+            write_results(to_frame(rows), out_dir)
     if progress:
         progress(len(todo), len(todo), "done")
-    for cid, tcf in cf_cache.items():
-        env[f"closed_form_s.{cid}"] = repr(tcf)
+    for cid, ts in cf_samples.items():
+        env[f"closed_form_s.{cid}"] = repr(float(np.median(ts)))
+    env["rounds"] = str(rounds)
     env["complete"] = "true"
     env["elapsed_s"] = f"{time.monotonic() - started:.1f}"
     write_json(out_dir / "environment.json", env)

@@ -206,3 +206,17 @@ def test_nothing_runs_that_cannot_be_checked(fake_methods):
     (r,) = rows_of(runner.Config(c, "fake", "fake_normal", "float64", {"n_fd": 4}), b)
     assert r["outcome"] == "skipped" and "exact_normals=False" in r["reason"] and "exact_curvature=False" in r["reason"]
     assert b.calls == []  # skipped before running
+
+
+def test_rounds_pool_samples_from_later_passes(fake_methods, tmp_path):
+    b = FakeBackend()
+    s = suite(["fake_root"], sweeps={"fake_root": [{"tol": 1e-6, "max_steps": 8, "behaviour": 0}]})
+    pol = dataclasses.replace(FAST, min_repeats=3)
+    df = runner.run(s, {"fake": b}, tmp_path, policy=pol, rounds=3)
+    (r,) = df.to_dict("records")
+    samples = json.loads(r["time_samples_s"])
+    assert r["rounds"] == 3 and r["n_samples"] == len(samples) >= 9
+    assert r["time_median_s"] == pytest.approx(float(np.median(samples)))
+    assert json.loads((tmp_path / "environment.json").read_text())["rounds"] == "3"
+    with pytest.raises(ValueError, match="--rounds"):
+        runner.run(s, {"fake": b}, tmp_path / "x", policy=pol, rounds=0)
