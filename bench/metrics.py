@@ -80,9 +80,24 @@ def _exact_points(case) -> tuple[np.ndarray, np.ndarray]:
     return x, hit
 
 
-def _from_case_or_scene(case, attr: str, scene_method: str, what: str) -> np.ndarray:
+def _from_case_or_scene(case, attr: str, scene_method: str, what: str, cache: dict | None = None) -> np.ndarray:
     """``case.<attr>`` when the reference provides it, else ``scene.<scene_method>`` at the exact
-    hits; :class:`NotApplicable` when neither knows the answer."""
+    hits; :class:`NotApplicable` when neither knows the answer.  Memoised in ``cache`` (the
+    runner keeps one per case), failures included."""
+    if cache is None:
+        return _lookup(case, attr, scene_method, what)
+    key = ("exact", case.id, attr)
+    if key not in cache:
+        try:
+            cache[key] = _lookup(case, attr, scene_method, what)
+        except NotApplicable as exc:
+            cache[key] = exc
+    if isinstance(cache[key], NotApplicable):
+        raise cache[key]
+    return cache[key]
+
+
+def _lookup(case, attr: str, scene_method: str, what: str):
     try:
         val = getattr(case, attr)
     except AttributeError:
@@ -118,13 +133,13 @@ def _scatter(vals: np.ndarray, hit: np.ndarray) -> np.ndarray:
     return out
 
 
-def exact_normals(case) -> np.ndarray:
-    return np.asarray(_from_case_or_scene(case, "exact_normals", "normal_exact", "normals"), np.float64)
+def exact_normals(case, cache: dict | None = None) -> np.ndarray:
+    return np.asarray(_from_case_or_scene(case, "exact_normals", "normal_exact", "normals", cache), np.float64)
 
 
-def exact_curvatures(case) -> tuple[np.ndarray, np.ndarray]:
+def exact_curvatures(case, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(κ1, κ2) per ray; accepts the reference's tuple or an (n, 2) array."""
-    k = _from_case_or_scene(case, "exact_curvatures", "curvatures_exact", "curvatures")
+    k = _from_case_or_scene(case, "exact_curvatures", "curvatures_exact", "curvatures", cache)
     if isinstance(k, tuple):
         return np.asarray(k[0], np.float64), np.asarray(k[1], np.float64)
     k = np.asarray(k, np.float64)
@@ -133,8 +148,8 @@ def exact_curvatures(case) -> tuple[np.ndarray, np.ndarray]:
     raise NotApplicable(f"case.exact_curvatures of {case.id} has shape {k.shape}, expected (n, 2) or (κ1, κ2)")
 
 
-def exact_dt_dtheta(case) -> np.ndarray:
-    return np.asarray(_from_case_or_scene(case, "exact_dt_dtheta", "hit_param_grad", "dt/dθ"), np.float64)
+def exact_dt_dtheta(case, cache: dict | None = None) -> np.ndarray:
+    return np.asarray(_from_case_or_scene(case, "exact_dt_dtheta", "hit_param_grad", "dt/dθ", cache), np.float64)
 
 
 # -- per-ray error statistics -----------------------------------------------------------------
@@ -244,7 +259,8 @@ _CURVATURE_OUTPUTS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = 
 }
 
 
-def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tuple[list[Quantity], list[dict]]:
+def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
+                          cache: dict | None = None) -> tuple[list[Quantity], list[dict]]:
     """Quantities of a method evaluated at the exact hits (gradient, param_grad families)."""
     _, hit = _exact_points(case)
     rays = hit & ~_declined(res)
@@ -256,16 +272,16 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tup
         got = np.asarray(res.outputs[name], np.float64)
         try:
             if name == "normal":
-                qs.append(Quantity("normal_angle", "rad", got, exact_normals(case), rays, angle=True))
+                qs.append(Quantity("normal_angle", "rad", got, exact_normals(case, cache), rays, angle=True))
             elif name in _CURVATURE_OUTPUTS:
                 info = case.scene.info
                 if name == "curvature_laplacian" and not info.exact_sdf:
                     raise NotApplicable("Δφ equals κ1+κ2 only for exact SDFs (|∇φ| = 1); this scene is not one")
-                k1, k2 = exact_curvatures(case)
+                k1, k2 = exact_curvatures(case, cache)
                 qs.append(Quantity(name, "1/scene units" if name != "gaussian_curvature" else "1/scene units²",
                                    got, _CURVATURE_OUTPUTS[name](k1, k2), rays))
             elif name == "dt_dtheta":
-                ex = exact_dt_dtheta(case)
+                ex = exact_dt_dtheta(case, cache)
                 if got.shape != ex.shape:
                     raise ValueError(f"dt_dtheta has shape {got.shape}, the reference {ex.shape}")
                 qs.append(Quantity(name, "scene units per parameter unit", got, ex, rays & np.all(np.isfinite(ex), 1)))
@@ -283,7 +299,7 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tup
 
 
 def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, outputs=()) -> list[dict]:
-    qs, notes = _pointwise_quantities(res, case, outputs)
+    qs, notes = _pointwise_quantities(res, case, outputs, cache)
     n_declined = int(np.sum(_declined(res) & _exact_points(case)[1]))
     rows = []
     for q in qs:
