@@ -45,7 +45,6 @@ dt/dθ) are left out of the error and counted in ``n_declined`` and the status h
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from typing import Callable
 
 import numpy as np
@@ -102,7 +101,7 @@ def _lookup(case, attr: str, scene_method: str, what: str):
         val = getattr(case, attr)
     except AttributeError:
         val = None
-    except NotImplementedError as exc:
+    except (NotImplementedError, ValueError) as exc:  # the reference says it has no such answer
         raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
     if val is not None:
         return val
@@ -162,8 +161,10 @@ def _ulp(x: np.ndarray, dtype: str) -> np.ndarray:
 
 
 def _per_ray(q: Quantity) -> tuple[np.ndarray, np.ndarray]:
-    """(errors, |exact|) over ``q.rays``; non-finite output → inf."""
-    got, ex = q.got[q.rays], q.exact[q.rays]
+    """(errors, |exact|) over ``q.rays`` where the exact answer is finite (it is NaN at misses
+    and, for curvature, on edges); a non-finite output there → inf."""
+    rays = q.rays & np.all(np.isfinite(q.exact.reshape(q.exact.shape[0], -1)), axis=1)
+    got, ex = q.got[rays], q.exact[rays]
     if q.angle:
         cross = np.linalg.norm(np.cross(got, ex), axis=-1)
         dot = np.einsum("ij,ij->i", got, ex)
@@ -242,7 +243,8 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
     it = it[np.isfinite(it)]
     row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
            "n_false_hit": int(np.sum(got_hit & ~exact_hit)), "n_false_miss": int(np.sum(~got_hit & exact_hit)),
-           "error_iterate_median": float(np.median(it)) if it.size else float("nan")}
+           "error_iterate_median": float(np.median(it)) if it.size else float("nan"),
+           "reference_error_bound": float(getattr(case, "exact_t_error_bound", 0.0) or 0.0)}
     return [row]
 
 
@@ -310,77 +312,111 @@ def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict
     return rows + notes
 
 
-def _render_exact_fn():
+def _rendering_module():
     try:
         from reference import rendering
     except ImportError as exc:
         raise NotApplicable(f"reference.rendering is not available ({exc})") from None
-    fn = getattr(rendering, "render_exact", None)
-    if fn is None:
+    if getattr(rendering, "render_exact", None) is None:
         raise NotApplicable("reference.rendering.render_exact is not available")
-    return fn
+    return rendering
 
 
-def exact_color(case, knobs: dict, cache: dict) -> np.ndarray:
-    """``render_exact`` for the case with the render knobs it accepts (density model, sharpness…),
-    cached per case × those knobs (sample counts and samplers do not change the integral)."""
-    fn = _render_exact_fn()
-    params = inspect.signature(fn).parameters
-    passed = {k: v for k, v in knobs.items() if k in params}
-    for k, v in (("t_min", case.t_min), ("t_max", case.t_max)):
-        if k in params:
-            passed[k] = v
-    key = ("render_exact", case.id, tuple(sorted(passed.items())))
+def color_field(case):
+    """The case's colour field ρ (``case.color_field``, else ``scene.color``)."""
+    field = getattr(case, "color_field", None) or getattr(case.scene, "color", None)
+    if field is None:
+        raise NotApplicable(f"{case.id} has no colour field ρ (case.color_field)")
+    return field
+
+
+def density_model(spec, knobs: dict) -> str | None:
+    """The density model a volume renderer uses: a ``density``/``model`` knob, else the model
+    named in the method name (``volume_<model>_<sampler>``); None for a surface renderer."""
+    for k in ("density", "model"):
+        if isinstance(knobs.get(k), str):
+            return knobs[k]
+    try:
+        models = _rendering_module().MODELS
+    except (NotApplicable, AttributeError):
+        models = ("nerf", "unisurf", "neus", "volsdf")
+    parts = spec.name.split("_")
+    return next((m for m in models if m in parts), None)
+
+
+def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float]:
+    """C = ∫ T σ ρ dt by ``reference.rendering.render_exact`` for the method's density model and
+    sharpness over [t_min, t_max] of the case; (colours (n, 3), its largest error bound).  Cached
+    per case × model × sharpness (sample counts and samplers do not change the integral)."""
+    model = density_model(spec, knobs)
+    if model is None:
+        raise NotApplicable(f"{spec.name} renders the surface; its reference is ρ(x*) (color_vs_surface)")
+    if "sharpness" not in knobs:
+        raise NotApplicable(f"{spec.name} has no 'sharpness' knob: the density of its integral is unknown")
+    key = ("render_exact", case.id, model, float(knobs["sharpness"]))
     if key not in cache:
-        if "case" in params:
-            cache[key] = np.asarray(fn(case=case, **passed), np.float64)
-        else:
-            cache[key] = np.asarray(fn(case.scene, case.origins, case.directions, **passed), np.float64)
+        rendering = _rendering_module()
+        try:
+            colors, bound = rendering.render_exact(case.scene, color_field(case), model, float(knobs["sharpness"]),
+                                                   case.origins, case.directions, case.t_min, case.t_max)
+            cache[key] = (np.asarray(colors, np.float64), float(np.max(bound, initial=0.0)))
+        except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
+            cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
+    if isinstance(cache[key], NotApplicable):
+        raise cache[key]
     return cache[key]
 
 
 def surface_color(case) -> np.ndarray:
     """ρ(x*) at the exact first hit (NaN rows for misses)."""
-    color = getattr(case.scene, "color", None)
-    if color is None:
-        raise NotApplicable(f"the scene of {case.id} has no colour field ρ")
+    field = color_field(case)
     x, hit = _exact_points(case)
     out = np.full((case.n_rays, 3), np.nan)
     if hit.any():
-        c = np.asarray(color(x[hit]) if not hasattr(color, "value") else color.value(x[hit]), np.float64)
+        c = np.asarray(field.value(x[hit]) if hasattr(field, "value") else field(x[hit]), np.float64)
         out[hit] = c.reshape(int(hit.sum()), -1)
     return out
 
 
-def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, outputs=()) -> list[dict]:
+def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, spec) -> list[dict]:
+    """``color_vs_integral`` (against the continuous rendering integral of the same density, all
+    rays) and ``color_vs_surface`` (against ρ(x*), rays that hit: the limit volume rendering is
+    meant to approach)."""
     if "color" not in res.outputs:
         raise ValueError(f"render method returned no 'color' output (outputs: {sorted(res.outputs)})")
-    got = np.asarray(res.outputs["color"], np.float64)
-    got = got.reshape(case.n_rays, -1)
+    got = np.asarray(res.outputs["color"], np.float64).reshape(case.n_rays, -1)
     rows: list[dict] = []
     everywhere = ~_declined(res)
-    for name, exact_fn, rays in (
-        ("color_vs_integral", lambda: exact_color(case, knobs, cache).reshape(case.n_rays, -1), everywhere),
-        ("color_vs_surface", lambda: surface_color(case), everywhere & _exact_points(case)[1]),
-    ):
+    refs = (("color_vs_integral", lambda: exact_color(case, spec, knobs, cache), everywhere),
+            ("color_vs_surface", lambda: (surface_color(case), 0.0), everywhere & _exact_points(case)[1]))
+    for name, exact_fn, rays in refs:
         try:
-            ex = exact_fn()
+            ex, bound = exact_fn()
         except NotApplicable as exc:
             rows.append({"quantity": name, "skip": str(exc)})
             continue
         if ex.shape != got.shape:
             raise ValueError(f"color has shape {got.shape}, the reference {ex.shape}")
         e, mag = _per_ray(Quantity(name, "colour units", got, ex, rays))
-        rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype)})
+        rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype),
+                     "reference_error_bound": bound})
     return rows
 
 
-#: family → metric function ``(res, case, dtype, knobs, cache, outputs) -> list of row dicts``;
+def _root(res, case, dtype, knobs, cache, spec):
+    return root_metrics(res, case, dtype, knobs, cache)
+
+
+def _pointwise(res, case, dtype, knobs, cache, spec):
+    return pointwise_metrics(res, case, dtype, knobs, cache, tuple(spec.outputs))
+
+
+#: family → metric function ``(res, case, dtype, knobs, cache, spec) -> list of row dicts``;
 #: a row with a ``skip`` key records a quantity that could not be checked, and why.
 FAMILY_METRICS: dict[str, Callable[..., list[dict]]] = {
-    "root": lambda res, case, dtype, knobs, cache, outputs=(): root_metrics(res, case, dtype, knobs, cache),
-    "gradient": pointwise_metrics,
-    "param_grad": pointwise_metrics,
+    "root": _root,
+    "gradient": _pointwise,
+    "param_grad": _pointwise,
     "render": render_metrics,
 }
 
@@ -400,12 +436,11 @@ _INFO_FLAG.update({name: ("exact_curvatures", "exact_curvature") for name in _CU
 
 
 def _known_absent(case, output: str) -> bool:
-    """The scene says it has no exact answer for ``output`` and the case offers none either."""
+    """The scene states it has no exact answer for ``output`` (the flag the reference's
+    ``Case.exact_*`` answers require)."""
     if output not in _INFO_FLAG:
         return False
     attr, flag = _INFO_FLAG[output]
-    if hasattr(type(case), attr):  # the reference computes it (perhaps numerically)
-        return False
     return not getattr(case.scene.info, flag, True)
 
 
@@ -427,17 +462,16 @@ def family_skip_reason(spec, case) -> str | None:
                     f"(scene states {', '.join(sorted({_INFO_FLAG[o][1] + '=False' for o in missing}))})")
     if spec.family == "render":
         try:
-            _render_exact_fn()
+            color_field(case)
         except NotApplicable as exc:
-            if getattr(case.scene, "color", None) is None:
-                return f"no colour reference: {exc}; and the scene has no colour field ρ"
+            return f"no colour reference: {exc}"
     return None
 
 
 def measure_accuracy(spec, res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> list[dict]:
     """All quantity rows for one method result (see the module docstring)."""
     fn = FAMILY_METRICS[spec.family]
-    rows = fn(res, case, dtype, knobs, cache, tuple(spec.outputs))
+    rows = fn(res, case, dtype, knobs, cache, spec)
     work = work_stats(res)
     return [{**r, **work} if "skip" not in r else r for r in rows]
 

@@ -6,7 +6,8 @@ row per quantity, with the same timing.  Lists and dicts (timing samples, status
 values) are stored as JSON strings so the same table round-trips through parquet and csv.
 
 Schema history: 1 — the skeleton (depth only); 2 — ``family``, ``quantity``, ``unit``,
-``error_rel_max``, ``error_ulps_max``, ``n_checked``, ``n_declined``, ``loops``.
+``error_rel_max``, ``error_ulps_max``, ``n_checked``, ``n_declined``, ``loops``, ``rounds``,
+``error_iterate_median``, ``reference_error_bound``, ``timing_note``.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ COLUMNS = [
     "error_max_finite", "error_rel_max", "error_ulps_max", "error_max_eps", "n_checked", "n_declined",
     "n_false_hit", "n_false_miss", "evals_per_ray", "evals_p99", "evals_max", "iterations_max",
     "first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_samples_s", "time_ratio_cf", "n_samples",
-    "loops",
+    "loops", "rounds", "error_iterate_median", "reference_error_bound", "knobs_json", "timing_note", "traceback",
 ]
 #: what identifies a row across runs (compare matches on it)
 KEY = ["case_id", "backend", "dtype", "method", "knob", "quantity"]

@@ -105,9 +105,9 @@ class FakeBackend:
     device = "cpu"
     capabilities = Capabilities(dtypes=("float64",), devices=("cpu",))
 
-    def __init__(self, backend_id: str = "fake", methods=tuple(_IMPL)):
+    def __init__(self, backend_id: str = "fake", methods=None):
         self.id = backend_id
-        self._methods = tuple(methods)
+        self._methods = tuple(_IMPL if methods is None else methods)
         self.calls: list[str] = []
 
     def methods(self):
@@ -137,3 +137,37 @@ class FakeBackend:
 
     def versions(self):
         return {"fake": "1"}
+
+
+class FakeColor:
+    """ρ(x) = (x + 2)/4 per channel (values in [0, 1] near the unit sphere)."""
+
+    def value(self, x, xp=np):
+        return (x + 2.0) / 4.0
+
+
+def fake_render_exact(scene, color, model, sharpness, o, d, t_min, t_max, *, tol=1e-12):
+    """Stand-in for ``reference.rendering.render_exact``: ρ at the exact hit blurred by 1/s."""
+    if model == "unisurf":
+        raise ValueError("unisurf has no continuous density")
+    t = scene.first_hit(o, d, t_min)
+    hit = np.isfinite(t) & (t <= t_max)
+    out = np.zeros((o.shape[0], 3))
+    out[hit] = color.value(o[hit] + t[hit, None] * d[hit]) * (1 - 1 / sharpness)
+    return out, np.full(o.shape[0], 1e-11)
+
+
+def fake_volume(scene, o, d, t_min, t_max, t_hit, n_samples, sharpness, behaviour=0):
+    """'Renders' the fake integral plus a planted error."""
+    c, _ = fake_render_exact(scene, FakeColor(), "nerf", sharpness, o, d, t_min, t_max)
+    n = o.shape[0]
+    return {"t": np.zeros(n), "status": np.zeros(n, np.int32), "iterations": np.ones(n, np.int32),
+            "evals": np.full(n, n_samples, np.int32), "color": c + PLANTED}
+
+
+_VOLUME_KNOBS = (Knob("n_samples", 8, int, 1, "samples"), Knob("sharpness", 50.0, float, 1e-9, "s"))
+FAKE_METHODS.update({
+    f"volume_{m}_uniform": MethodSpec(f"volume_{m}_uniform", "render", _VOLUME_KNOBS, (), "fake volume", outputs=("color",))
+    for m in ("nerf", "unisurf")
+})
+_IMPL.update({f"volume_{m}_uniform": fake_volume for m in ("nerf", "unisurf")})

@@ -220,3 +220,37 @@ def test_rounds_pool_samples_from_later_passes(fake_methods, tmp_path):
     assert json.loads((tmp_path / "environment.json").read_text())["rounds"] == "3"
     with pytest.raises(ValueError, match="--rounds"):
         runner.run(s, {"fake": b}, tmp_path / "x", policy=pol, rounds=0)
+
+
+def test_render_family_against_the_integral_and_the_surface_colour(fake_methods, monkeypatch):
+    import sys
+    import types
+
+    from tests.test_bench_fakes import FakeColor, fake_render_exact
+
+    mod = types.ModuleType("reference.rendering")
+    mod.render_exact, mod.MODELS = fake_render_exact, ("nerf", "unisurf", "neus", "volsdf")
+    monkeypatch.setitem(sys.modules, "reference.rendering", mod)
+    import reference
+
+    monkeypatch.setattr(reference, "rendering", mod, raising=False)
+    base = get_case(CASE)
+    case = Case(id="colored", scene=base.scene, origins=base.origins, directions=base.directions)
+    object.__setattr__(case, "color_field", FakeColor())
+    b = FakeBackend()
+    knobs = {"n_samples": 8, "sharpness": 50.0}
+    by_q = {r["quantity"]: r for r in rows_of(runner.Config(case, "fake", "volume_nerf_uniform", "float64", knobs), b)}
+    integral, surface = by_q["color_vs_integral"], by_q["color_vs_surface"]
+    assert integral["outcome"] == "ok" and integral["error_max"] == pytest.approx(np.sqrt(3) * PLANTED, rel=1e-6)
+    assert integral["reference_error_bound"] == pytest.approx(1e-11)
+    # against ρ(x*): the blur 1/s dominates, on the rays that hit only
+    hit = np.isfinite(base.exact_t)
+    rho = FakeColor().value(base.origins[hit] + base.exact_t[hit, None] * base.directions[hit])
+    want = np.max(np.linalg.norm(rho / 50.0 - PLANTED, axis=1))
+    assert surface["outcome"] == "ok" and surface["error_max"] == pytest.approx(want, rel=1e-9)
+    assert surface["n_checked"] == hit.sum()
+    by_q = {r["quantity"]: r for r in rows_of(runner.Config(case, "fake", "volume_unisurf_uniform", "float64", knobs),
+                                               b)}
+    assert by_q["color_vs_integral"]["outcome"] == "skipped"
+    assert "no continuous reference for unisurf" in by_q["color_vs_integral"]["reason"]
+    assert by_q["color_vs_surface"]["outcome"] == "ok"
