@@ -15,7 +15,9 @@ import re
 import numpy as np
 
 #: knob names treated as tolerances (swept over decades, tightest used while other knobs sweep)
-_TOL_NAME = re.compile(r"(^|_)(tol|atol|rtol|eps|epsilon)$")
+_TOL_NAME = re.compile(r"(tol|eps|epsilon)$")  # tol, xtol, atol, rtol, f_tol, eps…
+#: integer knobs that are not budgets (never swept by default)
+_NOT_BUDGET = re.compile(r"seed|behaviou?r|mode|index|axis", re.I)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,9 +66,10 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
     """One-at-a-time sweep over a method's accuracy knobs, derived from its :class:`Knob` list.
 
     * a knob may carry its own ``sweep`` (a tuple of values, optional attribute): used as is;
-    * a float knob named like a tolerance (``tol``, ``*_tol``, ``eps``): 1e-4, 1e-8, 1e-12 (quick:
+    * a float knob named like a tolerance (``tol``, ``xtol``, ``*_tol``, ``eps``): 1e-4, 1e-8, 1e-12 (quick:
       the report's error targets) or every decade 1e-2 … 1e-13 (full), the others at defaults;
-    * an integer knob (a budget: steps, iterations, samples): 3 (quick) or 7 (full) geometric
+    * an integer knob that is a budget (steps, iterations, samples — not a seed or a mode):
+      3 (quick) or 7 (full) geometric
       values, rounded to powers of two, up to its default (quick) or 4× it (full), with every
       tolerance at its tightest swept value so the budget is what limits the error (a
       convergence curve in the budget);
@@ -89,7 +92,7 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
             out += [{**base, k.name: v} for v in explicit]
         elif _is_tolerance(k):
             out += [{**base, k.name: v} for v in _tol_values(k, level)]
-        elif k.kind is int:
+        elif k.kind is int and not _NOT_BUDGET.search(k.name):
             out += [{**base, **tight, k.name: v} for v in _int_values(k, level)]
     if not out:
         out = [dict(base)]

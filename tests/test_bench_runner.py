@@ -170,6 +170,13 @@ def test_default_sweep_derives_from_knobs():
     full = default_sweep(spec, "full")
     assert len(full) > len(sw) and max(k["n_samples"] for k in full) == 256
     assert len({json.dumps(k, sort_keys=True) for k in full}) == len(full)  # no duplicates
+    # xtol is a tolerance; a seed is not a budget
+    spec2 = MethodSpec("m2", "render", (Knob("xtol", 1e-12, float, 0.0, "x"), Knob("seed", 0, int, 0, "seed"),
+                                        Knob("n_coarse", 32, int, 1, "n")), (), "")
+    sw2 = default_sweep(spec2, "quick")
+    assert {k["seed"] for k in sw2} == {0}
+    assert sorted({k["xtol"] for k in sw2}) == [1e-12, 1e-8, 1e-4]
+    assert len({k["n_coarse"] for k in sw2}) == 3
     # an explicit hint wins
     hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (dataclasses.make_dataclass(
         "HKnob", [("sweep", tuple, (10.0, 100.0))], bases=(Knob,), frozen=True)("sharpness", 50.0, float, 0.0, "s"),))
