@@ -86,7 +86,8 @@ def cmd_run(args) -> int:
         return 2
     try:
         min_time = suite.min_time_s if args.min_time is None else args.min_time
-        policy = TimingPolicy(min_repeats=args.min_repeats, min_time_s=min_time, timeout_s=args.timeout,
+        min_repeats = suite.min_repeats if args.min_repeats is None else args.min_repeats
+        policy = TimingPolicy(min_repeats=min_repeats, min_time_s=min_time, timeout_s=args.timeout,
                               accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, min_time))
     except ValueError as exc:
         console.print(f"[red]error:[/] {exc}")
@@ -101,7 +102,7 @@ def cmd_run(args) -> int:
         try:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
-                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=args.budget,
+                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=suite.budget_s if args.budget is None else (args.budget or None),
                             rounds=args.rounds)
         except ValueError as exc:
             console.print(f"[red]error:[/] {exc}")
@@ -268,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--min-time", type=float, default=None, help="seconds of timed calls per configuration "
                    "(default: the suite's, 0.05 quick, 0.1 full)")
     r.add_argument("--max-time", type=float, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
-    r.add_argument("--min-repeats", type=int, default=5, help="timing samples per configuration at least (default 5)")
+    r.add_argument("--min-repeats", type=int, default=None, help="timing samples per configuration at least "
+                   "(default: the suite's, 3 quick, 5 full)")
     r.add_argument("--timeout", type=float, default=120.0, help="hard limit per configuration in seconds; past it the "
                    "configuration is a failed 'timeout' row and the run goes on (default 120, 0: none)")
     r.add_argument("--threads", type=int, default=1, help="threads per library (BLAS/OpenMP, torch, XLA), fixed and "
@@ -279,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--rounds", type=int, default=1, help="time the whole plan this many times, round after round, "
                    "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
     r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
-                   "when it is spent become skipped rows saying so (default: no limit)")
+                   "when it is spent become skipped rows saying so (default: the suite's, 110 quick, 840 full; 0: none)")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)

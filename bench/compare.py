@@ -2,7 +2,8 @@
 
 Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantity).  Verdicts:
 
-* ``not comparable``: the case versions differ (the case changed); for timing also when the
+* ``not comparable``: the case versions differ (the case changed), or either side was not
+  measured because its run's time budget ran out; for timing also when the
   machines differ (``environment.machine_key``) or either side has no samples.  A row on one
   side only is ``missing`` (in BASE only) or ``new`` (in NEW only); neither fails a comparison.
 * accuracy (deterministic, no statistics): ``worse`` when the new max error exceeds
@@ -29,7 +30,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import binom, mannwhitneyu
 
-from .results import KEY
+from .results import KEY, OVER_BUDGET
 
 ATOL_EPS = 1000.0
 
@@ -134,6 +135,10 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
         if str(b["case_version"]) != str(n["case_version"]):
             rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
                          "note": f"case version {b['case_version']} → {n['case_version']}"})
+            continue
+        if any(str(x.get("reason", "")).startswith(OVER_BUDGET) for x in (b, n)):
+            rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
+                         "note": "not measured: over the run's time budget"})
             continue
         acc = accuracy_verdict(b, n, rtol, atol_eps)
         if same_machine and b["outcome"] == "ok" and n["outcome"] == "ok":

@@ -30,6 +30,9 @@ COLUMNS = [
     "first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_samples_s", "time_ratio_cf", "n_samples",
     "loops", "rounds", "error_iterate_median", "reference_error_bound", "knobs_json", "timing_note", "traceback",
 ]
+#: the reason of a configuration skipped because its run's time budget ran out (prefix)
+OVER_BUDGET = "over the run's time budget"
+
 #: what identifies a row across runs (compare matches on it)
 KEY = ["case_id", "backend", "dtype", "method", "knob", "quantity"]
 

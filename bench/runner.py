@@ -30,11 +30,9 @@ from reference.quadric import ray_sphere_roots
 
 from . import environment
 from .metrics import family_skip_reason, measure_accuracy, primary_quantity
-from .results import SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
+from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
 from .suites import Suite
 from .timing import TimingPolicy, measure, time_limit
-
-OVER_BUDGET = "over the run's time budget"
 
 #: columns that identify a configuration (a row is a configuration × quantity)
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
@@ -87,8 +85,7 @@ def skip_reason(cfg: Config, backend: Any) -> str | None:
         return f"{cfg.backend_id} does not implement {cfg.method}"
     if cfg.dtype not in backend.capabilities.dtypes:
         return f"{cfg.backend_id} does not support {cfg.dtype}"
-    spec = get_method(cfg.method)
-    return spec.skip_reason(cfg.case.scene) or family_skip_reason(spec, cfg.case)
+    return applies(get_method(cfg.method), cfg.case)
 
 
 def check_result(res: RayResult, n: int, outputs: tuple[str, ...]) -> None:
@@ -193,11 +190,26 @@ def select_cases(suite: Suite, case_pattern: str | None) -> list[Case]:
     return catalog(suite.case_pattern, set(suite.case_tags) or None)
 
 
+def applies(spec, case) -> str | None:
+    """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
+    reference answers), or None."""
+    try:
+        return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
+    except Exception as exc:  # a reference that cannot answer is a reason, not a crash
+        return f"planning: {type(exc).__name__}: {exc}"
+
+
 def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
          dtypes: list[str] | None) -> list[Config]:
-    """Configurations in measuring order.  Per case, method and dtype the knobs are the outer loop
-    and backends the inner one, rotated by one at every knob, so backends interleave in time and
-    none is always first (drift on a shared machine spreads over all of them)."""
+    """Configurations in measuring order.
+
+    Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
+    given), its knob sweep on the first ``suite.sweep_cases`` of them and its default knobs on
+    the rest; a case it does not apply to gets one configuration (default knobs), which the
+    runner records as skipped with the reason.  Order: every default-knob configuration first
+    (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
+    case by case, knobs outer and backends inner, rotated by one at every knob, so backends
+    interleave in time and none is always first."""
     if methods:
         unknown = [m for m in methods if m not in METHODS]
         if unknown:
@@ -206,14 +218,30 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     for dt in dtypes or ():
         if dt not in ("float64", "float32", "float16", "bfloat16"):
             raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
+    cases = select_cases(suite, case_pattern)
+    explicit = bool(case_pattern)
+    work: list[tuple[int, int, Case, str, int, dict]] = []  # (stage, case index, case, method, knob index, knobs)
+    for method in names:
+        spec = METHODS[method]
+        sweep = suite.sweep_for(spec)
+        n_applicable = 0
+        for ci, case in enumerate(cases):
+            if applies(spec, case) is not None:
+                work.append((0, ci, case, method, 0, sweep[0]))
+                continue
+            n_applicable += 1
+            if not explicit and suite.max_cases is not None and n_applicable > suite.max_cases:
+                continue
+            swept = explicit or suite.sweep_cases is None or n_applicable <= suite.sweep_cases
+            for k, knobs in enumerate(sweep if swept else sweep[:1]):
+                work.append((0 if k == 0 else 1, ci, case, method, k, knobs))
+    work.sort(key=lambda w: (w[0], w[1]))  # stable: method order, then knob order, kept
     cfgs = []
-    for case in select_cases(suite, case_pattern):
-        for method in names:
-            for dtype in dtypes or suite.dtypes:
-                for k, knobs in enumerate(suite.sweep_for(METHODS[method])):
-                    r = k % max(len(backend_ids), 1)
-                    for bid in backend_ids[r:] + backend_ids[:r]:
-                        cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
+    for _, _, case, method, k, knobs in work:
+        for dtype in dtypes or suite.dtypes:
+            r = k % max(len(backend_ids), 1)
+            for bid in backend_ids[r:] + backend_ids[:r]:
+                cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
     return cfgs
 
 
@@ -287,7 +315,6 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
             if rows:
                 write_results(to_frame(rows), out_dir)
                 last_write = time.monotonic()
-            ref_cache.clear()  # reference answers are cached per case
         if cfg.case.id not in cf_cache and not policy.accuracy_only:
             cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
         if progress:

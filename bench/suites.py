@@ -22,9 +22,18 @@ _NOT_BUDGET = re.compile(r"seed|behaviou?r|mode|index|axis", re.I)
 
 @dataclasses.dataclass(frozen=True)
 class Suite:
-    """name; case glob(s) and required tags; dtypes; ``sweeps`` (method → knob dicts) overriding
+    """What a run crosses with the backends.
+
+    name; case glob(s) and required tags; dtypes; ``sweeps`` (method → knob dicts) overriding
     the derived sweep; ``methods`` (None: every method in ``METHODS``); ``level`` passed to
-    :func:`default_sweep` ("quick" or "full")."""
+    :func:`default_sweep` ("quick" or "full"); ``main_dial_only``: sweep only a method's first
+    knob (its main accuracy dial, by the catalog's convention), the others at their defaults;
+    ``sweep_cases``: a method's knob sweep runs on its first N applicable cases, the other
+    applicable cases get its default knobs only (None: the sweep everywhere); ``max_cases``:
+    a method runs on at most this many applicable cases (None: all); ``min_time_s`` and
+    ``min_repeats``: timing per configuration; ``budget_s``: wall-clock budget of a run (the
+    CLI's ``--budget`` overrides; configurations left when it is spent are skipped rows).
+    """
 
     name: str
     case_pattern: str
@@ -34,11 +43,16 @@ class Suite:
     methods: tuple[str, ...] | None = None
     level: str = "quick"
     min_time_s: float = 0.2  # timed seconds per configuration (CLI --min-time overrides)
+    main_dial_only: bool = False
+    sweep_cases: int | None = None
+    max_cases: int | None = None
+    min_repeats: int = 5
+    budget_s: float | None = None
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
             return [dict(k) for k in self.sweeps[spec.name]]
-        return default_sweep(spec, self.level)
+        return default_sweep(spec, self.level, main_dial_only=self.main_dial_only)
 
 
 def _is_tolerance(knob) -> bool:
@@ -62,7 +76,7 @@ def _tol_values(knob, level: str) -> list[float]:
     return [10.0 ** -k for k in ks if 10.0 ** -k >= knob.low]
 
 
-def default_sweep(spec, level: str = "quick") -> list[dict]:
+def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> list[dict]:
     """One-at-a-time sweep over a method's accuracy knobs, derived from its :class:`Knob` list.
 
     * a knob may carry its own ``sweep`` (a tuple of values, optional attribute): used as is;
@@ -75,9 +89,11 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
       convergence curve in the budget);
     * other knobs (sharpness, band width, relaxation…) stay at their defaults unless they carry
       ``sweep``.
-    Knob dicts are complete (every knob named) and unique, in a stable order.
+    With ``main_dial_only`` only the first knob is swept.  The first knob dict is always the
+    all-defaults setting.  Knob dicts are complete (every knob named) and unique, in a stable order.
     """
     knobs = list(spec.knobs)
+    swept = knobs[:1] if main_dial_only else knobs
     base = {k.name: k.default for k in knobs}
     tight = {}
     for k in knobs:
@@ -85,8 +101,8 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
             vals = _tol_values(k, level)
             if vals:
                 tight[k.name] = min(vals)
-    out: list[dict] = []
-    for k in knobs:
+    out: list[dict] = [dict(base)]
+    for k in swept:
         explicit = getattr(k, "sweep", None)
         if explicit is not None:
             out += [{**base, k.name: v} for v in explicit]
@@ -94,8 +110,6 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
             out += [{**base, k.name: v} for v in _tol_values(k, level)]
         elif k.kind is int and not _NOT_BUDGET.search(k.name):
             out += [{**base, **tight, k.name: v} for v in _int_values(k, level)]
-    if not out:
-        out = [dict(base)]
     seen, unique = set(), []
     for kd in out:
         key = tuple(sorted((n, float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v))
@@ -108,12 +122,15 @@ def default_sweep(spec, level: str = "quick") -> list[dict]:
 
 SUITES = {
     # quick: CI and the README's first command, < 2 min on 2 cores: cases tagged "quick", float64,
-    # 3-point sweeps, 0.05 s of timing per configuration.
+    # each method on its first applicable quick case with its main dial at 3 settings (a short
+    # time-versus-error curve per method and backend), 0.05 s and ≥ 3 samples of timing each.
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
-                   min_time_s=0.05),
-    # full: every case, float64 and float32, the long sweeps, 0.1 s of timing per configuration.
+                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=110.0),
+    # full: every case, float64 and float32; the long one-at-a-time sweeps of every knob on a
+    # method's first 2 applicable cases and its defaults on all the others; 0.1 s of timing each;
+    # defaults everywhere are measured before any sweep point, so the budget cuts sweeps first.
     "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
-                  min_time_s=0.1),
+                  min_time_s=0.1, sweep_cases=2, budget_s=840.0),
 }
 
 

@@ -261,3 +261,34 @@ def test_render_family_against_the_integral_and_the_surface_colour(fake_methods,
     assert by_q["color_vs_integral"]["outcome"] == "skipped"
     assert "no continuous reference for unisurf" in by_q["color_vs_integral"]["reason"]
     assert by_q["color_vs_surface"]["outcome"] == "ok"
+
+
+def test_plan_limits_cases_and_puts_defaults_first(fake_methods):
+    case = get_case(CASE)
+
+    class NoLipschitz(Sphere):
+        @property
+        def info(self):
+            return dataclasses.replace(Sphere.info.fget(self), lipschitz=None)
+
+    cases = [Case(id=f"c{i}", scene=Sphere() if i != 1 else NoLipschitz(), origins=case.origins,
+                  directions=case.directions) for i in range(4)]
+    s = dataclasses.replace(suite(["fake_root"]), sweep_cases=1, max_cases=2)
+    import bench.runner as r
+
+    orig = r.select_cases
+    try:
+        r.select_cases = lambda suite, pattern: cases
+        cfgs = runner.plan(s, ["a"], None, None, None)
+    finally:
+        r.select_cases = orig
+    sweep = s.sweep_for(FAKE_METHODS["fake_root"])
+    by_case = {c.id: [x for x in cfgs if x.case.id == c.id] for c in cases}
+    assert len(by_case["c0"]) == len(sweep)  # the sweep on the first applicable case
+    assert len(by_case["c1"]) == 1  # not applicable: one configuration, to be skipped with the reason
+    assert len(by_case["c2"]) == 1  # second applicable case: defaults only
+    assert by_case["c3"] == []  # beyond max_cases
+    defaults = {json.dumps(sweep[0], sort_keys=True)}
+    n_first = 3  # c0, c1, c2 defaults come before any sweep point
+    assert all(json.dumps(c.knobs, sort_keys=True) in defaults for c in cfgs[:n_first])
+    assert all(json.dumps(c.knobs, sort_keys=True) not in defaults for c in cfgs[n_first:])
