@@ -66,8 +66,16 @@ def cmd_run(args) -> int:
     from .suites import get_suite
     from .timing import TimingPolicy
 
-    suite = get_suite(args.suite)
     console = _console()
+    try:
+        suite = get_suite(args.suite)
+    except ValueError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        return 2
+    if not runner.select_cases(suite, args.case):  # fail fast, before importing any backend
+        console.print(f"[red]error:[/] nothing to run: no case matches {args.case or suite.case_pattern!r}; "
+                      "`python -m bench cases` lists the cases")
+        return 2
     if args.resume and not args.out:
         console.print("[red]--resume needs --out DIR: the run directory to finish[/]")
         return 2
