@@ -160,10 +160,16 @@ def _ulp(x: np.ndarray, dtype: str) -> np.ndarray:
     return np.spacing(a).astype(np.float64)
 
 
+def finite_rows(a: np.ndarray) -> np.ndarray:
+    """Per row (ray): every entry finite.  Works for (n,), (n, k) and n = 0."""
+    a = np.asarray(a)
+    return np.isfinite(a) if a.ndim == 1 else np.all(np.isfinite(a.reshape(a.shape[0], -1 if a.size else 1)), axis=1)
+
+
 def _per_ray(q: Quantity) -> tuple[np.ndarray, np.ndarray]:
     """(errors, |exact|) over ``q.rays`` where the exact answer is finite (it is NaN at misses
     and, for curvature, on edges); a non-finite output there → inf."""
-    rays = q.rays & np.all(np.isfinite(q.exact.reshape(q.exact.shape[0], -1)), axis=1)
+    rays = q.rays & finite_rows(q.exact)
     got, ex = q.got[rays], q.exact[rays]
     if q.angle:
         cross = np.linalg.norm(np.cross(got, ex), axis=-1)
@@ -176,8 +182,7 @@ def _per_ray(q: Quantity) -> tuple[np.ndarray, np.ndarray]:
     else:
         e = np.abs(got - ex)
         mag = np.abs(ex)
-    bad = ~np.all(np.isfinite(got.reshape(got.shape[0], -1)), axis=1)
-    e = np.where(bad, np.inf, e)
+    e = np.where(finite_rows(got), e, np.inf)
     return e, mag
 
 
@@ -286,12 +291,12 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
                 ex = exact_dt_dtheta(case, cache)
                 if got.shape != ex.shape:
                     raise ValueError(f"dt_dtheta has shape {got.shape}, the reference {ex.shape}")
-                qs.append(Quantity(name, "scene units per parameter unit", got, ex, rays & np.all(np.isfinite(ex), 1)))
+                qs.append(Quantity(name, "scene units per parameter unit", got, ex, rays))
             elif getattr(case, "exact_" + name, None) is not None:  # a reference answer named after the output
                 ex = np.asarray(getattr(case, "exact_" + name), np.float64)
                 if got.shape != ex.shape:
                     raise ValueError(f"{name} has shape {got.shape}, case.exact_{name} {ex.shape}")
-                qs.append(Quantity(name, "", got, ex, rays & np.all(np.isfinite(ex.reshape(ex.shape[0], -1)), 1)))
+                qs.append(Quantity(name, "", got, ex, rays))
             else:
                 notes.append({"quantity": name, "skip": f"no reference for output {name!r} "
                                                         f"(bench.metrics knows none; case.exact_{name} does not exist)"})
@@ -384,7 +389,8 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
     meant to approach)."""
     if "color" not in res.outputs:
         raise ValueError(f"render method returned no 'color' output (outputs: {sorted(res.outputs)})")
-    got = np.asarray(res.outputs["color"], np.float64).reshape(case.n_rays, -1)
+    got = np.asarray(res.outputs["color"], np.float64)
+    got = got.reshape(case.n_rays, -1) if got.size else got.reshape(case.n_rays, 3)
     rows: list[dict] = []
     everywhere = ~_declined(res)
     refs = (("color_vs_integral", lambda: exact_color(case, spec, knobs, cache), everywhere),

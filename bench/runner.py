@@ -29,7 +29,7 @@ from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
 from . import environment
-from .metrics import family_skip_reason, measure_accuracy, primary_quantity
+from .metrics import finite_rows, family_skip_reason, measure_accuracy, primary_quantity
 from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
 from .suites import Suite
 from .timing import TimingPolicy, measure, time_limit
@@ -106,7 +106,7 @@ def check_result(res: RayResult, n: int, outputs: tuple[str, ...]) -> None:
         a = np.asarray(a)
         if a.shape[:1] != (n,):
             raise ValueError(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
-        bad = int(np.sum(conv & ~np.all(np.isfinite(a.reshape(n, -1)), axis=1)))
+        bad = int(np.sum(conv & ~finite_rows(a)))
         if bad:
             raise ValueError(f"silent NaN: {bad} rays have non-finite {name} with status CONVERGED")
 
