@@ -111,7 +111,8 @@ def cmd_run(args) -> int:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
                             resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=suite.budget_s if args.budget is None else (args.budget or None),
-                            rounds=args.rounds)
+                            rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
+                            else DEFAULT_REPORTS / ".refcache")
         except ValueError as exc:
             console.print(f"[red]error:[/] {exc}")
             return 2
@@ -291,6 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
                    "when it is spent become skipped rows saying so (default: the suite's, 110 quick, 840 full; 0: none)")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
+    r.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
+                   "rendering integral) instead of reusing reports/.refcache/")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)
 

@@ -45,6 +45,9 @@ dt/dθ) are left out of the error and counted in ``n_declined`` and the status h
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import time
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -349,24 +352,71 @@ def density_model(spec, knobs: dict) -> str | None:
     return next((m for m in models if m in parts), None)
 
 
+@dataclasses.dataclass(frozen=True)
+class ReferenceOptions:
+    """How costly reference answers are obtained (the runner stores one in the per-run cache
+    under ``"_options"``).  ``expensive``: compute references that take seconds to minutes per
+    case (the rendering integral); ``timeout_s``: limit per such computation (0: none);
+    ``disk``: directory caching them across runs (keyed by the case version and the source of the
+    reference module, so a changed case or reference is recomputed)."""
+
+    expensive: bool = True
+    timeout_s: float = 120.0
+    disk: Path | None = None
+
+
+def _disk_key(case, parts: tuple, module) -> str:
+    h = hashlib.sha256(repr((case.version, parts)).encode())
+    try:
+        h.update(Path(module.__file__).read_bytes())
+    except (OSError, TypeError, AttributeError):
+        pass
+    return h.hexdigest()[:20]
+
+
 def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float]:
     """C = ∫ T σ ρ dt by ``reference.rendering.render_exact`` for the method's density model and
     sharpness over [t_min, t_max] of the case; (colours (n, 3), its largest error bound).  Cached
-    per case × model × sharpness (sample counts and samplers do not change the integral)."""
+    per case × model × sharpness (sample counts and samplers do not change the integral), in
+    memory and, with :attr:`ReferenceOptions.disk`, on disk; a computation past
+    :attr:`ReferenceOptions.timeout_s` is a :class:`NotApplicable` (remembered for the run)."""
+    from .timing import Timeout, time_limit
+
+    opts: ReferenceOptions = cache.get("_options") or ReferenceOptions()
     model = density_model(spec, knobs)
     if model is None:
         raise NotApplicable(f"{spec.name} renders the surface; its reference is ρ(x*) (color_vs_surface)")
     if "sharpness" not in knobs:
         raise NotApplicable(f"{spec.name} has no 'sharpness' knob: the density of its integral is unknown")
-    key = ("render_exact", case.id, model, float(knobs["sharpness"]))
+    if not opts.expensive:
+        raise NotApplicable("this suite skips the rendering integral (a costly reference, seconds to minutes per "
+                            "case and density); --suite full computes it")
+    s = float(knobs["sharpness"])
+    key = ("render_exact", case.id, model, s)
     if key not in cache:
         rendering = _rendering_module()
+        path = opts.disk / f"render_exact-{_disk_key(case, (model, s), rendering)}.npz" if opts.disk else None
         try:
-            colors, bound = rendering.render_exact(case.scene, color_field(case), model, float(knobs["sharpness"]),
-                                                   case.origins, case.directions, case.t_min, case.t_max)
-            cache[key] = (np.asarray(colors, np.float64), float(np.max(bound, initial=0.0)))
+            if path is not None and path.exists():
+                z = np.load(path)
+                cache[key] = (z["colors"], float(z["bound"]))
+            else:
+                t0 = time.perf_counter()
+                with time_limit(opts.timeout_s):
+                    colors, bound = rendering.render_exact(case.scene, color_field(case), model, s, case.origins,
+                                                           case.directions, case.t_min, case.t_max)
+                cache[key] = (np.asarray(colors, np.float64), float(np.max(bound, initial=0.0)))
+                cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
+                if path is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_suffix(".tmp.npz")
+                    np.savez(tmp, colors=cache[key][0], bound=cache[key][1])
+                    tmp.replace(path)
         except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
             cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
+        except Timeout:
+            cache[key] = NotApplicable(f"the reference integral for {model} (s = {s:g}) took longer than "
+                                       f"{opts.timeout_s:g} s (--timeout); not checked")
     if isinstance(cache[key], NotApplicable):
         raise cache[key]
     return cache[key]
@@ -405,7 +455,9 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
             raise ValueError(f"color has shape {got.shape}, the reference {ex.shape}")
         e, mag = _per_ray(Quantity(name, "colour units", got, ex, rays))
         rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype),
-                     "reference_error_bound": bound})
+                     "reference_error_bound": bound,
+                     "reference_s": cache.pop(("reference_s", case.id, density_model(spec, knobs),
+                                               float(knobs.get("sharpness", 0) or 0)), 0.0)})
     return rows
 
 

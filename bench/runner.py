@@ -29,7 +29,7 @@ from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
 from . import environment
-from .metrics import finite_rows, family_skip_reason, measure_accuracy, primary_quantity
+from .metrics import ReferenceOptions, finite_rows, family_skip_reason, measure_accuracy, primary_quantity
 from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
 from .suites import Suite
 from .timing import TimingPolicy, measure, time_limit
@@ -255,7 +255,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
         run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
         resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
-        budget_s: float | None = None, rounds: int = 1) -> "Any":
+        budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
@@ -265,6 +265,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     ``rounds``: the whole plan is timed ``rounds`` times, round after round, and each
     configuration's samples pooled (:func:`retime`), so slow drift of a shared machine's load
     shows up as spread within a configuration instead of as a difference between runs.
+    ``reference_cache_dir``: where costly reference answers are kept across runs (None: not kept).
     """
     if rounds < 1:
         raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
@@ -306,7 +307,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
     started = time.monotonic()
     cf_cache: dict[str, float] = {}
-    ref_cache: dict = {}
+    ref_cache: dict = {"_options": ReferenceOptions(expensive=suite.expensive_references, timeout_s=policy.timeout_s,
+                                                    disk=reference_cache_dir)}
     last_write = time.monotonic()
     current_case = None
     for i, cfg in enumerate(todo):

@@ -32,7 +32,9 @@ class Suite:
     applicable cases get its default knobs only (None: the sweep everywhere); ``max_cases``:
     a method runs on at most this many applicable cases (None: all); ``min_time_s`` and
     ``min_repeats``: timing per configuration; ``budget_s``: wall-clock budget of a run (the
-    CLI's ``--budget`` overrides; configurations left when it is spent are skipped rows).
+    CLI's ``--budget`` overrides; configurations left when it is spent are skipped rows);
+    ``expensive_references``: check against references that cost seconds to minutes per case
+    (the continuous rendering integral); when False those quantities are skipped rows saying so.
     """
 
     name: str
@@ -48,6 +50,7 @@ class Suite:
     max_cases: int | None = None
     min_repeats: int = 5
     budget_s: float | None = None
+    expensive_references: bool = True
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
@@ -123,9 +126,11 @@ def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> l
 SUITES = {
     # quick: CI and the README's first command, < 2 min on 2 cores: cases tagged "quick", float64,
     # each method on its first applicable quick case with its main dial at 3 settings (a short
-    # time-versus-error curve per method and backend), 0.05 s and ≥ 3 samples of timing each.
+    # time-versus-error curve per method and backend), 0.05 s and ≥ 3 samples of timing each;
+    # volume renderers against ρ(x*) only (the rendering integral costs ~10 s to minutes per case).
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
-                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=110.0),
+                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=110.0,
+                   expensive_references=False),
     # full: every case, float64 and float32; the long one-at-a-time sweeps of every knob on a
     # method's first 2 applicable cases and its defaults on all the others; 0.1 s of timing each;
     # defaults everywhere are measured before any sweep point, so the budget cuts sweeps first.

@@ -229,18 +229,74 @@ def test_rounds_pool_samples_from_later_passes(fake_methods, tmp_path):
         runner.run(s, {"fake": b}, tmp_path / "x", policy=pol, rounds=0)
 
 
-def test_render_family_against_the_integral_and_the_surface_colour(fake_methods, monkeypatch):
+def fake_rendering(monkeypatch, render_exact):
     import sys
     import types
 
-    from tests.test_bench_fakes import FakeColor, fake_render_exact
-
-    mod = types.ModuleType("reference.rendering")
-    mod.render_exact, mod.MODELS = fake_render_exact, ("nerf", "unisurf", "neus", "volsdf")
-    monkeypatch.setitem(sys.modules, "reference.rendering", mod)
     import reference
 
+    mod = types.ModuleType("reference.rendering")
+    mod.render_exact, mod.MODELS = render_exact, ("nerf", "unisurf", "neus", "volsdf")
+    monkeypatch.setitem(sys.modules, "reference.rendering", mod)
     monkeypatch.setattr(reference, "rendering", mod, raising=False)
+    return mod
+
+
+def colored_case():
+    from tests.test_bench_fakes import FakeColor
+
+    base = get_case(CASE)
+    case = Case(id="colored", scene=base.scene, origins=base.origins, directions=base.directions)
+    object.__setattr__(case, "color_field", FakeColor())
+    return case
+
+
+def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(fake_methods, monkeypatch, tmp_path):
+    from bench.metrics import ReferenceOptions
+    from tests.test_bench_fakes import fake_render_exact
+
+    calls = []
+
+    def counting(*a, **k):
+        calls.append(a[2])
+        if a[2] == "neus":  # a reference that would take minutes
+            import time
+
+            deadline = time.perf_counter() + 30
+            while time.perf_counter() < deadline:
+                pass
+        return fake_render_exact(*a, **k)
+
+    fake_rendering(monkeypatch, counting)
+    case, b, knobs = colored_case(), FakeBackend(), {"n_samples": 8, "sharpness": 50.0}
+    cfg = runner.Config(case, "fake", "volume_nerf_uniform", "float64", knobs)
+
+    def integral(cache):
+        rows = runner.run_one("r", cfg, b, FAST, 1.0, cache)
+        return next(r for r in rows if r["quantity"] == "color_vs_integral")
+
+    opts = ReferenceOptions(timeout_s=0.5, disk=tmp_path / "refcache")
+    first = integral({"_options": opts})
+    second = integral({"_options": opts})  # a new run: from disk
+    assert calls == ["nerf"] and first["error_max"] == second["error_max"] and first["outcome"] == "ok"
+    assert len(list((tmp_path / "refcache").glob("*.npz"))) == 1
+    skipped = integral({"_options": ReferenceOptions(expensive=False)})
+    assert skipped["outcome"] == "skipped" and "--suite full" in skipped["reason"]
+    monkeypatch.setitem(FAKE_METHODS, "volume_neus_uniform",
+                        dataclasses.replace(FAKE_METHODS["volume_nerf_uniform"], name="volume_neus_uniform"))
+    monkeypatch.setitem(METHODS, "volume_neus_uniform", FAKE_METHODS["volume_neus_uniform"])
+    import tests.test_bench_fakes as fakes
+
+    monkeypatch.setitem(fakes._IMPL, "volume_neus_uniform", fakes.fake_volume)
+    cfg, b = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs), FakeBackend()
+    slow = integral({"_options": opts})
+    assert slow["outcome"] == "skipped" and "took longer than 0.5 s" in slow["reason"]
+
+
+def test_render_family_against_the_integral_and_the_surface_colour(fake_methods, monkeypatch):
+    from tests.test_bench_fakes import FakeColor, fake_render_exact
+
+    fake_rendering(monkeypatch, fake_render_exact)
     base = get_case(CASE)
     case = Case(id="colored", scene=base.scene, origins=base.origins, directions=base.directions)
     object.__setattr__(case, "color_field", FakeColor())
