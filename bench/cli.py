@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--rounds", type=int, default=1, help="time the whole plan this many times, round after round, "
                    "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
     r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
-                   "when it is spent become skipped rows saying so (default: the suite's, 110 quick, 840 full; 0: none)")
+                   "when it is spent become skipped rows saying so (default: the suite's, 100 quick, 840 full; 0: none)")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
     r.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
                    "rendering integral) instead of reusing reports/.refcache/")

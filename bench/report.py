@@ -95,9 +95,15 @@ def _label_unit(g: pd.DataFrame) -> tuple[str, str]:
 
 
 def plot_time_vs_error(df: pd.DataFrame, title: str):
-    """One curve per (method, backend) of ``df`` (rows of one case × quantity × dtype)."""
-    fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=100)
+    """One curve per (method, backend) of ``df`` (rows of one case × quantity × dtype).
+
+    Colour = method, marker and line style = backend; with several methods the legend lists
+    methods and backends apart (not every pair), and the figure grows with it, so many curves
+    never squeeze the axes."""
     ok = _ok(df)
+    n_methods, n_backends = ok["method"].nunique(), ok["backend"].nunique()
+    entries = (n_methods + n_backends if n_methods > 1 else n_backends) + 2
+    fig, ax = plt.subplots(figsize=(7.5, max(4.8, 0.17 * entries + 1.0)), dpi=100)
     q, unit = _label_unit(ok) if len(ok) else ("depth", "scene units")
     finite = ok["error_max"].replace([np.inf], np.nan).dropna()
     positive = finite[finite > 0]
@@ -106,13 +112,16 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
     methods = sorted(ok["method"].unique())
     backends = sorted(ok["backend"].unique())
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len(methods) > len(colors):
+        colors = [plt.get_cmap("tab20")(i % 20) for i in range(len(methods))]
+    many = len(methods) > 1
     for (method, bid), g in sorted(ok.groupby(["method", "backend"]), key=lambda kv: kv[0]):
         err = g["error_max"].to_numpy(float)
         y = np.where(np.isfinite(err), np.maximum(err, floor), top)
         t = g["time_median_s"].to_numpy(float)
         mi, bi = methods.index(method), backends.index(bid)
-        label = bid if len(methods) == 1 else f"{method} · {bid}"
-        color = colors[mi % len(colors)] if len(methods) > 1 else colors[bi % len(colors)]
+        label = None if many else bid
+        color = colors[mi % len(colors)] if many else colors[bi % len(colors)]
         marker = _MARKERS[bi % len(_MARKERS)]
         # every knob setting is a point; the line joins this curve's own Pareto front (the knob
         # settings worth using), so sweeps of different knobs do not zigzag across each other
@@ -127,6 +136,12 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
         bad = ~fin
         if bad.any():
             ax.scatter(t[bad], y[bad], marker="x", s=50, color="k", zorder=5)
+    if many:  # legend: methods by colour, then backends by marker and line style
+        for mi, m in enumerate(methods):
+            ax.plot([], [], color=colors[mi % len(colors)], lw=2, label=m)
+        for bi, b in enumerate(backends):
+            ax.plot([], [], color="0.3", marker=_MARKERS[bi % len(_MARKERS)], ls=_LINESTYLES[bi % len(_LINESTYLES)],
+                    label=b)
     if len(ok) and not np.isfinite(ok["error_max"].to_numpy(float)).all():
         _mark_infinite(ax, top)
     if len(ok):

@@ -204,7 +204,7 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     """Configurations in measuring order.
 
     Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
-    given), its knob sweep on the first ``suite.sweep_cases`` of them and its default knobs on
+    given; fewest rays first with ``suite.small_cases_first``), its knob sweep on the first ``suite.sweep_cases`` of them and its default knobs on
     the rest; a case it does not apply to gets one configuration (default knobs), which the
     runner records as skipped with the reason.  Order: every default-knob configuration first
     (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
@@ -220,6 +220,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
             raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
     cases = select_cases(suite, case_pattern)
     explicit = bool(case_pattern)
+    if suite.small_cases_first and not explicit:
+        cases = sorted(cases, key=lambda c: c.n_rays)  # stable: catalog order among equals
     work: list[tuple[int, int, Case, str, int, dict]] = []  # (stage, case index, case, method, knob index, knobs)
     for method in names:
         spec = METHODS[method]

@@ -34,7 +34,9 @@ class Suite:
     ``min_repeats``: timing per configuration; ``budget_s``: wall-clock budget of a run (the
     CLI's ``--budget`` overrides; configurations left when it is spent are skipped rows);
     ``expensive_references``: check against references that cost seconds to minutes per case
-    (the continuous rendering integral); when False those quantities are skipped rows saying so.
+    (the continuous rendering integral); when False those quantities are skipped rows saying so;
+    ``small_cases_first``: a method's applicable cases are taken fewest rays first (so with
+    ``max_cases`` a budgeted suite spends its time on methods, not on ray count).
     """
 
     name: str
@@ -51,6 +53,7 @@ class Suite:
     min_repeats: int = 5
     budget_s: float | None = None
     expensive_references: bool = True
+    small_cases_first: bool = False
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
@@ -129,8 +132,8 @@ SUITES = {
     # time-versus-error curve per method and backend), 0.05 s and ≥ 3 samples of timing each;
     # volume renderers against ρ(x*) only (the rendering integral costs ~10 s to minutes per case).
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
-                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=110.0,
-                   expensive_references=False),
+                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=100.0,
+                   expensive_references=False, small_cases_first=True),
     # full: every case, float64 and float32; the long one-at-a-time sweeps of every knob on a
     # method's first 2 applicable cases and its defaults on all the others; 0.1 s of timing each;
     # defaults everywhere are measured before any sweep point, so the budget cuts sweeps first.
