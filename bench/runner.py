@@ -111,6 +111,17 @@ def check_result(res: RayResult, n: int, outputs: tuple[str, ...]) -> None:
             raise ValueError(f"silent NaN: {bad} rays have non-finite {name} with status CONVERGED")
 
 
+def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
+    """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
+    depths, isolating their error from root finding) and time it: (prepared, timing, output)."""
+    case, spec = cfg.case, get_method(cfg.method)
+    extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+    prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
+                           t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
+    timing, out = measure(prep.run, backend.synchronize, policy)
+    return prep, timing, out
+
+
 def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
             cache: dict | None = None) -> list[dict]:
     """Rows for one configuration (one per quantity; one row when skipped or failed)."""
@@ -126,10 +137,7 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
     case, spec = cfg.case, get_method(cfg.method)
     try:
         with time_limit(policy.timeout_s):
-            extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
-            prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
-                                   t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
-            timing, out = measure(prep.run, backend.synchronize, policy)
+            prep, timing, out = _prepare_and_time(cfg, backend, policy)
             res = prep.result(out)
         check_result(res, case.n_rays, tuple(spec.outputs))
         quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
@@ -159,13 +167,9 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
 def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str:
     """Timing samples of one more round for ``cfg`` (prepared afresh, compile excluded), or the
     error message when this round failed."""
-    case, spec = cfg.case, get_method(cfg.method)
     try:
         with time_limit(policy.timeout_s):
-            extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
-            prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
-                                   t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
-            timing, _ = measure(prep.run, backend.synchronize, policy)
+            _, timing, _ = _prepare_and_time(cfg, backend, policy)
         return timing.samples_s
     except Exception as exc:
         return f"{type(exc).__name__}: {exc}"
