@@ -393,6 +393,9 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
                             "case and density); --suite full computes it")
     s = float(knobs["sharpness"])
     key = ("render_exact", case.id, model, s)
+    gave_up = cache.get(("render_exact_timed_out", model))
+    if key not in cache and gave_up:  # one timeout per model and run: not retried on every case
+        cache[key] = NotApplicable(gave_up)
     if key not in cache:
         rendering = _rendering_module()
         path = opts.disk / f"render_exact-{_disk_key(case, (model, s), rendering)}.npz" if opts.disk else None
@@ -417,6 +420,8 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
         except Timeout:
             cache[key] = NotApplicable(f"the reference integral for {model} (s = {s:g}) took longer than "
                                        f"{opts.timeout_s:g} s (--timeout); not checked")
+            cache[("render_exact_timed_out", model)] = (f"the reference integral for {model} timed out on {case.id} "
+                                                        f"(> {opts.timeout_s:g} s); not attempted again in this run")
     if isinstance(cache[key], NotApplicable):
         raise cache[key]
     return cache[key]

@@ -424,33 +424,38 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
              "table.t td,table.t th{border-bottom:1px solid #ddd;padding:3px 8px;text-align:left;vertical-align:top}"
              "table.t th{background:#f3f3f3}h2{border-bottom:2px solid #ccc;padding-bottom:2px}"
              "figure{display:inline-block;margin:0.5em;vertical-align:top}img{max-width:100%}"
-             "p.note{color:#555;font-size:14px}.warn{color:#a40}")
+             "p.note{color:#555;font-size:14px}.warn{color:#a40}div.scroll{overflow-x:auto}"
+             "table.t td{max-width:30em;overflow-wrap:anywhere}")
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>isobench report {e(env.get('run_id', ''))}</title>"
              f"<style>{style}</style></head><body>",
              f"<h1>isobench report</h1><p>Run <code>{e(env.get('run_id', '?'))}</code>, suite "
              f"<code>{e(env.get('suite', '?'))}</code>, commit <code>{e(env.get('commit', '?'))}</code>, "
              f"{e(env.get('cpu', '?'))} ({e(env.get('cpu_count', '?'))} logical CPUs, "
              f"{e(env.get('threads', '?'))} thread(s) per library). {e(status_line).replace('**', '')}.</p>",
-             "<h2>Best accuracy per backend</h2>",
-             "<p class='note'>Per case, method and checked quantity: the knob setting with the smallest max error over "
-             "all rays. Time is the median over repeated synchronised calls (compile and first call excluded, reported "
-             "apart); IQR is its spread. '× closed form' divides by the time of the exact ray–sphere formula on the same "
-             "number of rays, measured in the same run — a unit that survives a noisy machine.</p>", table(summ),
-             "<h2>Fastest configuration reaching an error target</h2>",
-             "<p class='note'>The cheapest knob setting whose max error is at or below the target: median time per "
-             "call, its multiple of the closed-form time, and the knob setting.</p>", table(targets),
-             "<h2>Time versus error</h2><p class='note'>One plot per method family, case, quantity and dtype; one "
-             "point per knob setting; lower-left is better. ✕ at the top edge: an infinite error (a false hit or miss, "
-             "or a budget that ran out). Dashed: the Pareto front over every curve of the plot.</p>"]
-    parts += [img(t, p) for s, t, p in figs if s == "time"]
-    parts += ["<h2>Convergence</h2><p class='note'>Error against an integer knob (step budget, iterations, samples) "
-              "with the other knobs fixed, log-log; the legend gives the fitted rate p of error ∝ knob<sup>−p</sup> "
-              "(least squares over the finite, non-zero errors; an algebraic rate — a geometric convergence shows as a "
-              "growing slope).</p>"]
-    parts += [img(t, p) for s, t, p in figs if s == "conv"]
-    parts += [table(rates)]
-    parts += ["<h2>Support matrix</h2><p class='note'>Configurations (case × dtype × knob) per backend and method.</p>",
-              table(supp)]
+             ]
+    if len(df):  # a claims-only directory has no results: no empty bench sections
+        parts += [
+            "<h2>Best accuracy per backend</h2>",
+            "<p class='note'>Per case, method and checked quantity: the knob setting with the smallest max error over "
+            "all rays. Time is the median over repeated synchronised calls (compile and first call excluded, reported "
+            "apart); IQR is its spread. '× closed form' divides by the time of the exact ray–sphere formula on the same "
+            "number of rays, measured in the same run — a unit that survives a noisy machine.</p>", table(summ),
+            "<h2>Fastest configuration reaching an error target</h2>",
+            "<p class='note'>The cheapest knob setting whose max error is at or below the target: median time per "
+            "call, its multiple of the closed-form time, and the knob setting.</p>", table(targets),
+            "<h2>Time versus error</h2><p class='note'>One plot per method family, case, quantity and dtype; one "
+            "point per knob setting (faint markers), a line through each backend's (and method's) Pareto-optimal "
+            "settings; colour = method, marker = backend; lower-left is better. ✕ at the top edge: an infinite error "
+            "(a false hit or miss, or a budget that ran out). Grey dashed steps: the Pareto front over every curve.</p>"]
+        parts += [img(t, p) for s, t, p in figs if s == "time"]
+        parts += ["<h2>Convergence</h2><p class='note'>Error against an integer knob (step budget, iterations, "
+                  "samples) with the other knobs fixed, log-log; the legend gives the fitted rate p of error ∝ "
+                  "knob<sup>−p</sup> (least squares over the finite, non-zero errors before the error floor; an "
+                  "algebraic rate — a geometric convergence shows as a large p).</p>"]
+        parts += [img(t, p) for s, t, p in figs if s == "conv"]
+        parts += [table(rates)]
+        parts += ["<h2>Support matrix</h2><p class='note'>Configurations (case × dtype × knob) per backend and "
+                  "method.</p>", table(supp)]
     if len(skipped):
         parts += ["<h2>Skipped or failed, with reasons</h2>", table(skipped)]
     if claims is not None or (claims_note and claims_note != "ran"):
@@ -478,11 +483,11 @@ def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:
         p = Path(run_dir) / plot
         if plot and p.is_file() and p.suffix.lower() == ".png":
             b64 = base64.b64encode(p.read_bytes()).decode()
-            body.append(f"<tr><td colspan='{len(cols)}'><img style='max-width:700px' alt='claim {html.escape(str(r.get('id', '')))}' "
+            body.append(f"<tr><td colspan='{len(cols)}' style='max-width:none'><img style='max-width:1000px' alt='claim {html.escape(str(r.get('id', '')))}' "
                         f"src='data:image/png;base64,{b64}'></td></tr>")
         elif plot:
             body.append(f"<tr><td colspan='{len(cols)}' class='warn'>plot {html.escape(plot)} not found</td></tr>")
-    return f"<table class='t'><tr>{head}</tr>{''.join(body)}</table>"
+    return f"<div class='scroll'><table class='t'><tr>{head}</tr>{''.join(body)}</table></div>"
 
 
 def build_from_dir(run_dir: Path) -> None:

@@ -253,7 +253,7 @@ def colored_case():
 
 def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(fake_methods, monkeypatch, tmp_path):
     from bench.metrics import ReferenceOptions
-    from tests.test_bench_fakes import fake_render_exact
+    from tests.test_bench_fakes import FakeColor, fake_render_exact
 
     calls = []
 
@@ -289,8 +289,15 @@ def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(
 
     monkeypatch.setitem(fakes._IMPL, "volume_neus_uniform", fakes.fake_volume)
     cfg, b = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs), FakeBackend()
-    slow = integral({"_options": opts})
+    run_cache = {"_options": opts}
+    slow = integral(run_cache)
     assert slow["outcome"] == "skipped" and "took longer than 0.5 s" in slow["reason"]
+    n_calls = len(calls)
+    case = dataclasses.replace(case, id="colored2")  # another case, same run: not attempted again
+    object.__setattr__(case, "color_field", FakeColor())
+    cfg = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs)
+    again = integral(run_cache)
+    assert len(calls) == n_calls and "not attempted again" in again["reason"]
 
 
 def test_render_family_against_the_integral_and_the_surface_colour(fake_methods, monkeypatch):
