@@ -1,5 +1,8 @@
 """Accuracy of any method against the reference, generic over method families.
 
+(Where the reference answers come from — the case, the scene, the rendering integral, their
+caching and time limits — is :mod:`bench.references`; this module turns them into errors.)
+
 Every method returns a :class:`impls.protocol.RayResult`; what it is checked against depends on
 its family (:attr:`impls.methods.MethodSpec.family`) and on the per-ray outputs it declares
 (:attr:`MethodSpec.outputs`).  Each checked *quantity* becomes one long-format result row:
@@ -45,18 +48,14 @@ dt/dθ) are left out of the error and counted in ``n_declined`` and the status h
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import time
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from impls.protocol import RayResult, Status
 
-
-class NotApplicable(Exception):
-    """The reference has no answer for this quantity on this case (the message says why)."""
+from .references import (NotApplicable, color_field, density_model, exact_color, exact_curvatures, exact_dt_dtheta,
+                         exact_normals, exact_points, surface_color)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,92 +68,6 @@ class Quantity:
     exact: np.ndarray  # same shape
     rays: np.ndarray  # bool (n,): rays the error is taken over
     angle: bool = False
-
-
-# -- exact answers, from the case (preferred) or its scene -------------------------------------
-
-
-def _exact_points(case) -> tuple[np.ndarray, np.ndarray]:
-    """Exact hit points x* = o + t* d (rows for misses are NaN) and the hit mask."""
-    t = np.asarray(case.exact_t, np.float64)
-    hit = np.isfinite(t)
-    x = case.origins + np.where(hit, t, np.nan)[:, None] * case.directions
-    return x, hit
-
-
-def _from_case_or_scene(case, attr: str, scene_method: str, what: str, cache: dict | None = None) -> np.ndarray:
-    """``case.<attr>`` when the reference provides it, else ``scene.<scene_method>`` at the exact
-    hits; :class:`NotApplicable` when neither knows the answer.  Memoised in ``cache`` (the
-    runner keeps one per case), failures included."""
-    if cache is None:
-        return _lookup(case, attr, scene_method, what)
-    key = ("exact", case.id, attr)
-    if key not in cache:
-        try:
-            cache[key] = _lookup(case, attr, scene_method, what)
-        except NotApplicable as exc:
-            cache[key] = exc
-    if isinstance(cache[key], NotApplicable):
-        raise cache[key]
-    return cache[key]
-
-
-def _lookup(case, attr: str, scene_method: str, what: str):
-    try:
-        val = getattr(case, attr)
-    except AttributeError:
-        val = None
-    except (NotImplementedError, ValueError) as exc:  # the reference says it has no such answer
-        raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
-    if val is not None:
-        return val
-    fn = getattr(case.scene, scene_method, None)
-    if fn is None:
-        raise NotApplicable(f"no exact {what} for {case.id}: neither case.{attr} nor scene.{scene_method} exists")
-    x, hit = _exact_points(case)
-    try:
-        if scene_method == "hit_param_grad":
-            out = np.full((case.n_rays, case.scene.param_vector().size), np.nan)
-            if hit.any():
-                out[hit] = fn(case.origins[hit], case.directions[hit], case.exact_t[hit])
-            return out
-        if not hit.any():
-            raise NotApplicable(f"no ray of {case.id} hits the surface")
-        res = fn(x[hit])
-    except NotImplementedError as exc:
-        raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
-    if isinstance(res, tuple):
-        return tuple(_scatter(r, hit) for r in res)
-    return _scatter(res, hit)
-
-
-def _scatter(vals: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    vals = np.asarray(vals, np.float64)
-    out = np.full((hit.size,) + vals.shape[1:], np.nan)
-    out[hit] = vals
-    return out
-
-
-def exact_normals(case, cache: dict | None = None) -> np.ndarray:
-    return np.asarray(_from_case_or_scene(case, "exact_normals", "normal_exact", "normals", cache), np.float64)
-
-
-def exact_curvatures(case, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(κ1, κ2) per ray; accepts the reference's tuple or an (n, 2) array."""
-    k = _from_case_or_scene(case, "exact_curvatures", "curvatures_exact", "curvatures", cache)
-    if isinstance(k, tuple):
-        return np.asarray(k[0], np.float64), np.asarray(k[1], np.float64)
-    k = np.asarray(k, np.float64)
-    if k.ndim == 2 and k.shape[1] >= 2:
-        return k[:, 0], k[:, 1]
-    raise NotApplicable(f"case.exact_curvatures of {case.id} has shape {k.shape}, expected (n, 2) or (κ1, κ2)")
-
-
-def exact_dt_dtheta(case, cache: dict | None = None) -> np.ndarray:
-    return np.asarray(_from_case_or_scene(case, "exact_dt_dtheta", "hit_param_grad", "dt/dθ", cache), np.float64)
-
-
-# -- per-ray error statistics -----------------------------------------------------------------
 
 
 def _ulp(x: np.ndarray, dtype: str) -> np.ndarray:
@@ -272,7 +185,7 @@ _CURVATURE_OUTPUTS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = 
 def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
                           cache: dict | None = None) -> tuple[list[Quantity], list[dict]]:
     """Quantities of a method evaluated at the exact hits (gradient, param_grad families)."""
-    _, hit = _exact_points(case)
+    _, hit = exact_points(case)
     rays = hit & ~_declined(res)
     qs: list[Quantity] = []
     notes: list[dict] = []
@@ -310,7 +223,7 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
 
 def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, outputs=()) -> list[dict]:
     qs, notes = _pointwise_quantities(res, case, outputs, cache)
-    n_declined = int(np.sum(_declined(res) & _exact_points(case)[1]))
+    n_declined = int(np.sum(_declined(res) & exact_points(case)[1]))
     rows = []
     for q in qs:
         if q.got.shape[0] != case.n_rays:
@@ -318,124 +231,6 @@ def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict
         e, mag = _per_ray(q)
         rows.append({"quantity": q.name, "unit": q.unit, **error_stats(e, mag, dtype), "n_declined": n_declined})
     return rows + notes
-
-
-def _rendering_module():
-    try:
-        from reference import rendering
-    except ImportError as exc:
-        raise NotApplicable(f"reference.rendering is not available ({exc})") from None
-    if getattr(rendering, "render_exact", None) is None:
-        raise NotApplicable("reference.rendering.render_exact is not available")
-    return rendering
-
-
-def color_field(case):
-    """The case's colour field ρ (``case.color_field``, else ``scene.color``)."""
-    field = getattr(case, "color_field", None) or getattr(case.scene, "color", None)
-    if field is None:
-        raise NotApplicable(f"{case.id} has no colour field ρ (case.color_field)")
-    return field
-
-
-def density_model(spec, knobs: dict) -> str | None:
-    """The density model a volume renderer uses: a ``density``/``model`` knob, else the model
-    named in the method name (``volume_<model>_<sampler>``); None for a surface renderer."""
-    for k in ("density", "model"):
-        if isinstance(knobs.get(k), str):
-            return knobs[k]
-    try:
-        models = _rendering_module().MODELS
-    except (NotApplicable, AttributeError):
-        models = ("nerf", "unisurf", "neus", "volsdf")
-    parts = spec.name.split("_")
-    return next((m for m in models if m in parts), None)
-
-
-@dataclasses.dataclass(frozen=True)
-class ReferenceOptions:
-    """How costly reference answers are obtained (the runner stores one in the per-run cache
-    under ``"_options"``).  ``expensive``: compute references that take seconds to minutes per
-    case (the rendering integral); ``timeout_s``: limit per such computation (0: none);
-    ``disk``: directory caching them across runs (keyed by the case version and the source of the
-    reference module, so a changed case or reference is recomputed)."""
-
-    expensive: bool = True
-    timeout_s: float = 120.0
-    disk: Path | None = None
-
-
-def _disk_key(case, parts: tuple, module) -> str:
-    h = hashlib.sha256(repr((case.version, parts)).encode())
-    try:
-        h.update(Path(module.__file__).read_bytes())
-    except (OSError, TypeError, AttributeError):
-        pass
-    return h.hexdigest()[:20]
-
-
-def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float]:
-    """C = ∫ T σ ρ dt by ``reference.rendering.render_exact`` for the method's density model and
-    sharpness over [t_min, t_max] of the case; (colours (n, 3), its largest error bound).  Cached
-    per case × model × sharpness (sample counts and samplers do not change the integral), in
-    memory and, with :attr:`ReferenceOptions.disk`, on disk; a computation past
-    :attr:`ReferenceOptions.timeout_s` is a :class:`NotApplicable` (remembered for the run)."""
-    from .timing import Timeout, time_limit
-
-    opts: ReferenceOptions = cache.get("_options") or ReferenceOptions()
-    model = density_model(spec, knobs)
-    if model is None:
-        raise NotApplicable(f"{spec.name} renders the surface; its reference is ρ(x*) (color_vs_surface)")
-    if "sharpness" not in knobs:
-        raise NotApplicable(f"{spec.name} has no 'sharpness' knob: the density of its integral is unknown")
-    if not opts.expensive:
-        raise NotApplicable("this suite skips the rendering integral (a costly reference, seconds to minutes per "
-                            "case and density); --suite full computes it")
-    s = float(knobs["sharpness"])
-    key = ("render_exact", case.id, model, s)
-    gave_up = cache.get(("render_exact_timed_out", model))
-    if key not in cache and gave_up:  # one timeout per model and run: not retried on every case
-        cache[key] = NotApplicable(gave_up)
-    if key not in cache:
-        rendering = _rendering_module()
-        path = opts.disk / f"render_exact-{_disk_key(case, (model, s), rendering)}.npz" if opts.disk else None
-        try:
-            if path is not None and path.exists():
-                z = np.load(path)
-                cache[key] = (z["colors"], float(z["bound"]))
-            else:
-                t0 = time.perf_counter()
-                with time_limit(opts.timeout_s):
-                    colors, bound = rendering.render_exact(case.scene, color_field(case), model, s, case.origins,
-                                                           case.directions, case.t_min, case.t_max)
-                cache[key] = (np.asarray(colors, np.float64), float(np.max(bound, initial=0.0)))
-                cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
-                if path is not None:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    tmp = path.with_suffix(".tmp.npz")
-                    np.savez(tmp, colors=cache[key][0], bound=cache[key][1])
-                    tmp.replace(path)
-        except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
-            cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
-        except Timeout:
-            cache[key] = NotApplicable(f"the reference integral for {model} (s = {s:g}) took longer than "
-                                       f"{opts.timeout_s:g} s (--timeout); not checked")
-            cache[("render_exact_timed_out", model)] = (f"the reference integral for {model} timed out on {case.id} "
-                                                        f"(> {opts.timeout_s:g} s); not attempted again in this run")
-    if isinstance(cache[key], NotApplicable):
-        raise cache[key]
-    return cache[key]
-
-
-def surface_color(case) -> np.ndarray:
-    """ρ(x*) at the exact first hit (NaN rows for misses)."""
-    field = color_field(case)
-    x, hit = _exact_points(case)
-    out = np.full((case.n_rays, 3), np.nan)
-    if hit.any():
-        c = np.asarray(field.value(x[hit]) if hasattr(field, "value") else field(x[hit]), np.float64)
-        out[hit] = c.reshape(int(hit.sum()), -1)
-    return out
 
 
 def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, spec) -> list[dict]:
@@ -449,7 +244,7 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
     rows: list[dict] = []
     everywhere = ~_declined(res)
     refs = (("color_vs_integral", lambda: exact_color(case, spec, knobs, cache), everywhere),
-            ("color_vs_surface", lambda: (surface_color(case), 0.0), everywhere & _exact_points(case)[1]))
+            ("color_vs_surface", lambda: (surface_color(case), 0.0), everywhere & exact_points(case)[1]))
     for name, exact_fn, rays in refs:
         try:
             ex, bound = exact_fn()

@@ -29,7 +29,8 @@ from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
 from . import environment
-from .metrics import ReferenceOptions, finite_rows, family_skip_reason, measure_accuracy, primary_quantity
+from .metrics import family_skip_reason, finite_rows, measure_accuracy, primary_quantity
+from .references import ReferenceOptions
 from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
 from .suites import Suite
 from .timing import TimingPolicy, measure, time_limit

@@ -252,7 +252,7 @@ def colored_case():
 
 
 def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(fake_methods, monkeypatch, tmp_path):
-    from bench.metrics import ReferenceOptions
+    from bench.references import ReferenceOptions
     from tests.test_bench_fakes import FakeColor, fake_render_exact
 
     calls = []
@@ -278,6 +278,7 @@ def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(
     opts = ReferenceOptions(timeout_s=0.5, disk=tmp_path / "refcache")
     first = integral({"_options": opts})
     second = integral({"_options": opts})  # a new run: from disk
+    assert first["outcome"] == "ok", first
     assert calls == ["nerf"] and first["error_max"] == second["error_max"] and first["outcome"] == "ok"
     assert len(list((tmp_path / "refcache").glob("*.npz"))) == 1
     skipped = integral({"_options": ReferenceOptions(expensive=False)})
