@@ -112,7 +112,7 @@ def cmd_run(args) -> int:
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
                             resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=suite.budget_s if args.budget is None else (args.budget or None),
                             rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
-                            else DEFAULT_REPORTS / ".refcache")
+                            else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout)
         except ValueError as exc:
             console.print(f"[red]error:[/] {exc}")
             return 2
@@ -292,6 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
                    "when it is spent become skipped rows saying so (default: the suite's, 100 quick, 840 full; 0: none)")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
+    r.add_argument("--reference-timeout", type=float, default=30.0, help="seconds for one costly reference answer (a "
+                   "rendering integral for one case and density); past it that quantity is skipped with the reason, "
+                   "and that density is not retried in this run (default 30, 0: none)")
     r.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
                    "rendering integral) instead of reusing reports/.refcache/")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")

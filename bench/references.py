@@ -147,7 +147,7 @@ class ReferenceOptions:
     reference module, so a changed case or reference is recomputed)."""
 
     expensive: bool = True
-    timeout_s: float = 120.0
+    timeout_s: float = 30.0
     disk: Path | None = None
 
 
@@ -205,7 +205,7 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
             cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
         except Timeout:
             cache[key] = NotApplicable(f"the reference integral for {model} (s = {s:g}) took longer than "
-                                       f"{opts.timeout_s:g} s (--timeout); not checked")
+                                       f"{opts.timeout_s:g} s (--reference-timeout); not checked")
             cache[("render_exact_timed_out", model)] = (f"the reference integral for {model} timed out on {case.id} "
                                                         f"(> {opts.timeout_s:g} s); not attempted again in this run")
     if isinstance(cache[key], NotApplicable):

@@ -262,7 +262,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
         run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
         resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
-        budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None) -> "Any":
+        budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None,
+        reference_timeout_s: float = 30.0) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
@@ -272,7 +273,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     ``rounds``: the whole plan is timed ``rounds`` times, round after round, and each
     configuration's samples pooled (:func:`retime`), so slow drift of a shared machine's load
     shows up as spread within a configuration instead of as a difference between runs.
-    ``reference_cache_dir``: where costly reference answers are kept across runs (None: not kept).
+    ``reference_cache_dir``: where costly reference answers are kept across runs (None: not kept);
+    ``reference_timeout_s``: limit on one costly reference computation (a rendering integral).
     """
     if rounds < 1:
         raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
@@ -314,7 +316,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
     started = time.monotonic()
     cf_cache: dict[str, float] = {}
-    ref_cache: dict = {"_options": ReferenceOptions(expensive=suite.expensive_references, timeout_s=policy.timeout_s,
+    ref_cache: dict = {"_options": ReferenceOptions(expensive=suite.expensive_references, timeout_s=reference_timeout_s,
                                                     disk=reference_cache_dir)}
     last_write = time.monotonic()
     current_case = None
