@@ -1,19 +1,25 @@
-"""Compare two result sets: accuracy by tolerance, timing by factor *and* significance.
+"""Compare two result sets: accuracy by tolerance per dtype, timing by factor *and* significance.
 
-Rows are matched on (case_id, backend, dtype, method, knob).  Verdicts per row:
+Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantity).  Verdicts:
 
-* ``not comparable``: the case versions differ (the case changed), or for timing the machines
-  differ; a row present on one side only is ``missing``/``new``.
-* accuracy ``worse`` when the new max depth error exceeds ``base·(1 + rtol) + atol[dtype]``
-  (atol = ``atol_eps`` × the dtype's eps), when false hits/misses increase, or when a row that
-  ran now fails.  Accuracy is deterministic, so no statistics are needed.
-* timing ``worse``/``better`` only when the median ratio is beyond ``factor`` (default 1.1) *and*
-  the samples differ significantly: a one-sided Mann–Whitney U test at ``alpha`` (asv's and
-  pyperf's practice) when both sides have ≥ 5 samples, else non-overlapping sample ranges.
-  Otherwise ``not significant``.
+* ``not comparable``: the case versions differ (the case changed), or either side was not
+  measured because its run's time budget ran out; for timing also when the
+  machines differ (``environment.machine_key``) or either side has no samples.  A row on one
+  side only is ``missing`` (in BASE only) or ``new`` (in NEW only); neither fails a comparison.
+* accuracy (deterministic, no statistics): ``worse`` when the new max error exceeds
+  ``base·(1 + rtol) + atol`` with ``atol = atol_eps · eps(dtype)`` (so float32 rows get a
+  float32-sized slack), when false hits or false misses increase, when a finite error becomes
+  infinite, or when a row that ran now fails or is skipped; ``better`` symmetrically; else
+  ``same``.
+* timing (after asv ``compare`` and pyperf): ``worse``/``better`` only when the ratio of medians
+  new/base is beyond ``factor`` (default 1.1) *and* the difference is significant: a one-sided
+  Mann–Whitney U test at ``alpha`` (default 0.01) when both sides have ≥ 5 samples; with fewer,
+  non-overlapping distribution-free confidence intervals of the medians at level 1 − alpha
+  (:func:`median_ci`; with so few samples that is the full sample range).  Else
+  ``not significant``.
 
-The exit status of ``python -m bench compare`` is 1 when any row is ``worse`` (timing rows
-only when ``--timing`` is given; CI compares accuracy against a baseline from another machine).
+``python -m bench compare`` exits 1 when any row is accuracy-``worse`` (and timing-``worse`` with
+``--timing``; CI compares accuracy only, against a baseline made on another machine).
 """
 
 from __future__ import annotations
@@ -22,9 +28,9 @@ import json
 
 import numpy as np
 import pandas as pd
-from scipy.stats import mannwhitneyu
+from scipy.stats import binom, mannwhitneyu
 
-from .results import KEY
+from .results import KEY, OVER_BUDGET
 
 ATOL_EPS = 1000.0
 
@@ -35,8 +41,26 @@ def _samples(v) -> np.ndarray:
     return np.zeros(0)
 
 
-def timing_verdict(base_samples: np.ndarray, new_samples: np.ndarray, factor: float = 1.1, alpha: float = 0.01) -> tuple[str, float, float]:
+def median_ci(samples: np.ndarray, alpha: float = 0.01) -> tuple[float, float]:
+    """Distribution-free confidence interval of the median at level ≥ 1 − alpha from order
+    statistics: [x_(k), x_(n−k+1)] with the largest k such that P(Bin(n, ½) < k) ≤ alpha/2
+    (Hollander & Wolfe, *Nonparametric statistical methods*, §3.6).  When even k = 1 does not
+    reach the level (n < 9 for alpha = 0.01), the sample range, the widest interval the data give."""
+    x = np.sort(np.asarray(samples, float))
+    n = x.size
+    if n == 0:
+        return float("nan"), float("nan")
+    k = 0
+    while k + 1 <= n // 2 and binom.cdf(k, n, 0.5) <= alpha / 2:  # P(Bin < k+1) = cdf(k)
+        k += 1
+    k = max(k, 1)
+    return float(x[k - 1]), float(x[n - k])
+
+
+def timing_verdict(base_samples: np.ndarray, new_samples: np.ndarray, factor: float = 1.1,
+                   alpha: float = 0.01) -> tuple[str, float, float]:
     """(verdict, median ratio new/base, p-value or NaN)."""
+    base_samples, new_samples = np.asarray(base_samples, float), np.asarray(new_samples, float)
     if base_samples.size == 0 or new_samples.size == 0:
         return "not comparable", float("nan"), float("nan")
     ratio = float(np.median(new_samples) / np.median(base_samples))
@@ -48,22 +72,38 @@ def timing_verdict(base_samples: np.ndarray, new_samples: np.ndarray, factor: fl
         if ratio < 1 / factor and p_faster < alpha:
             return "better", ratio, float(p_faster)
         return "not significant", ratio, float(min(p_slower, p_faster))
-    if ratio > factor and new_samples.min() > base_samples.max():
+    lo_b, hi_b = median_ci(base_samples, alpha)
+    lo_n, hi_n = median_ci(new_samples, alpha)
+    if ratio > factor and lo_n > hi_b:
         return "worse", ratio, float("nan")
-    if ratio < 1 / factor and new_samples.max() < base_samples.min():
+    if ratio < 1 / factor and hi_n < lo_b:
         return "better", ratio, float("nan")
     return "not significant", ratio, float("nan")
 
 
+def _num(v, default=np.nan) -> float:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return default
+    return f
+
+
 def accuracy_verdict(b: pd.Series, n: pd.Series, rtol: float = 0.1, atol_eps: float = ATOL_EPS) -> str:
     if b["outcome"] != "ok":
-        return "not comparable" if n["outcome"] != "ok" else "better"
+        return "same" if n["outcome"] == b["outcome"] else ("better" if n["outcome"] == "ok" else "not comparable")
     if n["outcome"] != "ok":
         return "worse"
-    eb, en = float(b["error_max"]), float(n["error_max"])
-    atol = atol_eps * float(np.finfo(str(n["dtype"])).eps)
-    worse_misses = (int(n["n_false_hit"]) > int(b["n_false_hit"])) or (int(n["n_false_miss"]) > int(b["n_false_miss"]))
-    if worse_misses or (np.isfinite(eb) and not np.isfinite(en)) or (np.isfinite(en) and en > eb * (1 + rtol) + atol):
+    eb, en = _num(b["error_max"]), _num(n["error_max"])
+    try:
+        atol = atol_eps * float(np.finfo(str(n["dtype"])).eps)
+    except (TypeError, ValueError):
+        atol = 0.0
+    fh = (_num(n.get("n_false_hit"), 0) > _num(b.get("n_false_hit"), 0),
+          _num(n.get("n_false_miss"), 0) > _num(b.get("n_false_miss"), 0))
+    if np.isnan(en) and not np.isnan(eb):
+        return "worse"
+    if any(fh) or (np.isfinite(eb) and not np.isfinite(en)) or (np.isfinite(en) and en > eb * (1 + rtol) + atol):
         return "worse"
     if (np.isfinite(en) and not np.isfinite(eb)) or (np.isfinite(eb) and eb > en * (1 + rtol) + atol):
         return "better"
@@ -72,6 +112,14 @@ def accuracy_verdict(b: pd.Series, n: pd.Series, rtol: float = 0.1, atol_eps: fl
 
 def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha: float = 0.01, rtol: float = 0.1,
             atol_eps: float = ATOL_EPS, same_machine: bool = True) -> pd.DataFrame:
+    """One row per key of either side with ``accuracy`` and ``timing`` verdicts (module docstring)."""
+    if factor < 1 or not (0 < alpha < 1) or rtol < 0 or atol_eps < 0:
+        raise ValueError(f"compare: need factor ≥ 1, 0 < alpha < 1, rtol ≥ 0, atol_eps ≥ 0; "
+                         f"got factor={factor}, alpha={alpha}, rtol={rtol}, atol_eps={atol_eps}")
+    for name, d in (("BASE", base), ("NEW", new)):
+        missing = [k for k in KEY + ["outcome", "error_max", "case_version"] if k not in d.columns]
+        if missing:
+            raise ValueError(f"{name} results lack columns {missing}; is it an isobench results table?")
     m = base.merge(new, on=KEY, how="outer", suffixes=("_base", "_new"), indicator=True)
     rows = []
     for _, r in m.iterrows():
@@ -84,15 +132,21 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
             continue
         b = pd.Series({c[:-5]: r[c] for c in m.columns if c.endswith("_base")} | key)
         n = pd.Series({c[:-4]: r[c] for c in m.columns if c.endswith("_new")} | key)
-        if b["case_version"] != n["case_version"]:
+        if str(b["case_version"]) != str(n["case_version"]):
             rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
                          "note": f"case version {b['case_version']} → {n['case_version']}"})
             continue
+        if any(str(x.get("reason", "")).startswith(OVER_BUDGET) for x in (b, n)):
+            rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
+                         "note": "not measured: over the run's time budget"})
+            continue
         acc = accuracy_verdict(b, n, rtol, atol_eps)
         if same_machine and b["outcome"] == "ok" and n["outcome"] == "ok":
-            tv, ratio, p = timing_verdict(_samples(b["time_samples_s"]), _samples(n["time_samples_s"]), factor, alpha)
+            tv, ratio, p = timing_verdict(_samples(b.get("time_samples_s")), _samples(n.get("time_samples_s")),
+                                          factor, alpha)
         else:
             tv, ratio, p = "not comparable", float("nan"), float("nan")
+        note = "" if acc != "worse" or n["outcome"] == "ok" else f"now {n['outcome']}: {n.get('reason', '')}"
         rows.append({**key, "accuracy": acc, "error_base": b.get("error_max"), "error_new": n.get("error_max"),
-                     "timing": tv, "time_ratio": ratio, "p_value": p})
+                     "timing": tv, "time_ratio": ratio, "p_value": p, "note": note})
     return pd.DataFrame(rows)

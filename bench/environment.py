@@ -34,6 +34,39 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def configure_threads(n: int) -> dict[str, str]:
+    """Fix the thread count of every library *before* it is imported, so timings are comparable
+    across backends and runs: the BLAS/OpenMP variables, XLA's CPU thread pool and, once torch is
+    imported, ``torch.set_num_threads``.  Variables the user already set are left alone (theirs
+    wins, and is recorded).  Returns what was set."""
+    if n < 1:
+        raise ValueError(f"--threads must be ≥ 1, got {n}")
+    done = {}
+    for var in THREAD_VARS:
+        if not os.environ.get(var):
+            os.environ[var] = done[var] = str(n)
+    if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
+        # XLA's CPU client spreads element-wise work over its Eigen thread pool; off = one thread
+        flags = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
+        os.environ["XLA_FLAGS"] = done["XLA_FLAGS"] = flags
+    return done
+
+
+def thread_counts() -> dict[str, str]:
+    """Thread counts in effect (recorded with every run)."""
+    out = {f"env.{v}": os.environ.get(v, "") for v in THREAD_VARS + ("XLA_FLAGS",)}
+    import sys
+
+    if "torch" in sys.modules:
+        torch = sys.modules["torch"]
+        out["threads.torch"] = str(torch.get_num_threads())
+        out["threads.torch_interop"] = str(torch.get_num_interop_threads())
+    return out
+
+
 def collect() -> dict[str, str]:
     env = {
         "python": platform.python_version(),
@@ -43,8 +76,8 @@ def collect() -> dict[str, str]:
         "cpu_count": str(os.cpu_count()),
         "commit": _git_commit(),
     }
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "XLA_FLAGS", "CUDA_VISIBLE_DEVICES"):
-        env[f"env.{var}"] = os.environ.get(var, "")
+    env["env.CUDA_VISIBLE_DEVICES"] = os.environ.get("CUDA_VISIBLE_DEVICES", "")
+    env.update(thread_counts())
     for lib in LIBS:
         try:
             env[f"version.{lib}"] = metadata.version(lib)
@@ -54,5 +87,5 @@ def collect() -> dict[str, str]:
 
 
 def machine_key(env: dict[str, str]) -> str:
-    """What must match for timings to be comparable."""
-    return f"{env.get('cpu')}|{env.get('cpu_count')}"
+    """What must match for timings to be comparable: CPU model, logical CPUs, threads per library."""
+    return f"{env.get('cpu')}|{env.get('cpu_count')}|{env.get('threads', '')}"

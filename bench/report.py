@@ -1,18 +1,30 @@
-"""Reports: ``report.md`` and a self-contained ``report.html`` (plots inlined as PNG).
+"""Reports: ``report.md`` (plots as PNG files in ``plots/``) and a self-contained ``report.html``
+(the same plots inlined as base64 PNG; no network, no scripts).
 
-Reading the time-versus-error plot: one curve per backend, one point per knob setting; x is
-the median wall time of one call over all rays of the case (log scale, seconds), y the largest
-depth error over all rays (log scale, scene units).  Points at the top edge marked ✕ have an
-infinite error: some ray got a false hit or a false miss (budget exhausted).  Lower-left is
-better; the Pareto front over all backends is the dashed line.
+Sections, in reading order:
+
+1. *Best accuracy per backend* — per case, method, quantity and backend: the knob setting with
+   the smallest max error, its median time, IQR, time in units of the closed-form ray–sphere
+   intersection of the same rays, compile time and evaluations per ray.
+2. *Fastest configuration reaching an error target* (1e-4, 1e-8, 1e-12): per case, method,
+   quantity and backend, the cheapest knob setting whose max error is at or below the target.
+3. *Time versus error*, one plot per method family × case × quantity × dtype: one curve per
+   method and backend (a point per knob setting; x = median time per call over all rays of the
+   case, y = max error over the rays, both log); ✕ at the top edge = infinite error (a false hit
+   or miss, a silent NaN); the dashed step line is the Pareto front over every curve.
+4. *Convergence*: error against an integer knob (step budget, iterations, samples), log-log,
+   with the fitted rate p of error ∝ knob^(−p) (least squares on the finite, non-zero errors).
+5. *Support matrix* (backend × method: configurations ran / skipped / failed) and the reasons.
+6. *Claims ledger* when the run directory has ``claims.csv`` (plots inlined).
+7. *Environment*.
 """
 
 from __future__ import annotations
 
 import base64
 import html
-import io
 import json
+import re
 from pathlib import Path
 
 import matplotlib
@@ -25,6 +37,9 @@ import pandas as pd  # noqa: E402
 from .results import write_text  # noqa: E402
 
 _MARKERS = "osD^v<>ph*"
+_LINESTYLES = ["-", "--", ":", "-."]
+TARGETS = (1e-4, 1e-8, 1e-12)
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 
 
 def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
@@ -38,22 +53,97 @@ def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
     return np.array(front, dtype=int)
 
 
-def plot_time_vs_error(df: pd.DataFrame, title: str):
-    fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=110)
+def fit_rate(x: np.ndarray, err: np.ndarray) -> float:
+    """p in err ≈ c · x^(−p) by least squares on log err vs log x (x increasing), over finite
+    errors > 0, stopping at the floor: the fit ends before the first step whose local slope
+    −Δlog err/Δlog x falls below a quarter of the median of the slopes before it (or below 0.05),
+    since points on a tolerance or rounding floor measure the floor, not the rate.  NaN when fewer
+    than 3 distinct x remain."""
+    x, err = np.asarray(x, float), np.asarray(err, float)
+    m = np.isfinite(err) & (err > 0) & (x > 0)
+    x, err = x[m], err[m]
+    order = np.argsort(x, kind="stable")
+    x, err = x[order], err[order]
+    lx, le = np.log(x), np.log(err)
+    keep = min(2, x.size)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slopes = -np.diff(le) / np.diff(lx)
+    while keep < x.size:
+        s = slopes[keep - 1]
+        prev = slopes[: keep - 1]
+        prev = prev[np.isfinite(prev)]
+        if not np.isfinite(s) or s < 0.05 or (prev.size and s < 0.25 * np.median(prev)):
+            break
+        keep += 1
+    x, le = lx[:keep], le[:keep]
+    if np.unique(x).size < 3:
+        return float("nan")
+    return float(-np.polyfit(x, le, 1)[0])
+
+
+def _ok(df: pd.DataFrame) -> pd.DataFrame:
     ok = df[df["outcome"] == "ok"].copy()
+    for c in ("error_max", "time_median_s", "time_iqr_s", "time_ratio_cf", "compile_s", "evals_per_ray"):
+        ok[c] = pd.to_numeric(ok[c], errors="coerce")
+    return ok
+
+
+def _label_unit(g: pd.DataFrame) -> tuple[str, str]:
+    q = str(g["quantity"].iloc[0]) if "quantity" in g else "depth"
+    unit = str(g["unit"].iloc[0]) if "unit" in g and isinstance(g["unit"].iloc[0], str) else ""
+    return q, unit
+
+
+def plot_time_vs_error(df: pd.DataFrame, title: str):
+    """One curve per (method, backend) of ``df`` (rows of one case × quantity × dtype).
+
+    Colour = method, marker and line style = backend; with several methods the legend lists
+    methods and backends apart (not every pair), and the figure grows with it, so many curves
+    never squeeze the axes."""
+    ok = _ok(df)
+    n_methods, n_backends = ok["method"].nunique(), ok["backend"].nunique()
+    entries = (n_methods + n_backends if n_methods > 1 else n_backends) + 2
+    fig, ax = plt.subplots(figsize=(7.5, max(4.8, 0.17 * entries + 1.0)), dpi=100)
+    q, unit = _label_unit(ok) if len(ok) else ("depth", "scene units")
     finite = ok["error_max"].replace([np.inf], np.nan).dropna()
     positive = finite[finite > 0]
     floor = positive.min() / 10 if len(positive) else 1e-16
     top = max(positive.max() * 10 if len(positive) else 1.0, 1.0)
-    for k, (bid, g) in enumerate(sorted(ok.groupby("backend"), key=lambda kv: kv[0])):
-        g = g.sort_values("time_median_s")
+    methods = sorted(ok["method"].unique())
+    backends = sorted(ok["backend"].unique())
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len(methods) > len(colors):
+        colors = [plt.get_cmap("tab20")(i % 20) for i in range(len(methods))]
+    many = len(methods) > 1
+    for (method, bid), g in sorted(ok.groupby(["method", "backend"]), key=lambda kv: kv[0]):
         err = g["error_max"].to_numpy(float)
         y = np.where(np.isfinite(err), np.maximum(err, floor), top)
         t = g["time_median_s"].to_numpy(float)
-        ax.plot(t, y, marker=_MARKERS[k % len(_MARKERS)], lw=1.2, ms=5, label=bid)
-        bad = ~np.isfinite(err)
+        mi, bi = methods.index(method), backends.index(bid)
+        label = None if many else bid
+        color = colors[mi % len(colors)] if many else colors[bi % len(colors)]
+        marker = _MARKERS[bi % len(_MARKERS)]
+        # every knob setting is a point; the line joins this curve's own Pareto front (the knob
+        # settings worth using), so sweeps of different knobs do not zigzag across each other
+        ax.scatter(t, y, marker=marker, s=22, color=color, alpha=0.55, zorder=3)
+        fin = np.isfinite(err)
+        if fin.any():
+            f = pareto_front(t[fin], y[fin])
+            ax.plot(t[fin][f], y[fin][f], marker=marker, ls=_LINESTYLES[bi % len(_LINESTYLES)], lw=1.3, ms=5,
+                    color=color, label=label, zorder=4)
+        else:
+            ax.plot([], [], marker=marker, color=color, label=label)
+        bad = ~fin
         if bad.any():
-            ax.scatter(t[bad], y[bad], marker="x", s=60, color="k", zorder=5)
+            ax.scatter(t[bad], y[bad], marker="x", s=50, color="k", zorder=5)
+    if many:  # legend: methods by colour, then backends by marker and line style
+        for mi, m in enumerate(methods):
+            ax.plot([], [], color=colors[mi % len(colors)], lw=2, label=m)
+        for bi, b in enumerate(backends):
+            ax.plot([], [], color="0.3", marker=_MARKERS[bi % len(_MARKERS)], ls=_LINESTYLES[bi % len(_LINESTYLES)],
+                    label=b)
+    if len(ok) and not np.isfinite(ok["error_max"].to_numpy(float)).all():
+        _mark_infinite(ax, top)
     if len(ok):
         err = ok["error_max"].to_numpy(float)
         fin = np.isfinite(err)
@@ -61,101 +151,343 @@ def plot_time_vs_error(df: pd.DataFrame, title: str):
             t = ok["time_median_s"].to_numpy(float)[fin]
             e = np.maximum(err[fin], floor)
             f = pareto_front(t, e)
-            ax.plot(t[f], e[f], ls="--", color="0.4", lw=1, label="Pareto front", drawstyle="steps-post")
+            ax.plot(t[f], e[f], ls="--", color="0.35", lw=1, label="Pareto front (all)", drawstyle="steps-post",
+                    zorder=2)
     ax.set_xscale("log")
+    return _finish(fig, ax, "median time per call, all rays of the case [s]", f"max {q} error over rays", unit, title)
+
+
+def _finish(fig, ax, xlabel: str, ylabel: str, unit: str, title: str):
+    """Log y axis, labels with units, grid, the legend outside the axes (never over the data)."""
     ax.set_yscale("log")
-    ax.set_xlabel("median time per call over all rays [s]")
-    ax.set_ylabel("max depth error over rays [scene units]")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(f"{ylabel} [{unit}]" if unit else ylabel)
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="best")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     fig.tight_layout()
     return fig
 
 
-def _png_b64(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
+def _mark_infinite(ax, top: float) -> None:
+    """Label the row where infinite errors are drawn (✕ markers)."""
+    ax.axhline(top, color="k", lw=0.6, ls=":")
+    ax.annotate("✕ = ∞ (false hit/miss)", xy=(0.01, top), xycoords=("axes fraction", "data"), xytext=(0, -12),
+                textcoords="offset points", fontsize=7, va="top")
+
+
+def convergence_column(df: pd.DataFrame) -> str:
+    """The error a convergence plot shows: the root finders' iterate error (median over rays,
+    finite even when a small budget leaves rays unconverged), else the max error."""
+    if "error_iterate_median" in df and pd.to_numeric(df["error_iterate_median"], errors="coerce").notna().any():
+        return "error_iterate_median"
+    return "error_max"
+
+
+def convergence_series(df: pd.DataFrame) -> list[dict]:
+    """Series of rows (one method × backend of one case × quantity × dtype) in which one integer
+    knob varies and every other knob is fixed: the data of a convergence plot."""
+    out = []
+    ok = _ok(df)
+    col = convergence_column(ok)
+    for (method, bid), g in ok.groupby(["method", "backend"]):
+        knobs = [json.loads(k) for k in g["knobs_json"]]
+        if not knobs:
+            continue
+        names = sorted({n for k in knobs for n, v in k.items() if isinstance(v, int) and not isinstance(v, bool)})
+        for name in names:
+            groups: dict[str, list[int]] = {}
+            for i, k in enumerate(knobs):
+                rest = json.dumps({n: v for n, v in k.items() if n != name}, sort_keys=True)
+                groups.setdefault(rest, []).append(i)
+            for rest, idx in groups.items():
+                xs = np.array([knobs[i][name] for i in idx], float)
+                if np.unique(xs).size < 3:
+                    continue
+                order = np.argsort(xs)
+                err = pd.to_numeric(g[col], errors="coerce").to_numpy(float)[np.array(idx)][order]
+                out.append({"method": method, "backend": bid, "knob": name, "fixed": rest, "x": xs[order],
+                            "error": err, "rate": fit_rate(xs[order], err)})
+    return out
+
+
+def plot_convergence(series: list[dict], title: str, q: str, unit: str, col: str = "error_max"):
+    fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=100)
+    positive = [e for s in series for e in s["error"] if np.isfinite(e) and e > 0]
+    floor = min(positive) / 10 if positive else 1e-16
+    top = max(max(positive) * 10 if positive else 1.0, 1.0)
+    knob_names = sorted({s["knob"] for s in series})
+    for i, s in enumerate(series):
+        y = np.where(np.isfinite(s["error"]), np.maximum(s["error"], floor), top)
+        rate = f"rate {s['rate']:.2g}" if np.isfinite(s["rate"]) else "no fit"
+        label = f"{s['method']} · {s['backend']}" + (f" · {s['knob']}" if len(knob_names) > 1 else "") + f" ({rate})"
+        ax.plot(s["x"], y, marker=_MARKERS[i % len(_MARKERS)], lw=1.2, ms=5, label=label)
+        bad = ~np.isfinite(s["error"])
+        if bad.any():
+            ax.scatter(s["x"][bad], y[bad], marker="x", s=60, color="k", zorder=5)
+    if any((~np.isfinite(s["error"])).any() for s in series):
+        _mark_infinite(ax, top)
+    ax.set_xscale("log", base=2)
+    what = "median iterate" if col == "error_iterate_median" else "max"
+    return _finish(fig, ax, " / ".join(knob_names) + " (knob value, log₂ scale) [count]",
+                   f"{what} {q} error over rays", unit, title)
+
+
+def _save(fig, path: Path) -> bytes:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
     plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode()
+    return path.read_bytes()
 
 
 def summary_table(df: pd.DataFrame) -> pd.DataFrame:
-    """Per case × method × dtype × backend: median time of the most accurate setting and more."""
-    ok = df[df["outcome"] == "ok"]
+    """Per case × method × quantity × dtype × backend: the most accurate setting, its time and cost."""
+    ok = _ok(df)
     rows = []
-    for (cid, method, dtype, bid), g in ok.groupby(["case_id", "method", "dtype", "backend"]):
+    for (cid, method, q, dtype, bid), g in ok.groupby(["case_id", "method", "quantity", "dtype", "backend"]):
         best = g.sort_values(["error_max", "time_median_s"]).iloc[0]
         rows.append({
-            "case": cid, "method": method, "dtype": dtype, "backend": bid,
-            "best error_max": best["error_max"], "at knob": best["knob"],
+            "case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid,
+            "best max error": best["error_max"], "at knob": best["knob"],
             "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
             "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
-            "evals/ray": best["evals_per_ray"],
+            "evals/ray mean": best["evals_per_ray"], "p99": best.get("evals_p99"), "max": best.get("evals_max"),
+            "ray statuses": _statuses(best.get("status_counts")),
         })
     return pd.DataFrame(rows)
 
 
+def _statuses(v) -> str:
+    """The status histogram as ``CONVERGED 3096 · MISS 1000``."""
+    try:
+        d = json.loads(v) if isinstance(v, str) and v else {}
+    except ValueError:
+        return str(v)
+    return " · ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1]))
+
+
+def fastest_to_target(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
+    """Per case × method × quantity × dtype × backend and error target: the fastest knob setting
+    whose max error is ≤ the target (``time ms @ knob``), or ``not reached``."""
+    ok = _ok(df)
+    rows = []
+    for (cid, method, q, dtype, bid), g in ok.groupby(["case_id", "method", "quantity", "dtype", "backend"]):
+        row = {"case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid}
+        for tgt in targets:
+            hit = g[g["error_max"] <= tgt].sort_values("time_median_s")
+            row[f"≤ {tgt:.0e}"] = ("not reached" if hit.empty else
+                                   f"{1e3 * hit['time_median_s'].iloc[0]:.3g} ms (×{hit['time_ratio_cf'].iloc[0]:.3g}) "
+                                   f"@ {hit['knob'].iloc[0]}")
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def config_outcomes(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per configuration: ``ran`` if any quantity was measured, else ``failed`` if it
+    failed, else ``skipped``; with the first reason."""
+    rank = df["outcome"].map({"ok": 0, "failed": 1, "skipped": 2}).fillna(3)
+    d = df.assign(_rank=rank).sort_values("_rank")
+    first = d.groupby(CONFIG_KEY, sort=False).first().reset_index()
+    return first[CONFIG_KEY + ["outcome", "reason"]]
+
+
 def support_matrix(df: pd.DataFrame) -> pd.DataFrame:
-    """backend × method: how many configurations ran, were skipped or failed."""
-    t = df.groupby(["backend", "method", "outcome"]).size().unstack(fill_value=0)
-    for c in ("ok", "skipped", "failed"):
-        if c not in t.columns:
-            t[c] = 0
-    return t[["ok", "skipped", "failed"]].reset_index()
+    """backend × method: configurations ran / skipped / failed, as one readable cell each."""
+    c = config_outcomes(df)
+    t = c.groupby(["backend", "method", "outcome"]).size().unstack(fill_value=0)
+    for col in ("ok", "skipped", "failed"):
+        if col not in t.columns:
+            t[col] = 0
+
+    def cell(r) -> str:
+        parts = [f"ran {r['ok']}"] if r["ok"] else []
+        parts += [f"skipped {r['skipped']}"] if r["skipped"] else []
+        parts += [f"FAILED {r['failed']}"] if r["failed"] else []
+        return " · ".join(parts) or "—"
+
+    cells = t.apply(cell, axis=1).rename("cell").reset_index()
+    out = cells.pivot(index="backend", columns="method", values="cell").fillna("not planned").reset_index()
+    out.columns.name = None
+    return out
 
 
 def not_run(df: pd.DataFrame) -> pd.DataFrame:
-    bad = df[df["outcome"] != "ok"]
-    return bad.groupby(["outcome", "backend", "method", "reason"]).size().rename("configurations").reset_index()
+    """Skipped or failed rows grouped by reason (quantities a method could not be checked on
+    included), so nothing disappears silently."""
+    bad = df[df["outcome"] != "ok"].copy()
+    if bad.empty:
+        return pd.DataFrame(columns=["outcome", "backend", "method", "quantity", "reason", "rows"])
+    bad["reason"] = bad["reason"].fillna("").astype(str).str.slice(0, 300)
+    return (bad.groupby(["outcome", "backend", "method", "quantity", "reason"], dropna=False).size()
+            .rename("rows").reset_index())
+
+
+def rates_table(all_series: list[tuple[str, list[dict]]]) -> pd.DataFrame:
+    rows = []
+    for key, series in all_series:
+        for s in series:
+            rows.append({"plot": key, "method": s["method"], "backend": s["backend"], "knob": s["knob"],
+                         "fixed knobs": s["fixed"], "fitted rate p (error ∝ knob^−p)": s["rate"],
+                         "error at largest knob": s["error"][-1]})
+    return pd.DataFrame(rows)
+
+
+def _slug(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)[:120]
+
+
+def read_claims(run_dir: Path) -> pd.DataFrame | None:
+    p = Path(run_dir) / "claims.csv"
+    if not p.exists():
+        return None
+    return pd.read_csv(p, keep_default_na=False)
+
+
+CLAIM_COLUMNS = ["id", "statement", "equation", "how_checked", "verdict", "key_numbers", "plot"]
 
 
 def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
+    """Write ``report.md``, ``report.html`` and ``plots/*.png`` for results ``df`` into ``out_dir``."""
     out_dir = Path(out_dir)
-    plots: list[tuple[str, str]] = []
-    for (cid, method, dtype), g in df.groupby(["case_id", "method", "dtype"]):
-        if (g["outcome"] == "ok").any():
-            title = f"{cid} · {method} · {dtype}"
-            plots.append((title, _png_b64(plot_time_vs_error(g, title))))
-    summ, supp, skipped = summary_table(df), support_matrix(df), not_run(df)
+    df = df.copy()
+    if "quantity" not in df:
+        df["quantity"] = "depth"
+    if "family" not in df:
+        df["family"] = ""
+    df["quantity"] = df["quantity"].fillna("").astype(str)
+    df["family"] = df["family"].fillna("").astype(str)
+    ok = _ok(df)
+    figs: list[tuple[str, str, bytes]] = []  # (section, title, png)
+    series_all: list[tuple[str, list[dict]]] = []
+    for (fam, cid, q, dtype), g in ok.groupby(["family", "case_id", "quantity", "dtype"]):
+        title = f"{fam or 'method'} · {cid} · {q} · {dtype}"
+        timed = g[np.isfinite(g["time_median_s"].to_numpy(float)) & (g["time_median_s"].to_numpy(float) > 0)]
+        if len(timed):  # accuracy-only runs have no timing
+            png = _save(plot_time_vs_error(timed, title), out_dir / "plots" / f"time_{_slug(title)}.png")
+            figs.append(("time", title, png))
+        series = convergence_series(g)
+        if series:
+            qn, unit = _label_unit(g)
+            png = _save(plot_convergence(series, title, qn, unit, convergence_column(g)), out_dir / "plots" / f"conv_{_slug(title)}.png")
+            figs.append(("conv", title, png))
+            series_all.append((title, series))
+    summ, targets, supp, skipped = summary_table(df), fastest_to_target(df), support_matrix(df), not_run(df)
+    rates = rates_table(series_all)
     env_df = pd.DataFrame(sorted(env.items()), columns=["key", "value"])
+    claims = read_claims(out_dir)
+    configs = config_outcomes(df)
+    n_ok, n_skip, n_fail = ((configs["outcome"] == o).sum() for o in ("ok", "skipped", "failed"))
+    status_line = (f"{n_ok} configurations ran, {n_skip} skipped, {n_fail} failed"
+                   + ("" if env.get("complete", "true") == "true" else " — **the run is incomplete** (finish it with --resume)"))
+    claims_note = env.get("claims", "")
+
+    def md_img(section):
+        return [f"![{t}](plots/{('time_' if s == 'time' else 'conv_') + _slug(t)}.png)" for s, t, _ in figs if s == section]
+
+    def md_table(d: pd.DataFrame) -> str:
+        return d.to_markdown(index=False, floatfmt=".3g") if len(d) else "_none_"
 
     md = [f"# isobench report — run {env.get('run_id', '?')}", "",
           f"Suite `{env.get('suite', '?')}`, commit `{env.get('commit', '?')}`, {env.get('cpu', '?')} "
-          f"({env.get('cpu_count', '?')} logical CPUs).", "",
-          "## Fastest setting at best accuracy, per backend", "", summ.to_markdown(index=False, floatfmt=".3g"), "",
-          "## Support matrix (configurations)", "", supp.to_markdown(index=False), ""]
+          f"({env.get('cpu_count', '?')} logical CPUs, {env.get('threads', '?')} thread(s) per library). {status_line}.", "",
+          "## Best accuracy per backend", "", md_table(summ), "",
+          "## Fastest configuration reaching an error target", "", md_table(targets), "",
+          "## Time versus error", "", *md_img("time"), "",
+          "## Convergence", "", *md_img("conv"), "", md_table(rates), "",
+          "## Support matrix (configurations)", "", md_table(supp), ""]
     if len(skipped):
-        md += ["## Skipped or failed, with reasons", "", skipped.to_markdown(index=False), ""]
-    md += ["## Time versus error", "", "See report.html for the plots (one per case × method × dtype).", "",
-           "## Environment", "", env_df.to_markdown(index=False), ""]
+        md += ["## Skipped or failed, with reasons", "", md_table(skipped), ""]
+    if claims is not None or (claims_note and claims_note != "ran"):
+        md += ["## Claims ledger", ""]
+        if claims_note and claims_note != "ran":
+            md += [f"> {claims_note}", ""]
+        if claims is not None:
+            md += [md_table(claims), ""]
+            md += [f"![claim {r.get('id', '')}]({r['plot']})" for _, r in claims.iterrows()
+                   if str(r.get("plot", "")) and (out_dir / str(r["plot"])).is_file()]
+            md += [""]
+    md += ["## Environment", "", md_table(env_df), ""]
     write_text(out_dir / "report.md", "\n".join(md))
 
     def table(d: pd.DataFrame) -> str:
+        if not len(d):
+            return "<p class='note'>none</p>"
         return d.to_html(index=False, float_format=lambda v: f"{v:.3g}", border=0, classes="t", na_rep="")
 
-    style = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
+    def img(title: str, png: bytes) -> str:
+        return (f"<figure><img alt='{html.escape(title)}' src='data:image/png;base64,{base64.b64encode(png).decode()}'>"
+                "</figure>")
+
+    e = html.escape
+    style = ("body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}"
              "table.t{border-collapse:collapse;font-size:13px;margin:0.5em 0}"
-             "table.t td,table.t th{border-bottom:1px solid #ddd;padding:3px 8px;text-align:right}"
+             "table.t td,table.t th{border-bottom:1px solid #ddd;padding:3px 8px;text-align:left;vertical-align:top}"
              "table.t th{background:#f3f3f3}h2{border-bottom:2px solid #ccc;padding-bottom:2px}"
-             "figure{display:inline-block;margin:0.5em}img{max-width:100%}p.note{color:#555;font-size:14px}")
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>isobench report {html.escape(env.get('run_id', ''))}</title>"
+             "figure{display:inline-block;margin:0.5em;vertical-align:top}img{max-width:100%}"
+             "p.note{color:#555;font-size:14px}.warn{color:#a40}div.scroll{overflow-x:auto}"
+             "table.t td{max-width:30em;overflow-wrap:anywhere}")
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>isobench report {e(env.get('run_id', ''))}</title>"
              f"<style>{style}</style></head><body>",
-             f"<h1>isobench report</h1><p>Run <code>{html.escape(env.get('run_id', '?'))}</code>, suite "
-             f"<code>{html.escape(env.get('suite', '?'))}</code>, commit <code>{html.escape(env.get('commit', '?'))}</code>, "
-             f"{html.escape(env.get('cpu', '?'))} ({html.escape(env.get('cpu_count', '?'))} logical CPUs).</p>",
-             "<h2>Fastest setting at best accuracy, per backend</h2>",
-             "<p class='note'>Time is the median over repeated synchronised calls (compile and first call excluded, "
-             "reported apart); IQR is its spread. '× closed form' divides by the time of the exact ray–sphere formula "
-             "on the same number of rays, measured in the same run.</p>", table(summ),
-             "<h2>Time versus error</h2><p class='note'>One point per knob setting; lower-left is better. "
-             "✕ at the top edge: infinite error (a false hit or miss). Dashed: Pareto front over all backends.</p>"]
-    parts += [f"<figure><img alt='{html.escape(t)}' src='data:image/png;base64,{b}'></figure>" for t, b in plots]
-    parts += ["<h2>Support matrix</h2>", table(supp)]
+             f"<h1>isobench report</h1><p>Run <code>{e(env.get('run_id', '?'))}</code>, suite "
+             f"<code>{e(env.get('suite', '?'))}</code>, commit <code>{e(env.get('commit', '?'))}</code>, "
+             f"{e(env.get('cpu', '?'))} ({e(env.get('cpu_count', '?'))} logical CPUs, "
+             f"{e(env.get('threads', '?'))} thread(s) per library). {e(status_line).replace('**', '')}.</p>",
+             ]
+    if len(df):  # a claims-only directory has no results: no empty bench sections
+        parts += [
+            "<h2>Best accuracy per backend</h2>",
+            "<p class='note'>Per case, method and checked quantity: the knob setting with the smallest max error over "
+            "all rays. Time is the median over repeated synchronised calls (compile and first call excluded, reported "
+            "apart); IQR is its spread. '× closed form' divides by the time of the exact ray–sphere formula on the same "
+            "number of rays, measured in the same run — a unit that survives a noisy machine.</p>", table(summ),
+            "<h2>Fastest configuration reaching an error target</h2>",
+            "<p class='note'>The cheapest knob setting whose max error is at or below the target: median time per "
+            "call, its multiple of the closed-form time, and the knob setting.</p>", table(targets),
+            "<h2>Time versus error</h2><p class='note'>One plot per method family, case, quantity and dtype; one "
+            "point per knob setting (faint markers), a line through each backend's (and method's) Pareto-optimal "
+            "settings; colour = method, marker = backend; lower-left is better. ✕ at the top edge: an infinite error "
+            "(a false hit or miss, or a budget that ran out). Grey dashed steps: the Pareto front over every curve.</p>"]
+        parts += [img(t, p) for s, t, p in figs if s == "time"]
+        parts += ["<h2>Convergence</h2><p class='note'>Error against an integer knob (step budget, iterations, "
+                  "samples) with the other knobs fixed, log-log; the legend gives the fitted rate p of error ∝ "
+                  "knob<sup>−p</sup> (least squares over the finite, non-zero errors before the error floor; an "
+                  "algebraic rate — a geometric convergence shows as a large p).</p>"]
+        parts += [img(t, p) for s, t, p in figs if s == "conv"]
+        parts += [table(rates)]
+        parts += ["<h2>Support matrix</h2><p class='note'>Configurations (case × dtype × knob) per backend and "
+                  "method.</p>", table(supp)]
     if len(skipped):
         parts += ["<h2>Skipped or failed, with reasons</h2>", table(skipped)]
+    if claims is not None or (claims_note and claims_note != "ran"):
+        parts += ["<h2>Claims ledger</h2>"]
+        if claims_note and claims_note != "ran":
+            parts += [f"<p class='warn'>{e(claims_note)}</p>"]
+        if claims is not None:
+            parts += [_claims_html(claims, out_dir)]
     parts += ["<h2>Environment</h2>", table(env_df), "</body></html>"]
     write_text(out_dir / "report.html", "\n".join(parts))
+
+
+def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:
+    """The ledger as a table, one row per claim, with its plot inlined below the row."""
+    cols = [c for c in CLAIM_COLUMNS if c in claims.columns and c != "plot"]
+    cols += [c for c in claims.columns if c not in CLAIM_COLUMNS]
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+    body = []
+    for _, r in claims.iterrows():
+        verdict = str(r.get("verdict", ""))
+        body.append("<tr>" + "".join(
+            f"<td{' class=warn' if c == 'verdict' and verdict.lower() not in ('holds', 'true', 'confirmed') else ''}>"
+            f"{html.escape(str(r[c]))}</td>" for c in cols) + "</tr>")
+        plot = str(r.get("plot", "") or "")
+        p = Path(run_dir) / plot
+        if plot and p.is_file() and p.suffix.lower() == ".png":
+            b64 = base64.b64encode(p.read_bytes()).decode()
+            body.append(f"<tr><td colspan='{len(cols)}' style='max-width:none'><img style='max-width:1000px' alt='claim {html.escape(str(r.get('id', '')))}' "
+                        f"src='data:image/png;base64,{b64}'></td></tr>")
+        elif plot:
+            body.append(f"<tr><td colspan='{len(cols)}' class='warn'>plot {html.escape(plot)} not found</td></tr>")
+    return f"<div class='scroll'><table class='t'><tr>{head}</tr>{''.join(body)}</table></div>"
 
 
 def build_from_dir(run_dir: Path) -> None:
@@ -163,4 +495,10 @@ def build_from_dir(run_dir: Path) -> None:
 
     run_dir = Path(run_dir)
     env = json.loads((run_dir / "environment.json").read_text())
-    build(read_results(run_dir), env, run_dir)
+    try:
+        df = read_results(run_dir)
+    except FileNotFoundError:  # a claims-only directory
+        from .results import COLUMNS
+
+        df = pd.DataFrame(columns=COLUMNS + ["knobs_json"])
+    build(df, env, run_dir)

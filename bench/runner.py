@@ -1,9 +1,13 @@
-"""The runner: plan (cases × backends × methods × dtypes × knobs), measure, record.
+"""The runner: plan (cases × methods × dtypes × knobs × backends), measure, record.
 
-Every planned configuration becomes exactly one row: ``ok`` (measured), ``skipped`` (with the
-reason: backend unavailable, method not implemented, scene lacks what the method needs, dtype
-unsupported) or ``failed`` (the exception, and the run goes on).  Rows are written to disk
-after every case, atomically, so a run that dies keeps what it finished.
+Every planned configuration becomes rows, never nothing: ``ok`` (measured; one row per checked
+quantity, see :mod:`bench.metrics`), ``skipped`` (with the reason: backend unavailable, method
+not implemented, dtype unsupported, scene lacks what the method needs, no reference answer) or
+``failed`` (the exception, a wrong shape, a silent NaN or a timeout; the run goes on).
+
+Rows are written to disk atomically at least every ``flush_s`` seconds and after every case,
+so a run that dies keeps what it finished, and ``resume=True`` finishes it: configurations
+already in the run directory are kept, the others are run under the same run id.
 """
 
 from __future__ import annotations
@@ -12,21 +16,27 @@ import dataclasses
 import datetime as _dt
 import json
 import secrets
+import time
 import traceback
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from impls import Unavailable, get_method
+from impls import METHODS, Unavailable, get_method
+from impls.protocol import RayResult, Status
 from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
 from . import environment
-from .metrics import summarize
-from .results import SCHEMA_VERSION, knob_string, to_frame, write_json, write_results
+from .metrics import family_skip_reason, finite_rows, measure_accuracy, primary_quantity
+from .references import ReferenceOptions
+from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
 from .suites import Suite
-from .timing import TimingPolicy, measure
+from .timing import TimingPolicy, measure, time_limit
+
+#: columns that identify a configuration (a row is a configuration × quantity)
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +47,10 @@ class Config:
     dtype: str
     knobs: dict
 
+    @property
+    def key(self) -> tuple[str, str, str, str, str]:
+        return (self.case.id, self.backend_id, self.dtype, self.method, knob_string(self.knobs))
+
 
 def new_run_id() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(3)
@@ -44,83 +58,246 @@ def new_run_id() -> str:
 
 def closed_form_time(case: Case, policy: TimingPolicy) -> float:
     """Median time of the exact closed-form ray–sphere intersection of ``case.n_rays`` rays in
-    numpy float64 (:func:`reference.quadric.ray_sphere_roots`): the run's unit of time."""
+    numpy float64 (:func:`reference.quadric.ray_sphere_roots`, unit sphere at the origin, whatever
+    the case's scene): the run's unit of time, measured with the same policy as the methods."""
     o, d = case.origins, case.directions
-    timing, _ = measure(lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0), lambda _: None, policy)
+    pol = dataclasses.replace(policy, accuracy_only=False)
+    timing, _ = measure(lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0), lambda _: None, pol)
     return timing.median_s
 
 
 def _base_row(run_id: str, cfg: Config, backend: Any) -> dict:
     device = getattr(backend, "device", cfg.backend_id.partition(":")[2] or "cpu")
+    spec = METHODS.get(cfg.method)
     return {
         "schema_version": SCHEMA_VERSION, "run_id": run_id, "case_id": cfg.case.id, "case_version": cfg.case.version,
         "backend": cfg.backend_id, "device": device, "dtype": cfg.dtype, "method": cfg.method,
-        "knob": knob_string(cfg.knobs), "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "n_rays": cfg.case.n_rays,
+        "family": spec.family if spec else "", "knob": knob_string(cfg.knobs),
+        "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "n_rays": cfg.case.n_rays,
+        "quantity": primary_quantity(spec) if spec else "",
     }
 
 
 def skip_reason(cfg: Config, backend: Any) -> str | None:
+    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it."""
     if isinstance(backend, Unavailable):
         return f"backend unavailable: {backend.reason}"
     if cfg.method not in backend.methods():
         return f"{cfg.backend_id} does not implement {cfg.method}"
     if cfg.dtype not in backend.capabilities.dtypes:
         return f"{cfg.backend_id} does not support {cfg.dtype}"
-    return get_method(cfg.method).skip_reason(cfg.case.scene)
+    return applies(get_method(cfg.method), cfg.case)
 
 
-def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float) -> dict:
+def check_result(res: RayResult, n: int, outputs: tuple[str, ...]) -> None:
+    """The per-ray contract: shapes (n, …) and no silent NaN (a non-finite value on a ray whose
+    status is CONVERGED).  Raises ValueError naming the offending array."""
+    for name in ("t", "status", "iterations", "evals"):
+        a = getattr(res, name)
+        if np.shape(a) != (n,):
+            raise ValueError(f"wrong shape: result {name} has shape {np.shape(a)}, expected ({n},)")
+    conv = res.status == Status.CONVERGED
+    bad = int(np.sum(conv & ~np.isfinite(res.t)))
+    if bad:
+        raise ValueError(f"silent NaN: {bad} rays have non-finite t with status CONVERGED")
+    for name in outputs:
+        a = res.outputs.get(name)
+        if a is None:
+            raise ValueError(f"missing output {name!r}; returned {sorted(res.outputs)}")
+        a = np.asarray(a)
+        if a.shape[:1] != (n,):
+            raise ValueError(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
+        bad = int(np.sum(conv & ~finite_rows(a)))
+        if bad:
+            raise ValueError(f"silent NaN: {bad} rays have non-finite {name} with status CONVERGED")
+
+
+def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
+    """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
+    depths, isolating their error from root finding) and time it: (prepared, timing, output)."""
+    case, spec = cfg.case, get_method(cfg.method)
+    extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+    prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
+                           t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
+    timing, out = measure(prep.run, backend.synchronize, policy)
+    return prep, timing, out
+
+
+def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
+            cache: dict | None = None) -> list[dict]:
+    """Rows for one configuration (one per quantity; one row when skipped or failed)."""
+    cache = {} if cache is None else cache
     row = _base_row(run_id, cfg, backend)
-    reason = skip_reason(cfg, backend)
-    if reason:
-        return {**row, "outcome": "skipped", "reason": reason}
-    case = cfg.case
     try:
-        prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
-                               t_min=case.t_min, t_max=case.t_max, **cfg.knobs)
-        timing, out = measure(prep.run, backend.synchronize, policy)
-        res = prep.result(out)
-        if res.t.shape != (case.n_rays,):
-            raise ValueError(f"result t has shape {res.t.shape}, expected ({case.n_rays},)")
-        acc = summarize(res, case.exact_t, cfg.dtype)
+        reason = skip_reason(cfg, backend)
+    except Exception as exc:  # e.g. the reference cannot answer for this case
+        return [{**row, "outcome": "failed", "reason": f"planning: {type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    if reason:
+        return [{**row, "outcome": "skipped", "reason": reason}]
+    case, spec = cfg.case, get_method(cfg.method)
+    try:
+        with time_limit(policy.timeout_s):
+            prep, timing, out = _prepare_and_time(cfg, backend, policy)
+            res = prep.result(out)
+        check_result(res, case.n_rays, tuple(spec.outputs))
+        quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
     except Exception as exc:  # a failing configuration becomes a row; the run goes on
-        return {**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc(limit=5)}
-    return {
-        **row, "outcome": "ok", "reason": "",
-        "status_counts": json.dumps(res.status_counts(), sort_keys=True), **acc,
+        return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    timed = {
+        "status_counts": json.dumps(res.status_counts(), sort_keys=True),
         "first_call_s": timing.first_call_s,
         "compile_s": prep.compile_s if prep.compile_s is not None else max(timing.first_call_s - timing.median_s, 0.0),
         "time_median_s": timing.median_s, "time_iqr_s": timing.iqr_s,
         "time_samples_s": json.dumps(timing.samples_s), "time_ratio_cf": timing.median_s / cf_time,
-        "n_samples": len(timing.samples_s),
+        "n_samples": len(timing.samples_s), "loops": timing.loops,
     }
+    if policy.accuracy_only:  # one untimed-quality call: no timing claims, no timing comparison
+        timed.update({"compile_s": prep.compile_s, "time_median_s": float("nan"), "time_iqr_s": float("nan"),
+                      "time_samples_s": "", "time_ratio_cf": float("nan"), "n_samples": 0})
+    rows = []
+    for q in quantities:
+        if "skip" in q:
+            rows.append({**row, **timed, "quantity": q["quantity"], "outcome": "skipped", "reason": q["skip"]})
+        else:
+            rows.append({**row, **timed, **q, "outcome": "ok", "reason": ""})
+    return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
+
+
+def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str:
+    """Timing samples of one more round for ``cfg`` (prepared afresh, compile excluded), or the
+    error message when this round failed."""
+    try:
+        with time_limit(policy.timeout_s):
+            _, timing, _ = _prepare_and_time(cfg, backend, policy)
+        return timing.samples_s
+    except Exception as exc:
+        return f"{type(exc).__name__}: {exc}"
+
+
+def _pool(row: dict, extra: list[float] | str, cf_time: float) -> None:
+    """Add one round's samples to a result row and recompute its timing summary."""
+    if isinstance(extra, str):
+        row["timing_note"] = (row.get("timing_note") or "") + f"a later round failed: {extra}; "
+        return
+    samples = json.loads(row["time_samples_s"]) + list(extra)
+    q1, med, q3 = np.percentile(samples, [25, 50, 75])
+    row.update({"time_samples_s": json.dumps(samples), "time_median_s": float(med), "time_iqr_s": float(q3 - q1),
+                "time_ratio_cf": float(med) / cf_time, "n_samples": len(samples),
+                "rounds": int(row.get("rounds") or 1) + 1})
+
+
+def select_cases(suite: Suite, case_pattern: str | None) -> list[Case]:
+    """``--case`` globs replace the suite's selection; otherwise the suite's glob and tags."""
+    if case_pattern:
+        return catalog(case_pattern)
+    return catalog(suite.case_pattern, set(suite.case_tags) or None)
+
+
+def applies(spec, case) -> str | None:
+    """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
+    reference answers), or None."""
+    try:
+        return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
+    except Exception as exc:  # a reference that cannot answer is a reason, not a crash
+        return f"planning: {type(exc).__name__}: {exc}"
 
 
 def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
          dtypes: list[str] | None) -> list[Config]:
-    """Configurations in measuring order: knobs outer, backends inner, so backends interleave."""
-    cfgs = []
-    for case in catalog(case_pattern or suite.case_pattern):
-        for method, sweep in suite.sweeps.items():
-            if methods and method not in methods:
+    """Configurations in measuring order.
+
+    Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
+    given; fewest rays first with ``suite.small_cases_first``), its knob sweep on the first ``suite.sweep_cases`` of them and its default knobs on
+    the rest; a case it does not apply to gets one configuration (default knobs), which the
+    runner records as skipped with the reason.  Order: every default-knob configuration first
+    (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
+    case by case, knobs outer and backends inner, rotated by one at every knob, so backends
+    interleave in time and none is always first."""
+    if methods:
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown:
+            raise ValueError(f"--method: unknown method(s) {unknown}; known: {sorted(METHODS)}")
+    names = [m for m in (suite.methods or tuple(METHODS)) if not methods or m in methods]
+    for dt in dtypes or ():
+        if dt not in ("float64", "float32", "float16", "bfloat16"):
+            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
+    cases = select_cases(suite, case_pattern)
+    explicit = bool(case_pattern)
+    if suite.small_cases_first and not explicit:
+        cases = sorted(cases, key=lambda c: c.n_rays)  # stable: catalog order among equals
+    work: list[tuple[int, int, Case, str, int, dict]] = []  # (stage, case index, case, method, knob index, knobs)
+    for method in names:
+        spec = METHODS[method]
+        sweep = suite.sweep_for(spec)
+        n_applicable = 0
+        for ci, case in enumerate(cases):
+            if applies(spec, case) is not None:
+                work.append((0, ci, case, method, 0, sweep[0]))
                 continue
-            for dtype in dtypes or suite.dtypes:
-                for knobs in sweep:
-                    for bid in backend_ids:
-                        cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
+            n_applicable += 1
+            if not explicit and suite.max_cases is not None and n_applicable > suite.max_cases:
+                continue
+            swept = explicit or suite.sweep_cases is None or n_applicable <= suite.sweep_cases
+            for k, knobs in enumerate(sweep if swept else sweep[:1]):
+                work.append((0 if k == 0 else 1, ci, case, method, k, knobs))
+    work.sort(key=lambda w: (w[0], w[1]))  # stable: method order, then knob order, kept
+    cfgs = []
+    for _, _, case, method, k, knobs in work:
+        for dtype in dtypes or suite.dtypes:
+            r = k % max(len(backend_ids), 1)
+            for bid in backend_ids[r:] + backend_ids[:r]:
+                cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
     return cfgs
+
+
+def _done_keys(df) -> set[tuple]:
+    if df is None or not len(df):
+        return set()
+    return set(map(tuple, df[CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
 
 
 def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: str | None = None,
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
-        run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None) -> "Any":
-    """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame."""
-    run_id = run_id or new_run_id()
+        run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
+        resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
+        budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None,
+        reference_timeout_s: float = 30.0) -> "Any":
+    """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
+
+    ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
+    the configurations it lacks are run.  ``budget_s``: wall-clock budget; once spent, the
+    remaining configurations become ``skipped`` rows saying so (``--resume`` with a larger budget
+    finishes them, since resume re-runs only configurations without a measured row).
+    ``rounds``: the whole plan is timed ``rounds`` times, round after round, and each
+    configuration's samples pooled (:func:`retime`), so slow drift of a shared machine's load
+    shows up as spread within a configuration instead of as a difference between runs.
+    ``reference_cache_dir``: where costly reference answers are kept across runs (None: not kept);
+    ``reference_timeout_s``: limit on one costly reference computation (a rendering integral).
+    """
+    if rounds < 1:
+        raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
     out_dir = Path(out_dir)
-    env = environment.collect()
-    env["run_id"] = run_id
+    previous = None
+    if resume:
+        if not (out_dir / "environment.json").exists():
+            raise ValueError(f"--resume: {out_dir} holds no run to resume (no environment.json); drop --resume")
+        env = json.loads((out_dir / "environment.json").read_text())
+        run_id = env["run_id"]
+        try:
+            previous = read_results(out_dir)
+        except FileNotFoundError:
+            previous = None
+        env["resumed"] = str(int(env.get("resumed", "0")) + 1)
+    else:
+        run_id = run_id or new_run_id()
+        env = environment.collect()
+        env["run_id"] = run_id
     env["suite"] = suite.name
+    env["complete"] = "false"
+    env["timing_policy"] = json.dumps(dataclasses.asdict(policy), sort_keys=True)
+    env.update(env_extra or {})
     for bid, b in backends.items():
         if not isinstance(b, Unavailable):
             env.update({f"backend.{bid}.{k}": v for k, v in b.versions().items()})
@@ -128,21 +305,64 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     cfgs = plan(suite, list(backends), case_pattern, methods, dtypes)
     if not cfgs:
         raise ValueError(f"nothing to run: no case matches {case_pattern or suite.case_pattern!r} "
-                         "or no method matches --method; `python -m bench cases` lists the cases")
-    rows: list[dict] = []
+                         f"(tags {list(suite.case_tags)}) or no method matches --method; "
+                         "`python -m bench cases` lists the cases")
+    done = _done_keys(previous)
+    rows: list[dict] = previous.to_dict("records") if previous is not None else []
+    if resume and previous is not None:  # budget-skipped rows are redone
+        over = previous["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET)
+        rows = [r for r, o in zip(rows, over) if not o]
+        done = _done_keys(previous[~over])
+    todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
+    started = time.monotonic()
     cf_cache: dict[str, float] = {}
-    for i, cfg in enumerate(cfgs):
-        if cfg.case.id not in cf_cache:
+    ref_cache: dict = {"_options": ReferenceOptions(expensive=suite.expensive_references, timeout_s=reference_timeout_s,
+                                                    disk=reference_cache_dir)}
+    last_write = time.monotonic()
+    current_case = None
+    for i, cfg in enumerate(todo):
+        if cfg.case.id != current_case:
+            current_case = cfg.case.id
             if rows:
                 write_results(to_frame(rows), out_dir)
+                last_write = time.monotonic()
+        if cfg.case.id not in cf_cache and not policy.accuracy_only:
             cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
         if progress:
-            progress(i, len(cfgs), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
-        rows.append(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache[cfg.case.id]))
+            progress(i, len(todo), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
+        if budget_s is not None and time.monotonic() - started > budget_s:
+            rows.append({**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
+                         "reason": f"{OVER_BUDGET} ({budget_s:g} s); finish with --resume and a larger --budget"})
+            continue
+        rows.extend(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache.get(cfg.case.id, float("nan")),
+                            ref_cache))
+        if time.monotonic() - last_write > flush_s:
+            write_results(to_frame(rows), out_dir)
+            last_write = time.monotonic()
+    cf_samples = {cid: [t] for cid, t in cf_cache.items()}
+    if rounds > 1 and not policy.accuracy_only:
+        index: dict[tuple, list[int]] = {}
+        for j, r in enumerate(rows):
+            if r.get("outcome") == "ok" and r.get("run_id") == run_id:
+                index.setdefault((r["case_id"], r["backend"], r["dtype"], r["method"], r["knob"]), []).append(j)
+        todo_ok = [c for c in todo if tuple(map(str, c.key)) in index]
+        for rnd in range(2, rounds + 1):
+            for i, cfg in enumerate(todo_ok):
+                if cfg.case.id not in cf_samples or len(cf_samples[cfg.case.id]) < rnd:
+                    cf_samples.setdefault(cfg.case.id, []).append(closed_form_time(cfg.case, policy))
+                if progress:
+                    progress(i, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}")
+                extra = retime(cfg, backends[cfg.backend_id], policy)
+                for j in index[tuple(map(str, cfg.key))]:
+                    _pool(rows[j], extra, float(np.median(cf_samples[cfg.case.id])))
+            write_results(to_frame(rows), out_dir)
     if progress:
-        progress(len(cfgs), len(cfgs), "done")
-    for cid, tcf in cf_cache.items():
-        env[f"closed_form_s.{cid}"] = repr(tcf)
+        progress(len(todo), len(todo), "done")
+    for cid, ts in cf_samples.items():
+        env[f"closed_form_s.{cid}"] = repr(float(np.median(ts)))
+    env["rounds"] = str(rounds)
+    env["complete"] = "true"
+    env["elapsed_s"] = f"{time.monotonic() - started:.1f}"
     write_json(out_dir / "environment.json", env)
     df = to_frame(rows)
     write_results(df, out_dir)

@@ -1,41 +1,144 @@
 """Suites: which cases, methods, dtypes and knob sweeps a run crosses with the backends.
 
 A knob sweep is a list of knob dicts; each becomes one timed configuration (one point on the
-backend's time-versus-error curve).
+backend's time-versus-error curve).  A method needs no entry here: its sweep is derived from
+its knobs (:func:`default_sweep`), so a method added to ``impls.methods.METHODS`` is benchmarked
+without touching ``bench/``.  ``Suite.sweeps`` overrides the derived sweep for a method.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
+
+import numpy as np
+
+#: knob names treated as tolerances (swept over decades, tightest used while other knobs sweep)
+_TOL_NAME = re.compile(r"(tol|eps|epsilon)$")  # tol, xtol, atol, rtol, f_tol, eps…
+#: integer knobs that are not budgets (never swept by default)
+_NOT_BUDGET = re.compile(r"seed|behaviou?r|mode|index|axis", re.I)
 
 
 @dataclasses.dataclass(frozen=True)
 class Suite:
+    """What a run crosses with the backends.
+
+    name; case glob(s) and required tags; dtypes; ``sweeps`` (method → knob dicts) overriding
+    the derived sweep; ``methods`` (None: every method in ``METHODS``); ``level`` passed to
+    :func:`default_sweep` ("quick" or "full"); ``main_dial_only``: sweep only a method's first
+    knob (its main accuracy dial, by the catalog's convention), the others at their defaults;
+    ``sweep_cases``: a method's knob sweep runs on its first N applicable cases, the other
+    applicable cases get its default knobs only (None: the sweep everywhere); ``max_cases``:
+    a method runs on at most this many applicable cases (None: all); ``min_time_s`` and
+    ``min_repeats``: timing per configuration; ``budget_s``: wall-clock budget of a run (the
+    CLI's ``--budget`` overrides; configurations left when it is spent are skipped rows);
+    ``expensive_references``: check against references that cost seconds to minutes per case
+    (the continuous rendering integral); when False those quantities are skipped rows saying so;
+    ``small_cases_first``: a method's applicable cases are taken fewest rays first (so with
+    ``max_cases`` a budgeted suite spends its time on methods, not on ray count).
+    """
+
     name: str
     case_pattern: str
     dtypes: tuple[str, ...]
-    sweeps: dict[str, list[dict]]  # method -> knob dicts
+    sweeps: dict[str, list[dict]]
+    case_tags: tuple[str, ...] = ()
+    methods: tuple[str, ...] | None = None
+    level: str = "quick"
+    min_time_s: float = 0.2  # timed seconds per configuration (CLI --min-time overrides)
+    main_dial_only: bool = False
+    sweep_cases: int | None = None
+    max_cases: int | None = None
+    min_repeats: int = 5
+    budget_s: float | None = None
+    expensive_references: bool = True
+    small_cases_first: bool = False
+
+    def sweep_for(self, spec) -> list[dict]:
+        if spec.name in self.sweeps:
+            return [dict(k) for k in self.sweeps[spec.name]]
+        return default_sweep(spec, self.level, main_dial_only=self.main_dial_only)
 
 
-def _sphere_trace_sweep(tols, budgets) -> list[dict]:
-    # A tolerance sweep at a generous budget, then a budget sweep at a tight tolerance:
-    # the two accuracy dials of sphere tracing.
-    return [{"tol": t, "max_steps": 512} for t in tols] + [{"tol": 1e-12, "max_steps": b} for b in budgets]
+def _is_tolerance(knob) -> bool:
+    return knob.kind is float and bool(_TOL_NAME.search(knob.name))
+
+
+def _int_values(knob, level: str) -> list[int]:
+    """Geometric values of an integer budget (steps, iterations, samples) up to its default
+    (quick) or 4× its default (full), at least ``max(low, 1)``; the default is always included."""
+    lo = max(int(knob.low), 1)
+    hi = max(int(knob.default), lo) * (1 if level == "quick" else 4)
+    n = 3 if level == "quick" else 7
+    # rounded to powers of two so sweeps read well and repeat across methods
+    vals = {int(2 ** round(math.log2(v))) for v in np.geomspace(max(lo, 2) if hi > 2 else lo, hi, n)}
+    vals |= {int(knob.default)}
+    return sorted(v for v in vals if v >= lo)
+
+
+def _tol_values(knob, level: str) -> list[float]:
+    ks = (4, 8, 12) if level == "quick" else range(2, 14)  # quick: the report's error targets
+    return [10.0 ** -k for k in ks if 10.0 ** -k >= knob.low]
+
+
+def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> list[dict]:
+    """One-at-a-time sweep over a method's accuracy knobs, derived from its :class:`Knob` list.
+
+    * a knob may carry its own ``sweep`` (a tuple of values, optional attribute): used as is;
+    * a float knob named like a tolerance (``tol``, ``xtol``, ``*_tol``, ``eps``): 1e-4, 1e-8, 1e-12 (quick:
+      the report's error targets) or every decade 1e-2 … 1e-13 (full), the others at defaults;
+    * an integer knob that is a budget (steps, iterations, samples — not a seed or a mode):
+      3 (quick) or 7 (full) geometric
+      values, rounded to powers of two, up to its default (quick) or 4× it (full), with every
+      tolerance at its tightest swept value so the budget is what limits the error (a
+      convergence curve in the budget);
+    * other knobs (sharpness, band width, relaxation…) stay at their defaults unless they carry
+      ``sweep``.
+    With ``main_dial_only`` only the first knob is swept.  The first knob dict is always the
+    all-defaults setting.  Knob dicts are complete (every knob named) and unique, in a stable order.
+    """
+    knobs = list(spec.knobs)
+    swept = knobs[:1] if main_dial_only else knobs
+    base = {k.name: k.default for k in knobs}
+    tight = {}
+    for k in knobs:
+        if getattr(k, "sweep", None) is None and _is_tolerance(k):
+            vals = _tol_values(k, level)
+            if vals:
+                tight[k.name] = min(vals)
+    out: list[dict] = [dict(base)]
+    for k in swept:
+        explicit = getattr(k, "sweep", None)
+        if explicit is not None:
+            out += [{**base, k.name: v} for v in explicit]
+        elif _is_tolerance(k):
+            out += [{**base, k.name: v} for v in _tol_values(k, level)]
+        elif k.kind is int and not _NOT_BUDGET.search(k.name):
+            out += [{**base, **tight, k.name: v} for v in _int_values(k, level)]
+    seen, unique = set(), []
+    for kd in out:
+        key = tuple(sorted((n, float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v))
+                           for n, v in kd.items()))
+        if key not in seen:
+            seen.add(key)
+            unique.append(kd)
+    return unique
 
 
 SUITES = {
-    "quick": Suite(
-        name="quick",
-        case_pattern="*",
-        dtypes=("float64",),
-        sweeps={"sphere_trace": _sphere_trace_sweep([1e-2, 1e-4, 1e-6, 1e-8, 1e-10, 1e-12], [4, 16, 64])},
-    ),
-    "full": Suite(
-        name="full",
-        case_pattern="*",
-        dtypes=("float64", "float32"),
-        sweeps={"sphere_trace": _sphere_trace_sweep([10.0 ** -k for k in range(1, 14)], [2, 4, 8, 16, 32, 64, 128, 256])},
-    ),
+    # quick: CI and the README's first command, < 2 min on 2 cores: cases tagged "quick", float64,
+    # each method on its first applicable quick case with its main dial at 3 settings (a short
+    # time-versus-error curve per method and backend), 0.05 s and ≥ 3 samples of timing each;
+    # volume renderers against ρ(x*) only (the rendering integral costs ~10 s to minutes per case).
+    "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
+                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=100.0,
+                   expensive_references=False, small_cases_first=True),
+    # full: every case, float64 and float32; the long one-at-a-time sweeps of every knob on a
+    # method's first 2 applicable cases and its defaults on all the others; 0.1 s of timing each;
+    # defaults everywhere are measured before any sweep point, so the budget cuts sweeps first.
+    "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
+                  min_time_s=0.1, sweep_cases=2, budget_s=840.0),
 }
 
 
@@ -43,4 +146,5 @@ def get_suite(name: str) -> Suite:
     try:
         return SUITES[name]
     except KeyError:
-        raise ValueError(f"unknown suite {name!r}; choose one of {sorted(SUITES)}") from None
+        raise ValueError(f"unknown suite {name!r}; choose one of {sorted(SUITES)} (--suite)") from None
+

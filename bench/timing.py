@@ -1,15 +1,28 @@
-"""Timing: warm-up and compile apart, synchronised, repeated until the median is stable.
+"""Timing: warm-up and compile apart, synchronised, calibrated, repeated until the median is stable.
 
-Protocol (after pyperf / pytest-benchmark): the first call (compilation, caches, allocator
-warm-up) is timed alone and reported as ``first_call_s``; then calls are repeated, each one
-synchronised with the device before the clock stops, until at least ``min_repeats`` samples
-and ``min_time_s`` seconds are collected (capped by ``max_repeats``).  Reported: all samples,
-their median and interquartile range.
+Protocol (after pyperf and pytest-benchmark):
+
+1. The first call (compilation, caches, allocator warm-up) is timed alone: ``first_call_s``.
+   Backends that compile ahead of time report ``compile_s`` separately (``Prepared.compile_s``).
+2. ``warmup`` further untimed calls.
+3. Calibration: the number of calls per sample, ``loops``, is the smallest power of two whose
+   total time reaches ``min_sample_s``, so a sample of a microsecond kernel is not timer
+   resolution noise (pyperf's ``--min-time`` calibration).  A sample is total time / loops.
+4. Samples are repeated until at least ``min_repeats`` samples *and* ``min_time_s`` seconds,
+   capped by ``max_repeats`` and by ``max_time_s``.  Every call is followed by the backend's
+   ``sync(out)`` before the clock stops (device work is finished, not merely queued).
+
+Reported: every sample, their median and interquartile range, ``loops``.
+A hard limit on the whole configuration (:func:`time_limit`) turns a hang into a ``timeout`` row.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
+import signal
+import threading
 import time
 from typing import Any, Callable
 
@@ -20,6 +33,7 @@ import numpy as np
 class Timing:
     first_call_s: float
     samples_s: list[float]
+    loops: int = 1
 
     @property
     def median_s(self) -> float:
@@ -33,25 +47,83 @@ class Timing:
 
 @dataclasses.dataclass(frozen=True)
 class TimingPolicy:
+    """``min_repeats``/``min_time_s``: samples at least; ``max_repeats``/``max_time_s``: at most;
+    ``min_sample_s``: calibration target of one sample; ``warmup``: untimed calls after the
+    first; ``timeout_s``: hard limit per configuration (0: none); ``accuracy_only``: one call,
+    no timing samples (deterministic baselines)."""
+
     min_repeats: int = 5
     max_repeats: int = 200
     min_time_s: float = 0.2
+    max_time_s: float = 10.0
+    min_sample_s: float = 1e-3
+    warmup: int = 1
+    timeout_s: float = 120.0
+    accuracy_only: bool = False
+
+    def __post_init__(self):
+        for name in ("min_repeats", "max_repeats", "warmup"):
+            if getattr(self, name) < (0 if name == "warmup" else 1):
+                raise ValueError(f"TimingPolicy.{name}={getattr(self, name)} must be ≥ {0 if name == 'warmup' else 1}")
+        for name in ("min_time_s", "max_time_s", "min_sample_s", "timeout_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"TimingPolicy.{name}={v} must be a finite number ≥ 0")
+
+
+def _timed(run: Callable[[], Any], sync: Callable[[Any], None], loops: int) -> tuple[float, Any]:
+    clock = time.perf_counter
+    t0 = clock()
+    for _ in range(loops):
+        out = run()
+        sync(out)
+    return clock() - t0, out
 
 
 def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingPolicy = TimingPolicy()) -> tuple[Timing, Any]:
-    """Time ``run`` (then ``sync(out)``); returns the timing and the first call's output."""
-    clock = time.perf_counter
-    t0 = clock()
-    out = run()
-    sync(out)
-    first = clock() - t0
-    samples: list[float] = []
-    total = 0.0
-    while len(samples) < policy.max_repeats and (len(samples) < policy.min_repeats or total < policy.min_time_s):
-        t0 = clock()
-        o = run()
-        sync(o)
-        dt = clock() - t0
-        samples.append(dt)
+    """Time ``run`` (each call followed by ``sync(out)``); returns the timing and the first call's
+    output (the one whose accuracy is measured)."""
+    first, out = _timed(run, sync, 1)
+    if policy.accuracy_only:
+        return Timing(first_call_s=first, samples_s=[first], loops=1), out
+    for _ in range(policy.warmup):
+        _timed(run, sync, 1)
+    loops = 1
+    while True:  # calibration: double until one sample reaches min_sample_s
+        dt, _ = _timed(run, sync, loops)
+        if dt >= policy.min_sample_s or loops >= 2 ** 20:
+            break
+        loops *= 2
+    samples = [dt / loops]
+    total = dt
+    while len(samples) < policy.max_repeats and total < policy.max_time_s and (
+            len(samples) < policy.min_repeats or total < policy.min_time_s):
+        dt, _ = _timed(run, sync, loops)
+        samples.append(dt / loops)
         total += dt
-    return Timing(first_call_s=first, samples_s=samples), out
+    return Timing(first_call_s=first, samples_s=samples, loops=loops), out
+
+
+class Timeout(Exception):
+    """A configuration ran past its time limit."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    """Raise :class:`Timeout` in the main thread after ``seconds`` (0 or off the main thread: no
+    limit).  POSIX ``SIGALRM``: it interrupts Python code between bytecodes, so a long call
+    inside a compiled kernel is stopped when it returns to Python."""
+    if not seconds or threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Timeout(f"ran past the time limit of {seconds:g} s (--timeout)")
+
+    old = signal.signal(signal.SIGALRM, handler)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)

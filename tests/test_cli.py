@@ -26,7 +26,8 @@ def bench(*args, cwd=None):
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "quick"
-    p = bench("run", "--suite", "quick", "--out", str(out), "--min-time", "0.02", "--min-repeats", "3", "--no-progress")
+    p = bench("run", "--suite", "quick", "--out", str(out), "--min-time", "0.02", "--min-repeats", "3", "--no-progress",
+              "--no-claims")
     assert p.returncode == 0, p.stdout + p.stderr
     return out
 
@@ -51,6 +52,13 @@ def test_every_available_backend_appears(quick_run):
     for b in available:
         assert b in html
     assert "data:image/png;base64," in html
+    for section in ("Best accuracy per backend", "Fastest configuration reaching an error target", "Time versus error",
+                    "Convergence", "Support matrix", "Environment"):
+        assert section in html, section
+        assert section in (quick_run / "report.md").read_text(), section
+    # every configuration appears: one row per (configuration, quantity), no duplicates
+    assert not df.duplicated(["case_id", "backend", "dtype", "method", "knob", "quantity"]).any()
+    assert "<script" not in html and "http://" not in html and "https://" not in html  # offline
 
 
 def test_results_are_never_overwritten(quick_run):
@@ -78,6 +86,31 @@ def test_bad_arguments_get_clear_errors(tmp_path):
     assert p.returncode != 0 and "unknown suite" in (p.stdout + p.stderr)
     p = bench("run", "--case", "nosuch.*", "--out", str(tmp_path / "y"), "--no-progress")
     assert p.returncode == 2 and "no case matches" in p.stdout
+
+
+def test_committed_baseline_has_no_accuracy_regression(quick_run):
+    """What CI gates on: the quick run against reports/baseline (regenerate it with
+    `python -m bench baseline` when an accuracy change is intended)."""
+    p = bench("compare", str(ROOT / "reports" / "baseline"), str(quick_run))
+    assert p.returncode == 0, p.stdout + p.stderr
+
+
+def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
+    out = tmp_path / "plug"
+    p = bench("run", "--suite", "quick", "--accuracy-only", "--no-claims", "--no-progress", "--out", str(out),
+              "--backend", "numpy,tests.test_bench_fakes:FakeBackend,nosuch.module:Backend")
+    assert p.returncode == 0, p.stdout + p.stderr
+    df = read_results(out)
+    reasons = df.groupby("backend")["reason"].first().to_dict()
+    assert "does not implement sphere_trace" in reasons["tests.test_bench_fakes:FakeBackend"]
+    assert "backend unavailable" in reasons["nosuch.module:Backend"] and "nosuch" in reasons["nosuch.module:Backend"]
+    assert set(df.loc[df["backend"] == "numpy", "outcome"]) == {"ok"}
+    assert "does not implement sphere_trace" in (out / "report.html").read_text()
+
+
+def test_compare_missing_run_is_a_clear_error(tmp_path):
+    p = bench("compare", str(tmp_path / "nope"), str(tmp_path / "nope2"))
+    assert p.returncode == 2 and "no results at" in p.stdout
 
 
 def test_cases_lists_the_catalog():

@@ -1,0 +1,70 @@
+"""Error statistics: each column checked against a value computed by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.metrics import Quantity, _per_ray, depth_errors, error_stats
+from bench.report import fit_rate, pareto_front
+from impls.protocol import RayResult, Status
+
+
+def result(t, status):
+    n = len(t)
+    return RayResult(t=np.asarray(t, float), status=np.asarray(status, np.int32), iterations=np.zeros(n, np.int32),
+                     evals=np.ones(n, np.int32))
+
+
+def test_depth_errors_make_false_hits_and_misses_infinite():
+    exact = np.array([1.0, np.inf, 2.0, np.inf])
+    res = result([1.0 + 1e-9, 3.0, 5.0, np.inf], [Status.CONVERGED, Status.CONVERGED, Status.MAX_ITER, Status.MISS])
+    e = depth_errors(res, exact)
+    assert e[0] == pytest.approx(1e-9, rel=1e-6)
+    assert e[1] == np.inf  # false hit
+    assert e[2] == np.inf  # budget ran out: a false miss, whatever the iterate
+    assert e[3] == 0.0  # both miss
+
+
+def test_relative_and_ulp_errors():
+    mag = np.array([1.0, 4.0, 0.0])
+    e = np.array([2.0 ** -52, 2.0 ** -50, 0.0])
+    s = error_stats(e, mag, "float64")
+    assert s["error_ulps_max"] == pytest.approx(1.0)  # 1 ulp at 1 and at 4 (ulp(4) = 2^-50)
+    assert s["error_rel_max"] == pytest.approx(2.0 ** -52)
+    s32 = error_stats(np.array([2.0 ** -23]), np.array([1.0]), "float32")
+    assert s32["error_ulps_max"] == pytest.approx(1.0) and s32["error_max_eps"] == pytest.approx(1.0)
+    assert np.isnan(error_stats(np.zeros(0), np.zeros(0), "float64")["error_max"])
+    big = error_stats(np.array([1.0, np.inf]), np.array([1.0, 1.0]), "float64")
+    assert big["error_max"] == np.inf and big["error_max_finite"] == 1.0
+
+
+def test_normal_angle_is_the_rotation_angle_even_when_tiny():
+    rng = np.random.default_rng(0)
+    n = rng.standard_normal((50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ax = np.cross(n, [0.0, 0.0, 1.0])
+    ax /= np.linalg.norm(ax, axis=1, keepdims=True)
+    for ang in (1e-12, 1e-6, 0.5, 3.0):
+        got = n * np.cos(ang) + np.cross(ax, n) * np.sin(ang)
+        e, _ = _per_ray(Quantity("normal_angle", "rad", got, n, np.ones(50, bool), angle=True))
+        assert np.allclose(e, ang, rtol=1e-6, atol=1e-15)
+    nan_out = n.copy()
+    nan_out[3] = np.nan
+    e, _ = _per_ray(Quantity("normal_angle", "rad", nan_out, n, np.ones(50, bool), angle=True))
+    assert e[3] == np.inf and np.all(e[:3] < 1e-15)
+
+
+def test_fit_rate_recovers_known_orders_and_stops_at_the_floor():
+    x = 2.0 ** np.arange(1, 9)
+    for p in (0.5, 1.0, 2.0):
+        assert fit_rate(x, 7 * x ** -p) == pytest.approx(p, rel=1e-9)
+    floored = np.maximum(x ** -2.0, 1e-3)
+    assert fit_rate(x, floored) == pytest.approx(2.0, abs=0.3)
+    assert np.isnan(fit_rate(x[:2], x[:2] ** -1.0))
+
+
+def test_pareto_front():
+    t = np.array([1.0, 2.0, 3.0, 0.5, 2.5])
+    e = np.array([1e-2, 1e-4, 1e-3, 1e-1, 1e-6])
+    assert list(pareto_front(t, e)) == [3, 0, 1, 4]

@@ -1,0 +1,103 @@
+"""The report: tables computed right, plots present, the claims ledger inlined, failures visible."""
+
+from __future__ import annotations
+
+import base64
+import json
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+import bench.claims  # noqa: E402
+from bench import cli, report  # noqa: E402
+from bench.results import to_frame  # noqa: E402
+
+
+def frame():
+    rows = []
+    for bid, scale in (("numpy", 1.0), ("jax:cpu", 2.0)):
+        for steps, err in ((4, 1e-3), (16, 1e-9), (64, 1e-13)):
+            rows.append({"case_id": "c", "case_version": "v", "backend": bid, "dtype": "float64", "method": "m",
+                         "family": "root", "knob": f"max_steps={steps}", "knobs_json": json.dumps({"max_steps": steps}),
+                         "quantity": "depth", "unit": "scene units", "outcome": "ok", "reason": "",
+                         "error_max": err, "error_iterate_median": err, "time_median_s": scale * steps * 1e-3,
+                         "time_iqr_s": 0.0, "time_ratio_cf": scale * steps, "compile_s": 0.0, "evals_per_ray": steps})
+    rows.append({"case_id": "c", "case_version": "v", "backend": "torch:cpu", "dtype": "float64", "method": "m",
+                 "family": "root", "knob": "max_steps=4", "knobs_json": "{}", "quantity": "depth", "outcome": "skipped",
+                 "reason": "backend unavailable: torch is not installed"})
+    rows.append({"case_id": "c", "case_version": "v", "backend": "numpy", "dtype": "float64", "method": "m2",
+                 "family": "root", "knob": "x=1", "knobs_json": "{}", "quantity": "depth", "outcome": "failed",
+                 "reason": "RuntimeError: boom"})
+    return to_frame(rows)
+
+
+def test_fastest_to_target_and_support_matrix():
+    t = report.fastest_to_target(frame()).set_index("backend")
+    assert t.loc["numpy", "≤ 1e-04"].startswith("16 ms") and "max_steps=16" in t.loc["numpy", "≤ 1e-04"]
+    assert t.loc["jax:cpu", "≤ 1e-12"].startswith("128 ms") and "max_steps=64" in t.loc["jax:cpu", "≤ 1e-12"]
+    sup = report.support_matrix(frame()).set_index("backend")
+    assert sup.loc["numpy", "m"] == "ran 3" and sup.loc["numpy", "m2"] == "FAILED 1"
+    assert sup.loc["torch:cpu", "m"] == "skipped 1" and sup.loc["torch:cpu", "m2"] == "not planned"
+    reasons = report.not_run(frame())
+    assert {"backend unavailable: torch is not installed", "RuntimeError: boom"} == set(reasons["reason"])
+
+
+def test_report_inlines_the_claims_ledger(tmp_path):
+    fig, ax = plt.subplots()
+    ax.plot([1, 2], [3, 4])
+    fig.savefig(tmp_path / "claim_c1.png")
+    plt.close(fig)
+    pd.DataFrame([{"id": "c1", "statement": "Δφ = κ1 + κ2", "equation": "(5)", "how_checked": "sphere",
+                   "verdict": "holds", "key_numbers": "max err 1e-12", "plot": "claim_c1.png"},
+                  {"id": "c2", "statement": "a false one", "equation": "(9)", "how_checked": "grid",
+                   "verdict": "fails", "key_numbers": "counterexample x=1", "plot": "missing.png"}]
+                 ).to_csv(tmp_path / "claims.csv", index=False)
+    report.build(frame(), {"run_id": "r", "claims": "ran"}, tmp_path)
+    html = (tmp_path / "report.html").read_text()
+    assert "Claims ledger" in html and "Δφ = κ1 + κ2" in html and "counterexample x=1" in html
+    assert base64.b64encode((tmp_path / "claim_c1.png").read_bytes()).decode() in html
+    assert "plot missing.png not found" in html
+    md = (tmp_path / "report.md").read_text()
+    assert "![claim c1](claim_c1.png)" in md and "missing.png)" not in md
+    for p in (tmp_path / "plots").glob("*.png"):
+        assert p.stat().st_size > 1000
+    series = report.convergence_series(frame())
+    assert {(s["backend"], s["knob"], tuple(s["x"])) for s in series} == {
+        ("numpy", "max_steps", (4.0, 16.0, 64.0)), ("jax:cpu", "max_steps", (4.0, 16.0, 64.0))}
+
+
+def test_claims_failure_is_a_visible_note_not_a_crash(tmp_path, monkeypatch):
+    def broken(out_dir, *, quick=True, only=None):
+        raise RuntimeError("ledger exploded")
+
+    monkeypatch.setattr(bench.claims, "run_claims", broken)
+
+    class Quiet:
+        def print(self, *a, **k):
+            pass
+
+    note = cli.run_claims_into(tmp_path, quick=True, console=Quiet())
+    assert note == "claims failed: RuntimeError: ledger exploded"
+    report.build(frame(), {"run_id": "r", "claims": note}, tmp_path)
+    assert "claims failed: RuntimeError: ledger exploded" in (tmp_path / "report.html").read_text()
+    assert "claims failed" in (tmp_path / "report.md").read_text()
+
+
+def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch):
+    seen = {}
+
+    def fake(out_dir, *, quick=True, only=None):
+        seen["quick"] = quick
+        df = pd.DataFrame([{"id": "c1", "statement": "s", "equation": "(1)", "how_checked": "h", "verdict": "holds",
+                            "key_numbers": "k", "plot": ""}])
+        out_dir.mkdir(parents=True, exist_ok=True)
+        df.to_csv(out_dir / "claims.csv", index=False)
+        return df
+
+    monkeypatch.setattr(bench.claims, "run_claims", fake)
+    assert cli.main(["claims", "--out", str(tmp_path / "cl"), "--full"]) == 0
+    assert seen == {"quick": False}
+    assert "Claims ledger" in (tmp_path / "cl" / "report.html").read_text()

@@ -1,0 +1,358 @@
+"""The runner's generic machinery, on a fake backend with fake methods of every family.
+
+Checks: every planned configuration yields rows (ok, skipped with a reason, or failed with the
+error); the metrics measure exactly the error the fake methods plant; failures (exception, wrong
+shape, silent NaN, timeout) become rows and the run goes on; sweeps derive from the knobs;
+backends interleave.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import impls.methods
+from bench import runner
+from bench.results import read_results
+from bench.suites import Suite, default_sweep
+from bench.timing import TimingPolicy
+from impls import METHODS, Unavailable
+from impls.methods import Knob, MethodSpec
+from reference import Sphere, get_case
+from reference.cases import Case
+from tests.test_bench_fakes import FAKE_METHODS, PLANTED, FakeBackend
+
+CASE = "sphere.camera.64x64"
+FAST = TimingPolicy(min_repeats=1, min_time_s=0.0, min_sample_s=0.0, warmup=0, timeout_s=5.0)
+
+
+@pytest.fixture
+def fake_methods(monkeypatch):
+    """METHODS with the fake methods added (the dict object itself, as every module holds it)."""
+    for name, spec in FAKE_METHODS.items():
+        monkeypatch.setitem(METHODS, name, spec)
+    return METHODS
+
+
+def suite(methods, sweeps=None) -> Suite:
+    return Suite(name="test", case_pattern=CASE, dtypes=("float64",), sweeps=sweeps or {}, methods=tuple(methods))
+
+
+def rows_of(cfg, backend, policy=FAST):
+    return runner.run_one("r", cfg, backend, policy, cf_time=1.0)
+
+
+def test_each_family_measures_the_planted_error(fake_methods):
+    case = get_case(CASE)
+    b = FakeBackend()
+    got = {}
+    for m in ("fake_root", "fake_normal", "fake_dt"):
+        knobs = {k.name: k.default for k in FAKE_METHODS[m].knobs}
+        for r in rows_of(runner.Config(case, "fake", m, "float64", knobs), b):
+            assert r["outcome"] == "ok", r
+            got[r["quantity"]] = r
+    assert got["depth"]["error_max"] == pytest.approx(PLANTED * (1 + 1e-6), rel=1e-6)
+    assert got["depth"]["n_false_hit"] == 0 and got["depth"]["n_false_miss"] == 0
+    assert got["normal_angle"]["error_max"] == pytest.approx(PLANTED, rel=1e-4)
+    assert got["normal_angle"]["unit"] == "rad"
+    assert got["curvature_laplacian"]["error_max"] == pytest.approx(PLANTED, rel=1e-6)
+    # dt/dθ: 4 parameters each off by PLANTED → norm 2·PLANTED; the declined grazing ray is left out
+    assert got["dt_dtheta"]["error_max"] == pytest.approx(2 * PLANTED, rel=1e-6)
+    assert got["dt_dtheta"]["n_declined"] == 1
+    assert got["dt_dtheta"]["n_checked"] == int(np.isfinite(case.exact_t).sum()) - 1
+    assert json.loads(got["dt_dtheta"]["status_counts"])["ILL_CONDITIONED"] == 1
+    # evaluations per ray come from the method's counts
+    assert got["normal_angle"]["evals_per_ray"] == 4 and got["depth"]["evals_max"] == 9
+
+
+def test_render_without_a_reference_is_skipped_with_the_reason(fake_methods):
+    case = get_case(CASE)
+    (r,) = rows_of(runner.Config(case, "fake", "fake_render", "float64", {"n_samples": 8}), FakeBackend())
+    assert r["outcome"] == "skipped" and "colour" in r["reason"]
+
+
+@pytest.mark.parametrize("behaviour, message", [(1, "planted failure"), (2, "wrong shape"), (3, "silent NaN")])
+def test_failures_become_rows(fake_methods, behaviour, message):
+    case = get_case(CASE)
+    cfg = runner.Config(case, "fake", "fake_root", "float64", {"tol": 1e-6, "max_steps": 8, "behaviour": behaviour})
+    (r,) = rows_of(cfg, FakeBackend())
+    assert r["outcome"] == "failed" and message in r["reason"], r["reason"]
+
+
+def test_a_hang_becomes_a_timeout_row(fake_methods):
+    case = get_case(CASE)
+    cfg = runner.Config(case, "fake", "fake_root", "float64", {"tol": 1e-6, "max_steps": 8, "behaviour": 4})
+    (r,) = rows_of(cfg, FakeBackend(), dataclasses.replace(FAST, timeout_s=0.3))
+    assert r["outcome"] == "failed" and "time limit" in r["reason"]
+
+
+def test_skip_reasons_name_what_is_missing(fake_methods):
+    case = get_case(CASE)
+    knobs = {"tol": 1e-6, "max_steps": 8, "behaviour": 0}
+    cfg = runner.Config(case, "gone", "fake_root", "float64", knobs)
+    (r,) = rows_of(cfg, Unavailable("gone", "not installed"))
+    assert r["outcome"] == "skipped" and "unavailable: not installed" in r["reason"]
+    (r,) = rows_of(cfg, FakeBackend(methods=("fake_dt",)))
+    assert "does not implement fake_root" in r["reason"]
+    (r,) = rows_of(dataclasses.replace(cfg, dtype="float32"), FakeBackend())
+    assert "does not support float32" in r["reason"]
+
+    class NoLipschitz(Sphere):
+        @property
+        def info(self):
+            return dataclasses.replace(Sphere.info.fget(self), lipschitz=None)
+
+    nolip = Case(id="nolip", scene=NoLipschitz(), origins=case.origins, directions=case.directions)
+    (r,) = rows_of(dataclasses.replace(cfg, case=nolip), FakeBackend())
+    assert r["outcome"] == "skipped" and "lipschitz" in r["reason"]
+
+    class NoNormals(Sphere):
+        def normal_exact(self, x):
+            raise NotImplementedError("no normals here")
+
+    nonorm = Case(id="nonorm", scene=NoNormals(), origins=case.origins, directions=case.directions)
+    rows = rows_of(runner.Config(nonorm, "fake", "fake_normal", "float64", {"n_fd": 4}), FakeBackend())
+    by_q = {r["quantity"]: r for r in rows}
+    assert by_q["normal_angle"]["outcome"] == "skipped" and "no normals here" in by_q["normal_angle"]["reason"]
+    assert by_q["curvature_laplacian"]["outcome"] == "ok"  # the other quantity is still checked
+
+
+def test_a_run_keeps_every_planned_configuration(fake_methods, tmp_path):
+    backends = {"fake": FakeBackend(), "fake2": FakeBackend("fake2", methods=("fake_root",)),
+                "gone": Unavailable("gone", "not installed")}
+    s = suite(["fake_root", "fake_normal", "fake_dt", "fake_render"],
+              sweeps={"fake_root": [{"tol": 1e-6, "max_steps": 8, "behaviour": b} for b in (0, 1, 3)]})
+    cfgs = runner.plan(s, list(backends), None, None, None)
+    df = runner.run(s, backends, tmp_path, policy=FAST)
+    keys = set(map(tuple, df[runner.CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
+    assert keys == {tuple(map(str, c.key)) for c in cfgs}  # nothing disappears
+    assert (df["outcome"] == "failed").sum() == 2 * 2  # behaviours 1 and 3 on two backends
+    assert set(df.loc[df["backend"] == "gone", "outcome"]) == {"skipped"}
+    assert set(df.loc[(df["backend"] == "fake2") & (df["method"] != "fake_root"), "outcome"]) == {"skipped"}
+    back = read_results(tmp_path)
+    assert len(back) == len(df)
+    env = json.loads((tmp_path / "environment.json").read_text())
+    assert env["complete"] == "true" and env["backend.fake.fake"] == "1"
+
+
+def test_backends_interleave_and_rotate(fake_methods):
+    s = suite(["fake_root"])
+    cfgs = runner.plan(s, ["a", "b", "c"], None, None, None)
+    n_knobs = len(default_sweep(FAKE_METHODS["fake_root"], "quick"))
+    assert len(cfgs) == 3 * n_knobs
+    firsts = [cfgs[3 * k].backend_id for k in range(n_knobs)]
+    assert firsts[:3] == ["a", "b", "c"]
+    for k in range(n_knobs):  # each knob setting runs on every backend back to back
+        assert {c.backend_id for c in cfgs[3 * k: 3 * k + 3]} == {"a", "b", "c"}
+        assert len({json.dumps(c.knobs, sort_keys=True) for c in cfgs[3 * k: 3 * k + 3]}) == 1
+
+
+def test_bad_selection_is_a_clear_error(fake_methods):
+    with pytest.raises(ValueError, match="--method: unknown method"):
+        runner.plan(suite(["fake_root"]), ["a"], None, ["nosuch"], None)
+    with pytest.raises(ValueError, match="--dtype"):
+        runner.plan(suite(["fake_root"]), ["a"], None, None, ["float63"])
+
+
+def test_default_sweep_derives_from_knobs():
+    spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t"), Knob("n_samples", 64, int, 1, "n"),
+                                      Knob("sharpness", 50.0, float, 0.0, "s")), (), "")
+    sw = default_sweep(spec, "quick")
+    assert all(set(k) == {"tol", "n_samples", "sharpness"} for k in sw)
+    assert all(k["sharpness"] == 50.0 for k in sw)  # not a tolerance, no sweep hint: fixed
+    tols = sorted({k["tol"] for k in sw if k["n_samples"] == 64})
+    assert tols == [1e-12, 1e-8, 1e-4]  # the report's error targets
+    budget = sorted(k["n_samples"] for k in sw if k["tol"] == min(tols))
+    assert len(budget) >= 3 and budget[-1] == 64 and budget[0] < 64
+    full = default_sweep(spec, "full")
+    assert len(full) > len(sw) and max(k["n_samples"] for k in full) == 256
+    assert len({json.dumps(k, sort_keys=True) for k in full}) == len(full)  # no duplicates
+    # xtol is a tolerance; a seed is not a budget
+    spec2 = MethodSpec("m2", "render", (Knob("xtol", 1e-12, float, 0.0, "x"), Knob("seed", 0, int, 0, "seed"),
+                                        Knob("n_coarse", 32, int, 1, "n")), (), "")
+    sw2 = default_sweep(spec2, "quick")
+    assert {k["seed"] for k in sw2} == {0}
+    assert sorted({k["xtol"] for k in sw2}) == [1e-12, 1e-8, 1e-4]
+    assert len({k["n_coarse"] for k in sw2}) == 3
+    # an explicit hint wins
+    hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (dataclasses.make_dataclass(
+        "HKnob", [("sweep", tuple, (10.0, 100.0))], bases=(Knob,), frozen=True)("sharpness", 50.0, float, 0.0, "s"),))
+    assert {k["sharpness"] for k in default_sweep(hinted)} == {50.0, 10.0, 100.0}
+    # the real catalog: every method gets a non-empty sweep whose knobs validate
+    for m in impls.methods.METHODS.values():
+        for k in default_sweep(m, "quick"):
+            m.validate(k)
+
+
+def test_budget_skips_the_rest_visibly_and_resume_finishes(fake_methods, tmp_path):
+    backends = {"fake": FakeBackend()}
+    s = suite(["fake_root", "fake_normal"], sweeps={"fake_root": [{"tol": 1e-6, "max_steps": m, "behaviour": 0}
+                                                                  for m in (2, 4, 8)]})
+    df = runner.run(s, backends, tmp_path, policy=FAST, budget_s=0.0)
+    over = df["reason"].fillna("").str.startswith(runner.OVER_BUDGET)
+    assert over.sum() >= len(runner.plan(s, ["fake"], None, None, None)) - 1
+    assert set(df.loc[over, "outcome"]) == {"skipped"}
+    df2 = runner.run(s, backends, tmp_path, policy=FAST, resume=True)
+    assert set(df2["outcome"]) == {"ok"}
+    assert not df2.duplicated(["case_id", "backend", "dtype", "method", "knob", "quantity"]).any()
+
+
+def test_nothing_runs_that_cannot_be_checked(fake_methods):
+    case = get_case(CASE)
+
+    class NoAnswers(Sphere):
+        @property
+        def info(self):
+            return dataclasses.replace(Sphere.info.fget(self), exact_normals=False, exact_curvature=False)
+
+    c = Case(id="noanswers", scene=NoAnswers(), origins=case.origins, directions=case.directions)
+    b = FakeBackend()
+    (r,) = rows_of(runner.Config(c, "fake", "fake_normal", "float64", {"n_fd": 4}), b)
+    assert r["outcome"] == "skipped" and "exact_normals=False" in r["reason"] and "exact_curvature=False" in r["reason"]
+    assert b.calls == []  # skipped before running
+
+
+def test_rounds_pool_samples_from_later_passes(fake_methods, tmp_path):
+    b = FakeBackend()
+    s = suite(["fake_root"], sweeps={"fake_root": [{"tol": 1e-6, "max_steps": 8, "behaviour": 0}]})
+    pol = dataclasses.replace(FAST, min_repeats=3)
+    df = runner.run(s, {"fake": b}, tmp_path, policy=pol, rounds=3)
+    (r,) = df.to_dict("records")
+    samples = json.loads(r["time_samples_s"])
+    assert r["rounds"] == 3 and r["n_samples"] == len(samples) >= 9
+    assert r["time_median_s"] == pytest.approx(float(np.median(samples)))
+    assert json.loads((tmp_path / "environment.json").read_text())["rounds"] == "3"
+    with pytest.raises(ValueError, match="--rounds"):
+        runner.run(s, {"fake": b}, tmp_path / "x", policy=pol, rounds=0)
+
+
+def fake_rendering(monkeypatch, render_exact):
+    import sys
+    import types
+
+    import reference
+
+    mod = types.ModuleType("reference.rendering")
+    mod.render_exact, mod.MODELS = render_exact, ("nerf", "unisurf", "neus", "volsdf")
+    monkeypatch.setitem(sys.modules, "reference.rendering", mod)
+    monkeypatch.setattr(reference, "rendering", mod, raising=False)
+    return mod
+
+
+def colored_case():
+    from tests.test_bench_fakes import FakeColor
+
+    base = get_case(CASE)
+    case = Case(id="colored", scene=base.scene, origins=base.origins, directions=base.directions)
+    object.__setattr__(case, "color_field", FakeColor())
+    return case
+
+
+def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(fake_methods, monkeypatch, tmp_path):
+    from bench.references import ReferenceOptions
+    from tests.test_bench_fakes import FakeColor, fake_render_exact
+
+    calls = []
+
+    def counting(*a, **k):
+        calls.append(a[2])
+        if a[2] == "neus":  # a reference that would take minutes
+            import time
+
+            deadline = time.perf_counter() + 30
+            while time.perf_counter() < deadline:
+                pass
+        return fake_render_exact(*a, **k)
+
+    fake_rendering(monkeypatch, counting)
+    case, b, knobs = colored_case(), FakeBackend(), {"n_samples": 8, "sharpness": 50.0}
+    cfg = runner.Config(case, "fake", "volume_nerf_uniform", "float64", knobs)
+
+    def integral(cache):
+        rows = runner.run_one("r", cfg, b, FAST, 1.0, cache)
+        return next(r for r in rows if r["quantity"] == "color_vs_integral")
+
+    opts = ReferenceOptions(timeout_s=0.5, disk=tmp_path / "refcache")
+    first = integral({"_options": opts})
+    second = integral({"_options": opts})  # a new run: from disk
+    assert first["outcome"] == "ok", first
+    assert calls == ["nerf"] and first["error_max"] == second["error_max"] and first["outcome"] == "ok"
+    assert len(list((tmp_path / "refcache").glob("*.npz"))) == 1
+    skipped = integral({"_options": ReferenceOptions(expensive=False)})
+    assert skipped["outcome"] == "skipped" and "--suite full" in skipped["reason"]
+    monkeypatch.setitem(FAKE_METHODS, "volume_neus_uniform",
+                        dataclasses.replace(FAKE_METHODS["volume_nerf_uniform"], name="volume_neus_uniform"))
+    monkeypatch.setitem(METHODS, "volume_neus_uniform", FAKE_METHODS["volume_neus_uniform"])
+    import tests.test_bench_fakes as fakes
+
+    monkeypatch.setitem(fakes._IMPL, "volume_neus_uniform", fakes.fake_volume)
+    cfg, b = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs), FakeBackend()
+    run_cache = {"_options": opts}
+    slow = integral(run_cache)
+    assert slow["outcome"] == "skipped" and "took longer than 0.5 s" in slow["reason"]
+    n_calls = len(calls)
+    case = dataclasses.replace(case, id="colored2")  # another case, same run: not attempted again
+    object.__setattr__(case, "color_field", FakeColor())
+    cfg = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs)
+    again = integral(run_cache)
+    assert len(calls) == n_calls and "not attempted again" in again["reason"]
+
+
+def test_render_family_against_the_integral_and_the_surface_colour(fake_methods, monkeypatch):
+    from tests.test_bench_fakes import FakeColor, fake_render_exact
+
+    fake_rendering(monkeypatch, fake_render_exact)
+    base = get_case(CASE)
+    case = Case(id="colored", scene=base.scene, origins=base.origins, directions=base.directions)
+    object.__setattr__(case, "color_field", FakeColor())
+    b = FakeBackend()
+    knobs = {"n_samples": 8, "sharpness": 50.0}
+    by_q = {r["quantity"]: r for r in rows_of(runner.Config(case, "fake", "volume_nerf_uniform", "float64", knobs), b)}
+    integral, surface = by_q["color_vs_integral"], by_q["color_vs_surface"]
+    assert integral["outcome"] == "ok" and integral["error_max"] == pytest.approx(np.sqrt(3) * PLANTED, rel=1e-6)
+    assert integral["reference_error_bound"] == pytest.approx(1e-11)
+    # against ρ(x*): the blur 1/s dominates, on the rays that hit only
+    hit = np.isfinite(base.exact_t)
+    rho = FakeColor().value(base.origins[hit] + base.exact_t[hit, None] * base.directions[hit])
+    want = np.max(np.linalg.norm(rho / 50.0 - PLANTED, axis=1))
+    assert surface["outcome"] == "ok" and surface["error_max"] == pytest.approx(want, rel=1e-9)
+    assert surface["n_checked"] == hit.sum()
+    by_q = {r["quantity"]: r for r in rows_of(runner.Config(case, "fake", "volume_unisurf_uniform", "float64", knobs),
+                                               b)}
+    assert by_q["color_vs_integral"]["outcome"] == "skipped"
+    assert "no continuous reference for unisurf" in by_q["color_vs_integral"]["reason"]
+    assert by_q["color_vs_surface"]["outcome"] == "ok"
+
+
+def test_plan_limits_cases_and_puts_defaults_first(fake_methods):
+    case = get_case(CASE)
+
+    class NoLipschitz(Sphere):
+        @property
+        def info(self):
+            return dataclasses.replace(Sphere.info.fget(self), lipschitz=None)
+
+    cases = [Case(id=f"c{i}", scene=Sphere() if i != 1 else NoLipschitz(), origins=case.origins,
+                  directions=case.directions) for i in range(4)]
+    s = dataclasses.replace(suite(["fake_root"]), sweep_cases=1, max_cases=2)
+    import bench.runner as r
+
+    orig = r.select_cases
+    try:
+        r.select_cases = lambda suite, pattern: cases
+        cfgs = runner.plan(s, ["a"], None, None, None)
+    finally:
+        r.select_cases = orig
+    sweep = s.sweep_for(FAKE_METHODS["fake_root"])
+    by_case = {c.id: [x for x in cfgs if x.case.id == c.id] for c in cases}
+    assert len(by_case["c0"]) == len(sweep)  # the sweep on the first applicable case
+    assert len(by_case["c1"]) == 1  # not applicable: one configuration, to be skipped with the reason
+    assert len(by_case["c2"]) == 1  # second applicable case: defaults only
+    assert by_case["c3"] == []  # beyond max_cases
+    defaults = {json.dumps(sweep[0], sort_keys=True)}
+    n_first = 3  # c0, c1, c2 defaults come before any sweep point
+    assert all(json.dumps(c.knobs, sort_keys=True) in defaults for c in cfgs[:n_first])
+    assert all(json.dumps(c.knobs, sort_keys=True) not in defaults for c in cfgs[n_first:])
