@@ -104,7 +104,9 @@ def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
     reasons = df.groupby("backend")["reason"].first().to_dict()
     assert "does not implement sphere_trace" in reasons["tests.test_bench_fakes:FakeBackend"]
     assert "backend unavailable" in reasons["nosuch.module:Backend"] and "nosuch" in reasons["nosuch.module:Backend"]
-    assert set(df.loc[df["backend"] == "numpy", "outcome"]) == {"ok"}
+    numpy_rows = df[df["backend"] == "numpy"]
+    assert "failed" not in set(numpy_rows["outcome"]) and (numpy_rows["outcome"] == "ok").any()
+    assert numpy_rows.loc[numpy_rows["outcome"] == "skipped", "reason"].str.len().gt(0).all()
     assert "does not implement sphere_trace" in (out / "report.html").read_text()
 
 
