@@ -6,7 +6,8 @@ opacities α_i, the weights are w_i = T_i α_i with T_i = Π_{j<i} (1 − α_j) 
 C = Σ_i w_i ρ(x_i) (eq. 9); ``opacity`` = Σ w_i = 1 − T_{N+1}.  Uniform bins with midpoint
 samples make this the midpoint rule for C = ∫ T(t) σ(t) ρ(t) dt when α_i = 1 − exp(−σ_i δ_i).
 
-Density models (s = ``sharpness``; sigmoid(z) = 1/(1 + e^{−z})):
+Density models (s = ``sharpness``; sigmoid(z) = 1/(1 + e^{−z}); the formulas are those of
+:mod:`reference.rendering` — imported, not copied, so backends and reference cannot drift):
 
 * ``nerf``    σ = s·sigmoid(−sφ) (a logistic density of the field), α = 1 − exp(−σδ);
 * ``volsdf``  σ = s·Ψ(−sφ), Ψ the unit Laplace CDF (VolSDF, Yariv et al. 2021, β = 1/s);
@@ -42,6 +43,8 @@ import math
 
 import numpy as np
 
+from reference import rendering as R
+
 from .rootfind import BAD, CONV, MISS, bad_rays
 
 BLOCK = 16
@@ -64,29 +67,14 @@ def color_field(scene):
     return getattr(scene, "color_field", None) or DEFAULT_COLOR
 
 
-def sigmoid(xp, z):
-    e = xp.exp(-xp.abs(z))  # overflow-free form
-    return xp.where(z >= 0, 1 / (1 + e), e / (1 + e))
-
-
-def laplace_cdf(xp, z):
-    e = 0.5 * xp.exp(-xp.abs(z))
-    return xp.where(z <= 0, e, 1 - e)
-
-
 def alpha(xp, model, phi, delta, s):
-    """Opacity per bin.  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS."""
-    if model == "nerf":
-        return -xp.expm1(-s * sigmoid(xp, -s * phi) * delta)
-    if model == "volsdf":
-        return -xp.expm1(-s * laplace_cdf(xp, -s * phi) * delta)
+    """Opacity per bin, from the formulas of :mod:`reference.rendering` (one source for backends
+    and reference).  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS."""
     if model == "unisurf":
-        return sigmoid(xp, -s * phi)
+        return R.occupancy_alpha(phi, s, xp)
     if model == "neus":
-        big = sigmoid(xp, s * phi)
-        a = (big[..., :-1] - big[..., 1:]) / big[..., :-1]
-        return xp.clip(a, 0.0, 1.0)
-    raise ValueError(f"unknown density model {model!r}")
+        return R.neus_alpha(phi[..., :-1], phi[..., 1:], s, xp)
+    return R.alpha_from_density(R.density(model, phi, s, xp), delta, xp)
 
 
 # -- samplers ----------------------------------------------------------------------------------
