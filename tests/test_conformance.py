@@ -22,6 +22,7 @@ import pytest
 
 from impls import METHODS, Status, registry
 from reference import Sphere
+from reference.rendering import SineColor
 from reference.rays import normalize, pinhole
 from reference.scene import Field, SceneInfo, norm
 
@@ -389,8 +390,6 @@ def continuous_color(scene, o, d, t0, t1, model, s):
     from scipy.integrate import solve_ivp
     from scipy.special import expit
 
-    from impls.core.rendering import DEFAULT_COLOR
-
     c, r = np.array(scene.center), scene.radius
 
     def sigma(t):
@@ -408,20 +407,36 @@ def continuous_color(scene, o, d, t0, t1, model, s):
 
     def rhs(t, y):
         sg = sigma(t)
-        return np.concatenate([[-sg * y[0]], y[0] * sg * DEFAULT_COLOR.value(o + t * d, np)])
+        return np.concatenate([[-sg * y[0]], y[0] * sg * SineColor().value(o + t * d, np)])
 
     sol = solve_ivp(rhs, (t0, t1), np.array([1.0, 0, 0, 0]), rtol=1e-11, atol=1e-13, max_step=0.5 / s, method="DOP853")
     return sol.y[1:, -1]
 
 
-def test_render_surface_is_colour_at_exact_hit(any_backend):
-    from impls.core.rendering import DEFAULT_COLOR
-
+@pytest.mark.parametrize("color", [None, SineColor(frequency=5.0, phases=(0.3, -1.0, 2.5))])
+def test_render_surface_is_colour_at_exact_hit(any_backend, color):
     o, d, t, hit, x = hits(SPHERE, 10)
-    r = run(any_backend, "render_surface", SPHERE, o, d)
+    r = run(any_backend, "render_surface", SPHERE, o, d, color=color)
     assert np.all(r.status[hit] == Status.CONVERGED) and np.all(r.status[~hit] == Status.MISS)
-    np.testing.assert_allclose(r.outputs["color"][hit], DEFAULT_COLOR.value(x[hit], np), atol=1e-9, rtol=0)
+    # |ρ(x̂_found) − ρ(x̂)| ≤ L_ρ |t_found − t|: the xtol = 1e-12 bracket gives ≤ ~1e-11
+    rho = color or SineColor()
+    np.testing.assert_allclose(r.outputs["color"][hit], rho.value(x[hit], np), atol=1e-9, rtol=0)
     assert np.all(r.outputs["color"][~hit] == 0)
+
+
+def test_color_is_an_input_of_render_methods_only(any_backend):
+    o, d, t, hit, x = hits(SPHERE, 3)
+    assert {m for m, s in METHODS.items() if s.needs_color} == {m for m, s in METHODS.items() if s.family == "render"}
+    kw = dict(t_max=6.0, n_samples=16)
+    a = run(any_backend, "volume_nerf_uniform", SPHERE, o, d, **kw).outputs["color"]
+    b = run(any_backend, "volume_nerf_uniform", SPHERE, o, d, color=SineColor(), **kw).outputs["color"]
+    c = run(any_backend, "volume_nerf_uniform", SPHERE, o, d, color=SineColor(frequency=7.0), **kw).outputs["color"]
+    np.testing.assert_array_equal(a, b)  # None means SineColor()
+    assert np.abs(a - c).max() > 1e-3  # the field passed is the field used
+    with pytest.raises(ValueError, match="does not shade"):
+        run(any_backend, "sphere_trace", SPHERE, o, d, color=SineColor())
+    with pytest.raises(ValueError, match="colour field"):
+        run(any_backend, "render_surface", SPHERE, o, d, color=(1.0, 0.0, 0.0))
 
 
 @pytest.mark.parametrize("model", ["nerf", "volsdf", "neus"])
@@ -457,8 +472,8 @@ def test_early_termination_saves_work_and_bounds_the_change(any_backend, sampler
     full = run(any_backend, f"volume_nerf_{sampler}", SPHERE, o, d, **kw)
     cut = run(any_backend, f"volume_nerf_{sampler}", SPHERE, o, d, t_threshold=1e-3, **kw)
     ok = full.status == Status.CONVERGED
-    # the dropped tail weighs at most T < 1e-3 times max ρ (ρ ≤ 0.5 + 0.25·6 here)
-    assert np.abs(cut.outputs["color"][ok] - full.outputs["color"][ok]).max() <= 1e-3 * 2.0
+    # the dropped tail weighs at most T < 1e-3 times max ρ (SineColor: ρ ≤ 1)
+    assert np.abs(cut.outputs["color"][ok] - full.outputs["color"][ok]).max() <= 1e-3
     assert cut.outputs["work_saved"][ok & hit].min() > 0 and np.all(full.outputs["work_saved"][ok] == 0)
     assert np.all(cut.evals[ok] <= full.evals[ok]) and cut.evals.sum() < full.evals.sum()
 
