@@ -4,6 +4,7 @@ point, and the plug-in is run through the *same* conformance suite as the built-
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -51,7 +52,8 @@ def test_plugin_passes_the_conformance_suite():
     )
     tail = proc.stdout[-3000:] + proc.stderr[-2000:]
     assert proc.returncode == 0, tail
-    assert " passed" in proc.stdout and "failed" not in proc.stdout, tail
+    # "1 xfailed" (an expected failure listed with its reason) is not a failure
+    assert " passed" in proc.stdout and not re.search(r"\d+ failed", proc.stdout), tail
 
 
 def test_extra_backends_come_from_the_environment():
