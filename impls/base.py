@@ -26,11 +26,25 @@ def check_rays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
     return o, d
 
 
+def check_color(method: str, color: Any) -> Any:
+    """The colour field a render method shades with: ``color`` if it has ``value(x, xp)``, the
+    default :class:`reference.rendering.SineColor` if ``None``."""
+    if color is None:
+        from reference.rendering import SineColor
+
+        return SineColor()
+    if not callable(getattr(color, "value", None)):
+        raise ValueError(f"{method}: color must be a colour field with value(x, xp) -> (..., 3) (e.g. "
+                         f"reference.rendering.SineColor() or case.color_field), got {type(color).__name__}")
+    return color
+
+
 class ArrayBackend:
     """Base of the built-in backends: validation, method lookup, ``prepare``.
 
     Subclasses set ``lib``, ``capabilities``, ``xp`` and ``_impl`` (name → function of
-    ``(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs)`` returning a dict of native
+    ``(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs)`` (plus ``color=`` for methods with
+    ``MethodSpec.needs_color``) returning a dict of native
     arrays with at least ``t, status, iterations, evals``; ``t_hit`` is ``None`` or the
     per-ray depth (native array) that point-wise methods (normals, curvature, dt/dθ) evaluate
     at) and implement ``asarray``, ``to_numpy``, ``synchronize`` and optionally ``compile``.
@@ -72,7 +86,14 @@ class ArrayBackend:
 
     # protocol --------------------------------------------------------------------------------
     def prepare(self, method: str, scene: Any, origins: Any, directions: Any, *, dtype: str = "float64",
-                t_min: float = 0.0, t_max: float = math.inf, t_hit: Any = None, **knobs: Any) -> Prepared:
+                t_min: float = 0.0, t_max: float = math.inf, t_hit: Any = None, color: Any = None,
+                **knobs: Any) -> Prepared:
+        """Bind ``method`` to a scene, rays, dtype and knobs (see :class:`impls.protocol.Backend`).
+
+        ``color``: the colour field ρ of render methods (``MethodSpec.needs_color``), any object
+        with ``value(x, xp) -> (..., 3)`` written against the array namespace ``xp``; ``None``
+        means :class:`reference.rendering.SineColor` ``()``.  Passing it to a method that does not
+        shade is a ValueError (it would be silently ignored otherwise)."""
         spec = get_method(method)
         if method not in self._impl:
             raise NotImplementedError(f"backend {self.id} does not implement {method!r}; it implements {self.methods()}")
@@ -84,6 +105,10 @@ class ArrayBackend:
         if not (t_min < t_max):
             raise ValueError(f"t_min={t_min} must be < t_max={t_max}")
         knobs = spec.validate(knobs)
+        extra = {"color": check_color(method, color)} if spec.needs_color else {}
+        if color is not None and not spec.needs_color:
+            raise ValueError(f"{method} does not shade: pass color only to methods with MethodSpec.needs_color "
+                             f"({spec.family} family methods take none)")
         o_np, d_np = check_rays(origins, directions)
         if spec.needs_t_hit:
             if t_hit is None:
@@ -96,7 +121,7 @@ class ArrayBackend:
         impl = self._impl[method]
 
         def fn(o, d, th):
-            return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), t_hit=th, **knobs)
+            return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), t_hit=th, **extra, **knobs)
 
         run_fn, compile_s = self.compile(fn, o, d, th)
 

@@ -44,6 +44,10 @@ class MethodSpec:
               (e.g. ``lipschitz`` for sphere tracing).
     needs_t_hit: the method evaluates at given per-ray depths (``prepare(..., t_hit=...)``).
     outputs:  names of the extra per-ray outputs in :attr:`RayResult.outputs`.
+    needs_color: the method shades with a colour field ρ (``prepare(..., color=field)``, a field
+              with ``value(x, xp) -> (..., 3)``; default :class:`reference.rendering.SineColor`).
+              A runner passes ``color=case.color_field`` exactly when this is true; ``prepare``
+              rejects ``color`` for a method without it.
     """
 
     name: str
@@ -53,6 +57,7 @@ class MethodSpec:
     description: str
     needs_t_hit: bool = False
     outputs: tuple[str, ...] = ()
+    needs_color: bool = False
 
     def skip_reason(self, scene) -> str | None:
         info = scene.info
@@ -167,7 +172,7 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="render_surface", family="render",
             knobs=(_XTOL, Knob("min_step", 1e-3, float, 1e-9, "floor Δ on the sphere-tracing step"), _MAX_STEPS),
-            requires=("lipschitz",), outputs=("color",),
+            requires=("lipschitz",), outputs=("color",), needs_color=True,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
         ),
     ]
@@ -184,7 +189,7 @@ def _specs() -> list[MethodSpec]:
                 knobs.append(Knob("n_coarse", 32, int, 1, "coarse uniform samples that build the importance pdf"))
             specs.append(MethodSpec(
                 name=f"volume_{density}_{sampler}", family="render", knobs=tuple(knobs), requires=(),
-                needs_t_hit=sampler == "band", outputs=("color", "opacity", "samples_used", "work_saved"),
+                needs_t_hit=sampler == "band", outputs=("color", "opacity", "samples_used", "work_saved"), needs_color=True,
                 description=f"volume rendering by alpha compositing C = Σ T_i α_i ρ(x_i), T_i = Π_{{j<i}}(1 − α_j) "
                 f"(lecture eq. 9–10); {ddoc}; samples: {sdoc}",
             ))

@@ -2,8 +2,11 @@
 
 A backend wraps one array library on one device.  It converts arrays, synchronises the
 device, compiles (or not), differentiates (or not), and provides *methods*: named ray
-algorithms with one signature, ``prepare(method, scene, origins, directions, dtype=…, **knobs)
--> Prepared``.  ``Prepared.run()`` does the timed work and returns backend-native arrays;
+algorithms with one signature, ``prepare(method, scene, origins, directions, dtype=…, t_min=…,
+t_max=…, t_hit=None, color=None, **knobs) -> Prepared``.  ``t_hit`` (per-ray depths) is required
+by methods whose :class:`impls.methods.MethodSpec` has ``needs_t_hit``; ``color`` (a colour field
+with ``value(x, xp) -> (..., 3)``, default ``reference.rendering.SineColor()``) is taken by methods
+with ``needs_color`` (the ``render`` family) and refused by the others.  ``Prepared.run()`` does the timed work and returns backend-native arrays;
 ``Prepared.result(out)`` turns them into a float64/int numpy :class:`RayResult`.  The split lets
 ``bench`` time ``run`` alone (conversion, compilation and transfer excluded).
 
@@ -102,7 +105,11 @@ class Backend(Protocol):
     def methods(self) -> tuple[str, ...]: ...
 
     def prepare(self, method: str, scene: Any, origins: np.ndarray, directions: np.ndarray, *,
-                dtype: str = "float64", **knobs: Any) -> Prepared: ...
+                dtype: str = "float64", t_min: float = 0.0, t_max: float = float("inf"), t_hit: Any = None,
+                color: Any = None, **knobs: Any) -> Prepared:
+        """``color``: colour field of methods with ``MethodSpec.needs_color`` (``value(x, xp) ->
+        (..., 3)``; ``None`` = ``reference.rendering.SineColor()``); a ValueError for others."""
+        ...
 
     def synchronize(self) -> None: ...
 

@@ -7,7 +7,7 @@ the main report): ``run_claims(out_dir, quick=True, only=None) -> pandas.DataFra
 Each claim lives in its own module ``c<NN>_<topic>.py`` and registers itself in
 :data:`ledger.LEDGER`; :mod:`.ledger` holds the record types and the single verdict rule;
 :mod:`.adapters` is the one place where pieces owned by ``reference/`` and ``impls/`` are
-obtained (the backends' methods still to come are marked ``SWITCH:`` there and in claim 11).
+obtained.
 """
 
 from __future__ import annotations

@@ -3,8 +3,7 @@
 Shapes, CSG nodes, the colour field, the density models and the MLP field are the project's own
 reference objects (:mod:`reference`); what is left here is the thin glue the claims need on top of
 them (a display label, the curvature sum, the claims' names for the density models).  The
-backends' pieces still go through :func:`prepare_trace` (``SWITCH:`` where an upstream method is
-still to come).
+backends' root finders are reached through the registry by :func:`prepare_trace`.
 
 All functions take and return float64 numpy arrays; points have shape ``(..., 3)``.
 """
@@ -100,19 +99,33 @@ def mlp_field() -> MLPField:
     return MLPField()
 
 
-# -- root finding through a backend (SWITCH: impls methods: bisection/newton/secant/hybrid) -------
+# -- root finding through a backend ---------------------------------------------------------------
 
 
-def prepare_trace(scene, o: Array, d: Array, *, tol: float = 1e-12, max_steps: int = 4096, t_max: float = 10.0,
-                  backend_id: str = "numpy"):
-    """The backend's ``sphere_trace`` prepared on these rays: returns (run, to_numpy) where ``run()`` does
-    the timed work and ``to_numpy(out)`` gives (t, status, evals) as float64/int numpy."""
+def backend(backend_id: str = "numpy"):
+    """A registered backend (:func:`impls.registry.resolve`); RuntimeError with the reason if unavailable."""
     from impls import registry
 
     b = registry.resolve(backend_id)
     if isinstance(b, registry.Unavailable):
         raise RuntimeError(f"backend {backend_id} unavailable: {b.reason}")
-    prep = b.prepare("sphere_trace", scene, o, d, t_min=0.0, t_max=t_max, tol=tol, max_steps=max_steps)
+    return b
+
+
+def prepare_trace(scene, o: Array, d: Array, *, method: str = "sphere_trace", t_max: float = 10.0,
+                  backend_id: str = "numpy", **knobs):
+    """A backend's root finder ``method`` (any ``root``-family method of :data:`impls.METHODS`:
+    ``sphere_trace``, ``hybrid_secant``, ``march_bisect``/``march_secant``/``march_newton``) prepared
+    on these rays from t = 0, with its knobs (validated by the method's spec; unspecified knobs take
+    the spec's defaults).  Returns (run, to_numpy): ``run()`` does the timed work (device
+    synchronised) and ``to_numpy(out)`` gives (t, status, evals) as float64/int numpy."""
+    from impls import METHODS
+
+    if method not in METHODS or METHODS[method].family != "root":
+        roots = sorted(m for m, s in METHODS.items() if s.family == "root")
+        raise ValueError(f"method must be a root finder, one of {roots}; got {method!r}")
+    b = backend(backend_id)
+    prep = b.prepare(method, scene, o, d, t_min=0.0, t_max=t_max, **knobs)
 
     def run():
         out = prep.run()

@@ -6,7 +6,8 @@ opacities α_i, the weights are w_i = T_i α_i with T_i = Π_{j<i} (1 − α_j) 
 C = Σ_i w_i ρ(x_i) (eq. 9); ``opacity`` = Σ w_i = 1 − T_{N+1}.  Uniform bins with midpoint
 samples make this the midpoint rule for C = ∫ T(t) σ(t) ρ(t) dt when α_i = 1 − exp(−σ_i δ_i).
 
-Density models (s = ``sharpness``; sigmoid(z) = 1/(1 + e^{−z})):
+Density models (s = ``sharpness``; sigmoid(z) = 1/(1 + e^{−z}); the formulas are those of
+:mod:`reference.rendering` — imported, not copied, so backends and reference cannot drift):
 
 * ``nerf``    σ = s·sigmoid(−sφ) (a logistic density of the field), α = 1 − exp(−σδ);
 * ``volsdf``  σ = s·Ψ(−sφ), Ψ the unit Laplace CDF (VolSDF, Yariv et al. 2021, β = 1/s);
@@ -30,63 +31,33 @@ and torch then evaluate nothing more for that ray (``samples_used`` counts the s
 evaluated, ``work_saved`` = 1 − samples_used/samples planned); jax computes every block under
 masks (same colours and counts; the saving is reported, not realised).
 
-Colour ρ: ``scene.color_field`` when the scene has one (``value(x, xp) -> (..., 3)``), else
-:data:`DEFAULT_COLOR`.  Outputs ``color`` (n, 3), ``opacity``, ``samples_used``,
+Colour ρ: the ``color`` input (``ArrayBackend.prepare(..., color=...)``; a field with
+``value(x, xp) -> (..., 3)``, default :class:`reference.rendering.SineColor`).  Outputs ``color``
+(n, 3), ``opacity``, ``samples_used``,
 ``work_saved``; ``t`` is the expected depth Σ w_i t_i.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
+
+from reference import rendering as R
 
 from .rootfind import BAD, CONV, MISS, bad_rays
 
 BLOCK = 16
 
 
-@dataclasses.dataclass(frozen=True)
-class LinearColor:
-    """ρ(x) = 0.5 + k·x per channel (Lipschitz constant k per channel); the fallback colour field."""
-
-    k: float = 0.25
-
-    def value(self, x, xp):
-        return 0.5 + self.k * x
-
-
-DEFAULT_COLOR = LinearColor()
-
-
-def color_field(scene):
-    return getattr(scene, "color_field", None) or DEFAULT_COLOR
-
-
-def sigmoid(xp, z):
-    e = xp.exp(-xp.abs(z))  # overflow-free form
-    return xp.where(z >= 0, 1 / (1 + e), e / (1 + e))
-
-
-def laplace_cdf(xp, z):
-    e = 0.5 * xp.exp(-xp.abs(z))
-    return xp.where(z <= 0, e, 1 - e)
-
-
 def alpha(xp, model, phi, delta, s):
-    """Opacity per bin.  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS."""
-    if model == "nerf":
-        return -xp.expm1(-s * sigmoid(xp, -s * phi) * delta)
-    if model == "volsdf":
-        return -xp.expm1(-s * laplace_cdf(xp, -s * phi) * delta)
+    """Opacity per bin, from the formulas of :mod:`reference.rendering` (one source for backends
+    and reference).  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS."""
     if model == "unisurf":
-        return sigmoid(xp, -s * phi)
+        return R.occupancy_alpha(phi, s, xp)
     if model == "neus":
-        big = sigmoid(xp, s * phi)
-        a = (big[..., :-1] - big[..., 1:]) / big[..., :-1]
-        return xp.clip(a, 0.0, 1.0)
-    raise ValueError(f"unknown density model {model!r}")
+        return R.neus_alpha(phi[..., :-1], phi[..., 1:], s, xp)
+    return R.alpha_from_density(R.density(model, phi, s, xp), delta, xp)
 
 
 # -- samplers ----------------------------------------------------------------------------------
@@ -153,7 +124,7 @@ def _block_alpha(xp, scene, model, s, o, d, p, e):
     return alpha(xp, model, scene.value(x, xp), e[:, 1:] - e[:, :-1], s), x, p.shape[1]
 
 
-def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, status):
+def composite(xp, scene, color, o, d, edges, pts, *, model, s, threshold, compact, status):
     """Front-to-back compositing with early termination (see the module docstring).
 
     ``compact`` (numpy, torch): blocks of ``BLOCK`` samples, each evaluated only on the rays whose
@@ -161,14 +132,13 @@ def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, stat
     per-sample contributions and the same counts (a block counts if T at its start is ≥ threshold).
     """
     n, N = pts.shape
-    rho = color_field(scene)
     live = status == CONV
     if not compact:
         a, x, _ = _block_alpha(xp, scene, model, s, o, d, pts, edges)
         Ti = xp.cumulative_prod(1 - a, axis=-1, include_initial=True)
         keep = xp.astype(Ti[:, :-1] >= threshold, a.dtype) if threshold > 0 else xp.ones_like(a)
         w = Ti[:, :-1] * a * keep * xp.astype(live, a.dtype)[:, None]
-        C = xp.sum(w[..., None] * rho.value(x, xp), axis=1)
+        C = xp.sum(w[..., None] * color.value(x, xp), axis=1)
         depth = xp.sum(w * pts, axis=1)
         T = xp.prod(1 - a * keep, axis=-1)
         used = xp.zeros_like(o[:, 0], dtype=xp.int32)
@@ -196,7 +166,7 @@ def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, stat
         Ti = T[idx][:, None] * xp.cumulative_prod(1 - a, axis=-1, include_initial=True)  # (m, B + 1)
         keep = xp.astype(Ti[:, :-1] >= threshold, a.dtype) if threshold > 0 else xp.ones_like(a)
         w = Ti[:, :-1] * a * keep
-        C[idx] = C[idx] + xp.sum(w[..., None] * rho.value(x, xp), axis=1)
+        C[idx] = C[idx] + xp.sum(w[..., None] * color.value(x, xp), axis=1)
         depth[idx] = depth[idx] + xp.sum(w * p, axis=1)
         # T after the samples that contributed (a terminated sample leaves T unchanged)
         T[idx] = T[idx] * xp.prod(1 - a * keep, axis=-1)
@@ -208,7 +178,7 @@ def composite(xp, scene, o, d, edges, pts, *, model, s, threshold, compact, stat
 def make_volume_impl(model, sampler, compact):
     """A ``volume_<model>_<sampler>`` implementation; ``compact``: drop terminated rays (numpy, torch)."""
 
-    def impl(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, sharpness, t_threshold, **knobs):
+    def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, **knobs):
         xp = backend.xp
         if not math.isfinite(t_max):
             raise ValueError("volume rendering needs a finite t_max (the far end of the sampled interval)")
@@ -231,7 +201,7 @@ def make_volume_impl(model, sampler, compact):
             planned, coarse_cost = n_samples, 0
         o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
         d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
-        C, opacity, depth, used, evals = composite(xp, scene, o_safe, d_safe, edges, pts, model=model, s=sharpness,
+        C, opacity, depth, used, evals = composite(xp, scene, color, o_safe, d_safe, edges, pts, model=model, s=sharpness,
                                                    threshold=t_threshold, compact=compact, status=status)
         ok = status == CONV
         evals = evals + xp.astype(ok, xp.int32) * coarse_cost
@@ -246,16 +216,15 @@ def make_volume_impl(model, sampler, compact):
 def make_surface_impl(solve):
     """``render_surface``: ρ at the first hit found by the backend's hybrid root finder; 0 on a miss."""
 
-    def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+    def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, **knobs):
         xp = backend.xp
         s = solve("render_surface", backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
         ok = s["status"] == CONV
         t = xp.where(ok, s["t"], xp.zeros_like(s["t"]))
         x = xp.where(xp.isfinite(o), o, xp.zeros_like(o)) + t[:, None] * xp.where(xp.isfinite(d), d, xp.zeros_like(d))
-        rgb = color_field(scene).value(x, xp)
-        color = xp.where(ok[:, None], rgb, xp.zeros_like(rgb))
+        rgb = color.value(x, xp)
         return {"t": s["t"], "status": s["status"], "iterations": s["iterations"], "evals": s["evals"],
-                "color": color}
+                "color": xp.where(ok[:, None], rgb, xp.zeros_like(rgb))}
 
     return render_surface
 
