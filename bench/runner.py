@@ -28,7 +28,7 @@ from impls.protocol import RayResult, Status
 from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
-from . import environment
+from . import environment, references
 from .metrics import family_skip_reason, finite_rows, measure_accuracy, primary_quantity
 from .references import ReferenceOptions
 from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
@@ -117,6 +117,9 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     depths, isolating their error from root finding) and time it: (prepared, timing, output)."""
     case, spec = cfg.case, get_method(cfg.method)
     extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+    if getattr(spec, "needs_color", False):
+        # the renderer shades with the very colour field the reference integrates
+        extra["color"] = references.color_field(case)
     prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
                            t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
     timing, out = measure(prep.run, backend.synchronize, policy)
