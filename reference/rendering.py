@@ -113,10 +113,18 @@ def occupancy_alpha(phi: Any, sharpness: float, xp: Any = np) -> Any:
 
 
 def neus_alpha(phi_start: Any, phi_end: Any, sharpness: float, xp: Any = np) -> Any:
-    """NeuS discrete α of a section from φ at its two ends: max((Φ_s(φ_a) − Φ_s(φ_b))/Φ_s(φ_a), 0)."""
+    """NeuS discrete α of a section from φ at its two ends: max((Φ_s(φ_a) − Φ_s(φ_b))/Φ_s(φ_a), 0).
+
+    Evaluated as −expm1(log Φ_s(φ_b) − log Φ_s(φ_a)) with log Φ(z) = min(z, 0) − log1p(e^{−|z|}):
+    the plain ratio is 0/0 = NaN once Φ_s underflows (sφ < −745 in float64, −104 in float32,
+    deep inside the surface), and loses digits to cancellation where both ends are far outside.
+    """
     s = _check_model("neus", sharpness)
-    pa, pb = sigmoid(xp, s * phi_start), sigmoid(xp, s * phi_end)
-    a = (pa - pb) / pa
+
+    def log_sigmoid(z):
+        return xp.minimum(z, 0.0 * z) - xp.log1p(xp.exp(-xp.abs(z)))
+
+    a = -xp.expm1(log_sigmoid(s * phi_end) - log_sigmoid(s * phi_start))
     return xp.where(a > 0, a, 0.0 * a)
 
 

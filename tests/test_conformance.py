@@ -506,9 +506,6 @@ def test_color_is_an_input_of_render_methods_only(any_backend):
         run(any_backend, "render_surface", SPHERE, o, d, color=(1.0, 0.0, 0.0))
 
 
-@pytest.mark.xfail(strict=True, reason="reference.rendering.neus_alpha computes (Φ_s(sφ_a) − Φ_s(sφ_b))/Φ_s(sφ_a); "
-                   "Φ_s underflows to 0 where sφ < −745 (float64; −104 in float32), giving 0/0 = NaN with status "
-                   "CONVERGED. Fix belongs in reference/ (log-space ratio); reported to its owner")
 def test_neus_deep_inside_is_not_a_silent_nan(any_backend):
     # unit-ish sphere, s = 1000: φ ≈ −0.8 at the centre, sφ ≈ −800; the exact colour is finite
     o, d = np.array([[0.1, -0.2, -3.0]]), np.array([[0.0, 0.0, 1.0]])
