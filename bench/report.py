@@ -473,12 +473,26 @@ def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:
     cols = [c for c in CLAIM_COLUMNS if c in claims.columns and c != "plot"]
     cols += [c for c in claims.columns if c not in CLAIM_COLUMNS]
     head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+
+    def is_warn(verdict: str) -> bool:
+        return verdict.lower() not in ("holds", "true", "confirmed")
+
+    def cell(c: str, v, verdict: str) -> str:
+        text = html.escape(str(v))
+        if c == "key_numbers" and len(text) > 200:  # long evidence folds away; the verdict stays in view
+            text = f"<details><summary>{text[:120]}…</summary>{text}</details>"
+        return f"<td{' class=warn' if c == 'verdict' and is_warn(verdict) else ''}>{text}</td>"
+
+    # A one-line-per-claim summary first, so a reader sees every verdict before the evidence.
+    short = [c for c in ("id", "statement", "verdict", "conditions", "counterexample") if c in claims.columns]
+    summary = "".join(
+        "<tr>" + "".join(cell(c, r[c], str(r.get("verdict", ""))) for c in short) + "</tr>" for _, r in claims.iterrows())
+    summary_html = (f"<table class='t'><tr>{''.join(f'<th>{c}</th>' for c in short)}</tr>{summary}</table>"
+                    "<h3>Evidence, claim by claim</h3>")
     body = []
     for _, r in claims.iterrows():
         verdict = str(r.get("verdict", ""))
-        body.append("<tr>" + "".join(
-            f"<td{' class=warn' if c == 'verdict' and verdict.lower() not in ('holds', 'true', 'confirmed') else ''}>"
-            f"{html.escape(str(r[c]))}</td>" for c in cols) + "</tr>")
+        body.append("<tr>" + "".join(cell(c, r[c], verdict) for c in cols) + "</tr>")
         plot = str(r.get("plot", "") or "")
         p = Path(run_dir) / plot
         if plot and p.is_file() and p.suffix.lower() == ".png":
@@ -487,7 +501,7 @@ def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:
                         f"src='data:image/png;base64,{b64}'></td></tr>")
         elif plot:
             body.append(f"<tr><td colspan='{len(cols)}' class='warn'>plot {html.escape(plot)} not found</td></tr>")
-    return f"<div class='scroll'><table class='t'><tr>{head}</tr>{''.join(body)}</table></div>"
+    return summary_html + f"<div class='scroll'><table class='t'><tr>{head}</tr>{''.join(body)}</table></div>"
 
 
 def build_from_dir(run_dir: Path) -> None:
