@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from .scene import unit
 
-def normalize(v: np.ndarray) -> np.ndarray:
-    v = np.asarray(v, np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+#: rows divided by their norm; one helper for the whole reference (``scene.unit``)
+normalize = unit
 
 
 def pinhole(eye, look_at, up=(0.0, 1.0, 0.0), fov_deg: float = 40.0, width: int = 64, height: int = 64):

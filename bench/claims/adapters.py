@@ -81,12 +81,7 @@ def density_alphas(model: str, phi_mid: Array, phi_lo: Array, phi_hi: Array, del
     if model == "unisurf":
         return R.occupancy_alpha(phi_mid, s)
     if model == "neus":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            a = R.neus_alpha(phi_lo, phi_hi, s)
-        # deep inside, Φ_s(sφ_start) underflows and the reference ratio is 0/0 = NaN; there
-        # Φ_s(z) = e^z to double precision, so the ratio is exactly 1 − e^{s(φ_end − φ_start)}
-        lim = np.maximum(-np.expm1(s * (phi_hi - phi_lo)), 0.0)
-        return np.where(np.isnan(a), lim, a)
+        return R.neus_alpha(phi_lo, phi_hi, s)  # log-space in the reference: finite deep inside too
     return R.alpha_from_density(R.density(model, phi_mid, s), delta)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from reference import AlgebraicSphere, Box, CallableField, Ellipsoid, Scaled, Sphere, Torus
+from reference.scene import unit
 
 from .adapters import label
 from .figures import figure
@@ -22,10 +23,6 @@ from .stats import central_gradient
 
 H = 1e-6
 TOL = 1e-6
-
-
-def _unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 TORUS = (1.0, 0.4)  # R, r of the torus used by claims 2, 3 and 12
@@ -60,16 +57,16 @@ def geometric_normal(fam: str, x):
     core circle for the torus, ∂x/∂u × ∂x/∂v of x = (a cos u sin v, b sin u sin v, c cos v) for the ellipsoid."""
     x = np.asarray(x, float)
     if fam == "torus":
-        return _unit(x - _ring_point(x))
+        return unit(x - _ring_point(x))
     if fam == "ellipsoid":
         a = np.asarray(AXES)
         u = np.arctan2(x[..., 1] / a[1], x[..., 0] / a[0])
         v = np.arccos(np.clip(x[..., 2] / a[2], -1, 1))
         xu = np.stack([-a[0] * np.sin(u) * np.sin(v), a[1] * np.cos(u) * np.sin(v), 0 * u], -1)
         xv = np.stack([a[0] * np.cos(u) * np.cos(v), a[1] * np.sin(u) * np.cos(v), -a[2] * np.sin(v)], -1)
-        n = _unit(np.cross(xu, xv))
+        n = unit(np.cross(xu, xv))
         return np.where(np.sum(n * x, -1, keepdims=True) < 0, -n, n)
-    return _unit(x)
+    return unit(x)
 
 
 def geometric_closest(fam: str, x):
@@ -78,8 +75,8 @@ def geometric_closest(fam: str, x):
     x = np.asarray(x, float)
     if fam == "torus":
         c = _ring_point(x)
-        return c + TORUS[1] * _unit(x - c)
-    return _unit(x)
+        return c + TORUS[1] * unit(x - c)
+    return unit(x)
 
 
 def _normal_cases():
@@ -146,7 +143,7 @@ def check_closest(ctx):
     trials, key, bars = [], {}, []
     for fam, shape in cases:
         x = _shell_points(fam, n, rng)
-        N = _unit(central_gradient(shape.value, x, H))
+        N = unit(central_gradient(shape.value, x, H))
         xs = x - shape.value(x)[:, None] * N
         err = float(np.max(np.linalg.norm(xs - geometric_closest(fam, x), axis=-1)))
         name = label(shape)
