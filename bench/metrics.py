@@ -234,8 +234,8 @@ def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict
 
 
 def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, spec) -> list[dict]:
-    """``color_vs_integral`` (against the continuous rendering integral of the same density, all
-    rays) and ``color_vs_surface`` (against ρ(x*), rays that hit: the limit volume rendering is
+    """``color_vs_integral`` (against the continuous rendering integral of the same density, on
+    the rays it is computed for: :func:`bench.references.reference_rays`) and ``color_vs_surface`` (against ρ(x*), rays that hit: the limit volume rendering is
     meant to approach)."""
     if "color" not in res.outputs:
         raise ValueError(f"render method returned no 'color' output (outputs: {sorted(res.outputs)})")
@@ -253,6 +253,8 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
             continue
         if ex.shape != got.shape:
             raise ValueError(f"color has shape {got.shape}, the reference {ex.shape}")
+        if name == "color_vs_integral":
+            rays = rays & np.all(np.isfinite(ex), axis=1)  # the rays the integral was computed on
         e, mag = _per_ray(Quantity(name, "colour units", got, ex, rays))
         rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype),
                      "reference_error_bound": bound,

@@ -212,8 +212,9 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     """Configurations in measuring order.
 
     Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
-    given; fewest rays first with ``suite.small_cases_first``), its knob sweep on the first ``suite.sweep_cases`` of them and its default knobs on
-    the rest; a case it does not apply to gets one configuration (default knobs), which the
+    given; fewest rays first with ``suite.small_cases_first``, one per scene family in turn with
+    ``suite.diverse_cases``), its knob sweep on the first ``suite.sweep_cases`` of them and its
+    default knobs on the rest (secondary dtypes: see ``Suite.secondary_dtype_cases``); a case it does not apply to gets one configuration (default knobs), which the
     runner records as skipped with the reason.  Order: every default-knob configuration first
     (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
@@ -230,29 +231,65 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     explicit = bool(case_pattern)
     if suite.small_cases_first and not explicit:
         cases = sorted(cases, key=lambda c: c.n_rays)  # stable: catalog order among equals
-    work: list[tuple[int, int, Case, str, int, dict]] = []  # (stage, case index, case, method, knob index, knobs)
+    order = {c.id: i for i, c in enumerate(cases)}
+    # (stage, case index, case, method, knob index, knobs, rank among the method's applicable cases)
+    work: list[tuple[int, int, Case, str, int, dict, int]] = []
     for method in names:
         spec = METHODS[method]
         sweep = suite.sweep_for(spec)
-        n_applicable = 0
-        for ci, case in enumerate(cases):
+        usable = []
+        for case in cases:
             if applies(spec, case) is not None:
-                work.append((0, ci, case, method, 0, sweep[0]))
-                continue
-            n_applicable += 1
-            if not explicit and suite.max_cases is not None and n_applicable > suite.max_cases:
-                continue
-            swept = explicit or suite.sweep_cases is None or n_applicable <= suite.sweep_cases
+                work.append((0, order[case.id], case, method, 0, sweep[0], 0))
+            else:
+                usable.append(case)
+        if suite.diverse_cases and not explicit:
+            lead = suite.lead_cases.get(spec.family, suite.lead_cases.get("*", ()))
+            usable = _one_per_family(usable, lead, shift=names.index(method))
+        if not explicit and suite.max_cases is not None:
+            usable = usable[:suite.max_cases]
+        for rank, case in enumerate(usable):
+            swept = explicit or suite.sweep_cases is None or rank < suite.sweep_cases
             for k, knobs in enumerate(sweep if swept else sweep[:1]):
-                work.append((0 if k == 0 else 1, ci, case, method, k, knobs))
+                work.append((0 if k == 0 else 1, order[case.id], case, method, k, knobs, rank))
     work.sort(key=lambda w: (w[0], w[1]))  # stable: method order, then knob order, kept
+    all_dtypes = list(dtypes or suite.dtypes)
     cfgs = []
-    for _, _, case, method, k, knobs in work:
-        for dtype in dtypes or suite.dtypes:
+    for _, _, case, method, k, knobs, rank in work:
+        for i, dtype in enumerate(all_dtypes):
+            if i > 0 and not dtypes and suite.secondary_dtype_cases is not None and (
+                    k > 0 or rank >= suite.secondary_dtype_cases):
+                continue  # secondary dtypes: defaults on the first cases only (see Suite)
             r = k % max(len(backend_ids), 1)
             for bid in backend_ids[r:] + backend_ids[:r]:
                 cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
     return cfgs
+
+
+def _family(case) -> str:
+    return case.id.split(".", 1)[0]
+
+
+def _one_per_family(cases: list, lead: tuple[str, ...] = (), shift: int = 0) -> list:
+    """``cases`` reordered: those of ``lead`` in ``cases`` (in that order; the first is where the
+    sweep runs), then round-robin over the other scene families (first case of each, then
+    second…), the families rotated by ``shift`` so that different methods cover different
+    families."""
+    first = [c for lid in lead for c in cases if c.id == lid]
+    rest = [c for c in cases if c not in first]
+    by_family: dict[str, list] = {}
+    for c in rest:
+        by_family.setdefault(_family(c), []).append(c)
+    for c in first:  # lead families come last, so the next cases are of other families
+        by_family[_family(c)] = by_family.pop(_family(c), [])
+    groups = list(by_family.values())
+    if first and len(groups) > 1:
+        groups = groups[:-1][shift % (len(groups) - 1):] + groups[:-1][:shift % (len(groups) - 1)] + groups[-1:]
+    out, depth = list(first), 0
+    while len(out) < len(cases):
+        out += [g[depth] for g in groups if depth < len(g)]
+        depth += 1
+    return out
 
 
 def _done_keys(df) -> set[tuple]:

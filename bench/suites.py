@@ -36,7 +36,12 @@ class Suite:
     ``expensive_references``: check against references that cost seconds to minutes per case
     (the continuous rendering integral); when False those quantities are skipped rows saying so;
     ``small_cases_first``: a method's applicable cases are taken fewest rays first (so with
-    ``max_cases`` a budgeted suite spends its time on methods, not on ray count).
+    ``max_cases`` a budgeted suite spends its time on methods, not on ray count);
+    ``diverse_cases``: a method's applicable cases are taken one per scene family (the case id's
+    first component: sphere, torus, csg, mlp, …) in turn, after those of ``lead_cases[family]``
+    (else ``lead_cases["*"]``) that apply (the first is where the sweep runs), so ``max_cases`` cases cover as many kinds of scene as
+    possible; ``secondary_dtype_cases``: dtypes after the first run default
+    knobs on a method's first N cases only (None: everything in every dtype).
     """
 
     name: str
@@ -54,6 +59,14 @@ class Suite:
     budget_s: float | None = None
     expensive_references: bool = True
     small_cases_first: bool = False
+    diverse_cases: bool = False
+    lead_cases: dict = dataclasses.field(default_factory=lambda: {
+        "*": ("sphere.camera.64x64",),
+        "root": ("sphere.camera.64x64", "csg.union.camera.32x32", "mlp.camera.32x32"),
+        # volume renderers share their cases, so each rendering integral (per case and density) is
+        # computed once; smooth scenes, where the integral costs ~0.1 s per ray, not ~1 s (kinks)
+        "render": ("sphere.camera.64x64", "torus.camera.32x32", "algsphere.camera.32x32")})
+    secondary_dtype_cases: int | None = None
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
@@ -134,11 +147,16 @@ SUITES = {
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
                    min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=100.0,
                    expensive_references=False, small_cases_first=True),
-    # full: every case, float64 and float32; the long one-at-a-time sweeps of every knob on a
-    # method's first 2 applicable cases and its defaults on all the others; 0.1 s of timing each;
-    # defaults everywhere are measured before any sweep point, so the budget cuts sweeps first.
+    # full: < 15 min on 2 cores.  Each method on 3 applicable cases from different scene
+    # families, float64; its main dial swept over the full range (every decade of a tolerance,
+    # 7 budgets) on the first, with the continuous rendering integral as the volume renderers'
+    # reference; float32 at default knobs on the first case (the precision floor).  0.05 s and
+    # ≥ 3 samples of timing each.  Defaults everywhere are measured before any sweep point, so
+    # the budget (a guard, not the plan) would cut sweeps first.  Every case of the catalog is
+    # still run by some method; ``--case '*'`` runs a method on all of its cases.
     "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
-                  min_time_s=0.1, sweep_cases=2, budget_s=840.0),
+                  min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=1, max_cases=3,
+                  diverse_cases=True, secondary_dtype_cases=1, budget_s=840.0),
 }
 
 

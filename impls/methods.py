@@ -80,6 +80,11 @@ class MethodSpec:
 
 _MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)")
 _XTOL = Knob("xtol", 1e-12, float, 0.0, "stop refining when the bracket or the last step is ≤ xtol (depth units)")
+_MIN_STEP = Knob("min_step", 1e-5, float, 1e-9,
+                 "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed")
+_OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,
+                 "largest forced step Δ beyond |φ|/L (halved down to min_step while a step is not certified)")
+_HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)")
 _MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
 _REFINE_DOC = {
     "bisect": "bisection (linear, ratio 1/2)",
@@ -117,9 +122,10 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="hybrid_secant",
             family="root",
-            knobs=(_XTOL, Knob("min_step", 1e-3, float, 1e-9, "floor Δ on the sphere-tracing step"), _MAX_STEPS),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS),
             requires=("lipschitz",),
-            description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, "
+            description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, Δ in "
+            "[min_step, overstep] halved while a step is not certified by overlapping unbounding spheres, "
             "then safeguarded secant on the bracket",
         ),
     ]
@@ -171,7 +177,7 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="render_surface", family="render",
-            knobs=(_XTOL, Knob("min_step", 1e-3, float, 1e-9, "floor Δ on the sphere-tracing step"), _MAX_STEPS),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS),
             requires=("lipschitz",), outputs=("color",), needs_color=True,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
         ),

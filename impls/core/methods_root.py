@@ -19,7 +19,8 @@ def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict
                            omega=knobs["omega"], t_min=t_min, t_max=t_max)
     if method in ("hybrid_secant", "render_surface"):
         return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
-                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max)
+                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
+                           overstep=max(knobs["overstep"], knobs["min_step"]))
     if method.startswith("march_"):
         return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max)

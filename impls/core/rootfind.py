@@ -1,11 +1,15 @@
 """Ray root finders as per-ray state machines: one φ evaluation per iteration per ray.
 
-Each algorithm is a pair ``init(...) -> state`` and ``step(state, o, d) -> state`` on a dict of
-per-ray arrays (leading dimension n), written with elementwise array-API operations only, in
-the style of scipy's elementwise iterative methods (``scipy/_lib/_elementwise_iterative_
-method.py``).  A backend's *loop driver* calls ``step`` while any ray has status IN_PROGRESS:
-numpy and torch pass only the active rays (compaction), jax passes all rays and keeps the old
-values of finished ones (masking).  Both give identical per-ray results.
+Each algorithm is ``init(xp, o, d, ev) -> state`` plus one step function per *stage*
+(``alg.stages``, names of methods ``step(xp, state, o, d, ev) -> state``) on a dict of per-ray
+arrays (leading dimension n), written with elementwise array-API operations only, in the style
+of scipy's elementwise iterative methods (``scipy/_lib/_elementwise_iterative_method.py``).
+``state["phase"]`` is the index of the stage a ray is in; a stage hands a ray on by raising its
+phase by one.  Splitting an algorithm into stages keeps each step lean (a marching step does
+not also compute the secant update).  A backend's *loop driver* runs stage k while any ray has
+status IN_PROGRESS and phase k: numpy and torch pass only those rays (compaction,
+:mod:`impls.core.driver`), jax passes all rays of a chunk and keeps the old values of the others
+(masking).  Both give identical per-ray results.
 
 Ray: x(t) = o + t d with |d| = 1, search interval [t_min, t_max].  φ is evaluated through the
 backend's ``ev(o, d, t, deriv) -> (f, df, cost)`` where ``df = dφ/dt = ⟨∇φ, d⟩`` (only when
@@ -82,6 +86,8 @@ class SphereTrace:
     t_min: float
     t_max: float
 
+    stages = ("step",)
+
     def init(self, xp, o, d, ev):
         n = o.shape[0]
         t = xp.full_like(o[:, 0], self.t_min)
@@ -89,7 +95,7 @@ class SphereTrace:
         f, _, cost = ev(o, d, t, False)
         s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega),
              "status": xp.astype(xp.where(bad, BAD, IN), xp.int32), "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
-             "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32)}
+             "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32), "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
         status, t = _finish(xp, s, t, f, xp.abs(f) <= self.tol, s["iterations"], self.max_steps + 1)
         s.update(status=status, t=t)
         return s
@@ -110,7 +116,7 @@ class SphereTrace:
         s2 = dict(s, status=xp.where(out, MISS, s["status"]))
         status, t_new = _finish(xp, s2, t_new, xp.where(out, f, f_new), (xp.abs(f_new) <= self.tol) & ok,
                                 iters, self.max_steps)
-        return _typed(xp, dict(t=xp.where(out, math.inf, t_new), f=f_new, t_prev=t_prev, r_prev=r_prev, omega=om,
+        return _typed(xp, dict(s, t=xp.where(out, math.inf, t_new), f=f_new, t_prev=t_prev, r_prev=r_prev, omega=om,
                                status=status, iterations=iters, evals=s["evals"] + cost), s)
 
 
@@ -119,22 +125,32 @@ class SphereTrace:
 
 @dataclasses.dataclass(frozen=True)
 class MarchRefine:
-    """March to the first sign change of φ along the ray, then refine the bracket.
+    """March to the first sign change of φ along the ray (stage ``step_march``), then refine the
+    bracket (stage ``step_refine``).
 
     Marching (DVR, UNISURF): samples t_{k+1} = t_k + h_k from t_min, the last one clamped to
-    t_max; ``h_k = min_step`` (constant) or, with ``inv_lip`` set (the IDR-style hybrid),
-    h_k = max(|φ(t_k)|/L, min_step) — a sphere-tracing step that never shrinks below ``step``, so
-    grazing rays (where sphere tracing converges only linearly) cross the surface in a few
-    steps.  A surface crossed twice within one step (a feature thinner than ``min_step``) is not
-    seen: that is marching's documented limit.
+    t_max.  Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a
+    surface crossed twice within one step (a feature thinner than the step) is not seen — that
+    is marching's documented limit.
+
+    IDR-style hybrid (``inv_lip`` = 1/L set): h_k = max(r_k, Δ_k) with r_k = |φ(t_k)|/L, the
+    sphere-tracing step, and Δ_k a per-ray forced step in [``min_step``, ``overstep``].  The
+    forced step lets grazing rays (where sphere tracing converges only linearly) cross the
+    surface in a few steps.  A step longer than r_k is *certified* free of surface when the
+    unbounding spheres of its ends overlap, r_k + r_{k+1} ≥ h_k (Keinert et al., "Enhanced
+    Sphere Tracing", 2014: every point of the step is then within r of one end, where |φ| > 0).
+    An uncertified step without a sign change is rejected (the ray stays at t_k) and Δ_k is
+    halved, down to ``min_step``; a certified or crossing step doubles Δ_k back up to
+    ``overstep``.  So a crossing is missed only if its chord is shorter than ``min_step``; with
+    ``overstep`` = ``min_step`` this is the plain IDR march (no rejections).
 
     Refinement of the bracket [a, b] (φ(a)φ(b) < 0), one evaluation per iteration:
     ``bisect`` (midpoint; linear, ratio 1/2); ``secant`` on the last two iterates (order
-    (1+√5)/2 near a simple root); ``newton`` t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2; the first
-    refinement step is a secant step because φ' is not known at the bracket ends).  Secant and
-    Newton iterates that leave the bracket are replaced by the midpoint (safeguard), so every
-    variant converges.  Converged when φ = 0 exactly, the bracket is narrower than ``xtol``,
-    or (secant/Newton) the last step was shorter than ``xtol``.  ``t`` is the last iterate.
+    (1+√5)/2 near a simple root); ``newton`` t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2).  Secant
+    and Newton iterates that leave the bracket are replaced by the midpoint (safeguard), so
+    every variant converges.  Converged when φ = 0 exactly, the bracket is narrower than
+    ``xtol``, or (secant/Newton) the last step was shorter than ``xtol``.  ``t`` is the last
+    iterate.  ``max_steps`` bounds marching plus refinement steps.
     """
 
     refine: str  # "bisect" | "secant" | "newton"
@@ -144,68 +160,94 @@ class MarchRefine:
     max_steps: int
     t_min: float
     t_max: float
+    overstep: float | None = None  # hybrid only: largest forced step Δ (None: = min_step)
+
+    stages = ("step_march", "step_refine")
 
     @property
     def deriv(self) -> bool:
         return self.refine == "newton"
 
+    @property
+    def _hybrid(self) -> bool:
+        return self.inv_lip is not None
+
     def init(self, xp, o, d, ev):
-        n = o.shape[0]
         t = xp.full_like(o[:, 0], self.t_min)
         bad = bad_rays(xp, o, d)
         f, df, cost = ev(o, d, t, self.deriv)
-        zero = xp.zeros_like(t)
-        s = {"t": t, "f": f, "df": zero if df is None else df, "a": t, "fa": f, "b": t, "fb": f, "p": t, "fp": f,
+        s = {"t": t, "f": f, "p": t, "fp": f, "a": t, "fa": f, "b": t, "fb": f,
              "phase": xp.zeros_like(o[:, 0], dtype=xp.int32), "status": xp.astype(xp.where(bad, BAD, IN), xp.int32),
              "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32), "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32)}
+        if self.deriv:
+            s["df"] = df
+        if self._hybrid:
+            s["dl"] = xp.full_like(t, max(self.overstep or self.min_step, self.min_step))
         status, t = _finish(xp, s, t, f, f == 0, s["iterations"], self.max_steps + 1)
         s.update(status=status, t=t)
         return s
 
-    def step(self, xp, s, o, d, ev):
+    def step_march(self, xp, s, o, d, ev):
         t, f = s["t"], s["f"]
-        march = s["phase"] == 0
-        # marching proposal
-        h = self.min_step if self.inv_lip is None else xp.maximum(xp.abs(f) * self.inv_lip, self.min_step)
-        t_m = xp.minimum(t + h, self.t_max)
-        # refinement proposal
-        a, b = s["a"], s["b"]
+        if self._hybrid:
+            r = xp.abs(f) * self.inv_lip
+            h = xp.maximum(r, s["dl"])
+        else:
+            h = self.min_step
+        t_n = xp.minimum(t + h, self.t_max)
+        f_n, df_n, cost = ev(o, d, t_n, self.deriv)
+        cross = (f_n == 0) | ((f_n > 0) != (f > 0))
+        new = {}
+        if self._hybrid:
+            # certified: a safe step, overlapping unbounding spheres, or Δ already at its floor
+            ok = cross | (h <= r) | (r + xp.abs(f_n) * self.inv_lip >= t_n - t) | (s["dl"] <= self.min_step)
+            big = self.overstep or self.min_step
+            new["dl"] = xp.where(ok, xp.minimum(2 * s["dl"], big), xp.maximum(0.5 * s["dl"], self.min_step))
+        else:
+            ok = None  # constant-step marching accepts every step
+        miss = ~cross & (t_n >= self.t_max) & xp.isfinite(f_n)
+        miss = miss if ok is None else miss & ok
+        iters = s["iterations"] + 1
+        conv = cross & ((f_n == 0) | (t_n - t <= self.xtol))
+        s2 = dict(s, status=xp.where(miss, MISS, s["status"]))
+        status, t_out = _finish(xp, s2, t_n, f_n, conv, iters, self.max_steps)
+        if ok is not None:  # a rejected step stays where it was
+            t_out, f_n = xp.where(ok, t_out, t), xp.where(ok, f_n, f)
+            if self.deriv:
+                df_n = xp.where(ok, df_n, s["df"])
+        t_out = xp.where(miss, math.inf, t_out)
+        new.update(t=t_out, f=f_n, p=t, fp=f, a=xp.where(cross, t, s["a"]), fa=xp.where(cross, f, s["fa"]),
+                   b=t_n, fb=f_n, phase=xp.where(cross, 1, s["phase"]), status=status, iterations=iters,
+                   evals=s["evals"] + cost)
+        if self.deriv:
+            new["df"] = df_n
+        return _typed(xp, dict(s, **new), s)
+
+    def step_refine(self, xp, s, o, d, ev):
+        t, f, a, b = s["t"], s["f"], s["a"], s["b"]
         mid = 0.5 * (a + b)
         if self.refine == "bisect":
             c = mid
         else:
             with _quiet(xp):  # f = fp or φ' = 0 give inf/NaN: replaced by the midpoint below
-                c = t - f * (t - s["p"]) / (f - s["fp"])
-                if self.refine == "newton":
-                    c = xp.where(s["phase"] == 2, t - f / s["df"], c)
+                c = t - f / s["df"] if self.refine == "newton" else t - f * (t - s["p"]) / (f - s["fp"])
             lo, hi = xp.minimum(a, b), xp.maximum(a, b)
             # safeguard: outside the closed bracket → bisect.  (Closed: near convergence the secant
             # step can round to the bracket end itself; that is then a converged step, not a failure.)
             c = xp.where(xp.isfinite(c) & (c >= lo) & (c <= hi), c, mid)
-        t_eval = xp.where(march, t_m, c)
-        t_eval = xp.where(s["status"] == IN, t_eval, xp.zeros_like(t_eval))  # finished rays (masked drivers)
-        f_new, df_new, cost = ev(o, d, t_eval, self.deriv)
-        df_new = s["df"] if df_new is None else df_new
-        # marching outcome: a sign change brackets a root
-        cross = march & ((f_new == 0) | ((f_new > 0) != (f > 0)))
-        miss = march & ~cross & (t_m >= self.t_max) & xp.isfinite(f_new)
-        # refinement outcome: keep the sub-interval with the sign change
-        same_a = (f_new > 0) == (s["fa"] > 0)
-        na = xp.where(march, t, xp.where(same_a, c, a))
-        nfa = xp.where(march, f, xp.where(same_a, f_new, s["fa"]))
-        nb = xp.where(march, t_m, xp.where(same_a, b, c))
-        nfb = xp.where(march, f_new, xp.where(same_a, s["fb"], f_new))
+        f_c, df_c, cost = ev(o, d, c, self.deriv)
+        same_a = (f_c > 0) == (s["fa"] > 0)
+        na, nfa = xp.where(same_a, c, a), xp.where(same_a, f_c, s["fa"])
+        nb, nfb = xp.where(same_a, b, c), xp.where(same_a, s["fb"], f_c)
         width_ok = xp.abs(nb - na) <= self.xtol
-        step_ok = (xp.abs(c - t) <= self.xtol) if self.refine != "bisect" else width_ok
-        conv = (f_new == 0) | (~march & (width_ok | step_ok)) | (cross & width_ok)
-        phase = xp.where(march, xp.where(cross, 1, 0), 2)
-        phase = xp.astype(phase, xp.int32)
+        step_ok = width_ok if self.refine == "bisect" else (xp.abs(c - t) <= self.xtol)
         iters = s["iterations"] + 1
-        s2 = dict(s, status=xp.astype(xp.where(miss, MISS, s["status"]), xp.int32))
-        status, t_out = _finish(xp, s2, t_eval, f_new, conv, iters, self.max_steps)
-        t_out = xp.where(miss, math.inf, t_out)
-        return _typed(xp, dict(t=t_out, f=f_new, df=df_new, a=na, fa=nfa, b=nb, fb=nfb, p=t, fp=f, phase=phase,
-                               status=status, iterations=iters, evals=s["evals"] + cost), s)
+        status, t_out = _finish(xp, s, c, f_c, (f_c == 0) | width_ok | step_ok, iters, self.max_steps)
+        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, fa=nfa, b=nb, fb=nfb, status=status, iterations=iters,
+                   evals=s["evals"] + cost)
+        if self.deriv:
+            new["df"] = df_c
+        return _typed(xp, dict(s, **new), s)
 
 
 STATE_OUT = ("t", "status", "iterations", "evals")

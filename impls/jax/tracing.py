@@ -1,7 +1,8 @@
 """Ray root finders in jax (mirror of ``impls/numpy/tracing.py``), jit-compatible.
 
-Fixed-shape masked updates: rays are split into chunks of ``CHUNK`` and ``lax.map`` runs one
-``lax.while_loop`` per chunk, so a chunk stops as soon as *its* rays are done (a single
+Fixed-shape masked updates: rays are split into chunks of ``CHUNK`` and ``lax.map`` runs, per
+chunk, one ``lax.while_loop`` per stage of the algorithm, so a chunk stops as soon as *its* rays
+are done (a single
 whole-batch loop would run every ray to the slowest ray's count).  Finished rays keep their
 values (``jnp.where`` on the status).  dφ/dt = ⟨∇φ, d⟩ by ``jax.jvp`` (one evaluation).
 """
@@ -42,13 +43,19 @@ def run_loop(alg, o, d, ev, chunk=CHUNK):
     def one(args):
         oc, dc = args
         s = alg.init(jnp, oc, dc, ev)
+        for k, name in enumerate(alg.stages):  # stages in order, each its own loop
+            step = getattr(alg, name)
 
-        def body(s):
-            new = alg.step(jnp, s, oc, dc, ev)
-            active = s["status"] == rootfind.IN
-            return {k: jnp.where(active, new[k], s[k]) for k in s}
+            def active(s, k=k):
+                return (s["status"] == rootfind.IN) & (s["phase"] == k)
 
-        return lax.while_loop(lambda s: jnp.any(s["status"] == rootfind.IN), body, s)
+            def body(s, step=step, active=active):
+                new = step(jnp, s, oc, dc, ev)
+                a = active(s)
+                return {key: jnp.where(a, new[key], s[key]) for key in s}
+
+            s = lax.while_loop(lambda s, active=active: jnp.any(active(s)), body, s)
+        return s
 
     out = lax.map(lambda a: rootfind.outputs(one(a)), (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
     return {k: v.reshape(-1)[:n] for k, v in out.items()}

@@ -7,3 +7,4 @@ from ..core import rendering
 from . import tracing
 
 IMPLS = rendering.make_impls(tracing.solve, compact=True)
+render_surface = IMPLS["render_surface"]  # no autodiff: ρ at the root finder's hit

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core import rootfind
+from ..core.driver import run_compacted
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -34,35 +34,21 @@ def ray_eval(backend, scene, theta=None):
     return ev
 
 
-def run_loop(alg, o, d, ev, slack=0.0):
-    """Run ``alg`` to completion on the active set; returns the per-ray outputs.
+BLOCK = 1 << 16  # rays per block: state in cache, loop overhead small (bench/speed.py)
+POOL = 256  # a block's last rays in a stage join the straggler pool
 
-    The state is kept compacted to the active rays (not gathered from and scattered back to
-    full-size arrays each step); a ray's outputs are written out the step it finishes.  With
-    ``slack`` > 0 the set is re-compacted only once more than that fraction has finished —
-    less copying, but finished rays are then stepped (φ evaluated) without being counted in
-    ``evals``, so the default 0 keeps ``evals`` equal to the evaluations made.
-    """
-    s = alg.init(np, o, d, ev)
-    out = {k: np.array(s[k], copy=True) for k in rootfind.STATE_OUT}
-    idx = np.flatnonzero(s["status"] == rootfind.IN)
-    sub = {k: v[idx] for k, v in s.items()}
-    oo, dd = o[idx], d[idx]
-    live = np.ones(idx.size, dtype=bool)
-    while idx.size:
-        # finished-but-not-yet-dropped rays may step from t = inf/NaN: harmless, and silenced
-        with np.errstate(invalid="ignore", over="ignore"):
-            sub = alg.step(np, sub, oo, dd, ev)
-        done = live & (sub["status"] != rootfind.IN)
-        if done.any():
-            for k in rootfind.STATE_OUT:
-                out[k][idx[done]] = sub[k][done]
-            live &= ~done
-            if live.sum() < (1 - slack) * live.size:
-                idx, oo, dd = idx[live], oo[live], dd[live]
-                sub = {k: v[live] for k, v in sub.items()}
-                live = np.ones(idx.size, dtype=bool)
-    return out
+
+def soa(a):
+    """Contiguous (3, n) copy of an (n, 3) array (see :mod:`impls.core.driver`)."""
+    return np.ascontiguousarray(a.T)
+
+
+def run_loop(alg, o, d, ev, block=BLOCK, pool=POOL):
+    """Run ``alg`` to completion with active-set compaction (:func:`impls.core.driver.run_compacted`)."""
+    # finished rays are dropped before they step again, but a stage may still evaluate φ at
+    # inf/NaN (MISS, NON_FINITE) on its way out: harmless, and silenced
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        return run_compacted(alg, np, o, d, ev, soa=soa, block=block, pool=pool)
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):

@@ -1,7 +1,7 @@
 """Ray root finders on torch tensors (mirror of ``impls/numpy/tracing.py``).
 
-Loop driver with active-set compaction (index tensors; one host sync per iteration to test
-for termination) and φ along rays; dφ/dt = ⟨∇φ, d⟩ by forward-mode autodiff
+Loop driver with active-set compaction (:mod:`impls.core.driver`; one host sync per iteration
+to test for termination) and φ along rays; dφ/dt = ⟨∇φ, d⟩ by forward-mode autodiff
 (``torch.func.jvp``), counted as one evaluation.  No autograd graph is recorded.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core import rootfind
+from ..core.driver import run_compacted
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -25,32 +25,20 @@ def ray_eval(backend, scene, theta=None):
     return ev
 
 
-def run_loop(backend, alg, o, d, ev, slack=0.0):
-    """Active-set loop with lazy re-compaction; see ``impls/numpy/tracing.py:run_loop``."""
-    xp = backend.xp
+BLOCK = 1 << 16  # see impls/numpy/tracing.py
+POOL = 256
+
+
+def soa(a):
+    """Contiguous (3, n) copy of an (n, 3) tensor (see :mod:`impls.core.driver`)."""
+    return a.T.contiguous()
+
+
+def run_loop(backend, alg, o, d, ev, block=BLOCK, pool=POOL):
+    """Run ``alg`` to completion with active-set compaction (:func:`impls.core.driver.run_compacted`);
+    each stage's termination test is one host sync per iteration."""
     with torch.no_grad():
-        s = alg.init(xp, o, d, ev)
-        out = {k: s[k].clone() for k in rootfind.STATE_OUT}
-        idx = torch.nonzero(s["status"] == rootfind.IN).flatten()
-        sub = {k: v[idx] for k, v in s.items()}
-        oo, dd = o[idx], d[idx]
-        live = torch.ones(idx.numel(), dtype=torch.bool, device=o.device)
-        n_live = idx.numel()
-        while n_live:
-            sub = alg.step(xp, sub, oo, dd, ev)
-            done = live & (sub["status"] != rootfind.IN)
-            di = torch.nonzero(done).flatten()
-            if di.numel():
-                for k in rootfind.STATE_OUT:
-                    out[k][idx[di]] = sub[k][di]
-                live &= ~done
-                n_live -= di.numel()
-                if n_live < (1 - slack) * live.numel():
-                    keep = torch.nonzero(live).flatten()
-                    idx, oo, dd = idx[keep], oo[keep], dd[keep]
-                    sub = {k: v[keep] for k, v in sub.items()}
-                    live = torch.ones(keep.numel(), dtype=torch.bool, device=o.device)
-    return out
+        return run_compacted(alg, backend.xp, o, d, ev, soa=soa, block=block, pool=pool)
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
