@@ -305,11 +305,16 @@ def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(
     slow = integral(run_cache)
     assert slow["outcome"] == "skipped" and "took longer than 0.5 s" in slow["reason"]
     n_calls = len(calls)
-    case = dataclasses.replace(case, id="colored2")  # another case, same run: not attempted again
-    object.__setattr__(case, "color_field", FakeColor())
-    cfg = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs)
+    # the same case and density at another sharpness, same run: not attempted again
+    cfg = runner.Config(case, "fake", "volume_neus_uniform", "float64", {**knobs, "sharpness": 60.0})
     again = integral(run_cache)
     assert len(calls) == n_calls and "not attempted again" in again["reason"]
+    # another case, same run: attempted (a slow case does not cost the others their reference)
+    case = dataclasses.replace(case, id="colored2")
+    object.__setattr__(case, "color_field", FakeColor())
+    cfg = runner.Config(case, "fake", "volume_neus_uniform", "float64", knobs)
+    other = integral(run_cache)
+    assert len(calls) == n_calls + 1 and "took longer than 0.5 s" in other["reason"]
 
 
 def test_render_family_against_the_integral_and_the_surface_colour(fake_methods, monkeypatch):
@@ -367,3 +372,36 @@ def test_plan_limits_cases_and_puts_defaults_first(fake_methods):
     n_first = 3  # c0, c1, c2 defaults come before any sweep point
     assert all(json.dumps(c.knobs, sort_keys=True) in defaults for c in cfgs[:n_first])
     assert all(json.dumps(c.knobs, sort_keys=True) not in defaults for c in cfgs[n_first:])
+
+
+def test_plan_spreads_cases_over_scene_families_and_limits_secondary_dtypes(fake_methods):
+    case = get_case(CASE)
+    ids = ["sphere.a", "sphere.b", "sphere.lead", "torus.a", "torus.b", "csg.a"]
+    cases = [Case(id=i, scene=Sphere(), origins=case.origins, directions=case.directions) for i in ids]
+    s = dataclasses.replace(suite(["fake_root"]), sweep_cases=1, max_cases=3, diverse_cases=True,
+                            lead_cases={"*": ("nosuch", "sphere.lead")}, dtypes=("float64", "float32"),
+                            secondary_dtype_cases=1)
+    import bench.runner as r
+
+    orig = r.select_cases
+    try:
+        r.select_cases = lambda suite, pattern: cases
+        cfgs = runner.plan(s, ["a"], None, None, None)
+    finally:
+        r.select_cases = orig
+    used = list(dict.fromkeys(c.case.id for c in cfgs if c.dtype == "float64"))
+    sweep = s.sweep_for(FAKE_METHODS["fake_root"])
+    assert set(used) == {"sphere.lead", "torus.a", "csg.a"}  # the lead, then one case per other family
+    assert sum(c.case.id == "sphere.lead" and c.dtype == "float64" for c in cfgs) == len(sweep)  # swept on the lead
+    f32 = [c for c in cfgs if c.dtype == "float32"]
+    assert [(c.case.id, c.knobs) for c in f32] == [("sphere.lead", sweep[0])]  # float32: defaults, first case
+
+
+def test_reference_rays_are_evenly_strided_and_include_both_ends():
+    from bench.references import reference_rays
+
+    assert list(reference_rays(10, None)) == list(range(10))
+    assert list(reference_rays(10, 32)) == list(range(10))
+    idx = reference_rays(4096, 32)
+    assert len(idx) == 32 and idx[0] == 0 and idx[-1] == 4095 and np.all(np.diff(idx) > 0)
+    assert np.ptp(np.diff(idx)) <= 1  # even spacing
