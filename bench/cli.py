@@ -264,6 +264,25 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_speed(args) -> int:
+    import json
+
+    from . import environment, speed
+    from impls import registry
+
+    environment.configure_threads(args.threads)
+    ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
+    knobs = json.loads(args.knobs) if args.knobs else {}
+    rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=knobs)
+    print(f"{args.side}² rays, {args.method}, × unit = time / numpy closed-form sphere hit of the same rays (same run)")
+    print(speed.format_rows(rows))
+    if args.out:
+        from .results import write_json
+
+        write_json(Path(args.out), rows)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench", description="isobench: verify and time implicit-surface methods")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -334,6 +353,17 @@ def main(argv: list[str] | None = None) -> int:
     rp = sub.add_parser("report", help="rebuild report.md/html of a run directory")
     rp.add_argument("run_dir")
     rp.set_defaults(fn=cmd_report)
+
+    sp = sub.add_parser("speed", help="root finders on 2^20 rays at a sphere and a torus ∪ box, in units of the "
+                        "closed-form sphere intersection (the backends issue's speed targets)")
+    sp.add_argument("--backend", action="append", help="backend ids (default: all available)")
+    sp.add_argument("--method", default="hybrid_secant")
+    sp.add_argument("--knobs", help='JSON knob dict, e.g. \'{"xtol": 1e-8}\' (default: the method\'s defaults)')
+    sp.add_argument("--side", type=int, default=1024, help="rays per image side (default 1024: 2^20 rays)")
+    sp.add_argument("--repeats", type=int, default=3)
+    sp.add_argument("--threads", type=int, default=1)
+    sp.add_argument("--out", help="write the rows as JSON")
+    sp.set_defaults(fn=cmd_speed)
 
     args = p.parse_args(argv)
     return args.fn(args)

@@ -118,3 +118,18 @@ def test_compare_missing_run_is_a_clear_error(tmp_path):
 def test_cases_lists_the_catalog():
     p = bench("cases")
     assert p.returncode == 0 and "sphere.camera.64x64" in p.stdout
+
+
+def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys):
+    import json
+
+    from bench.cli import main
+
+    out = tmp_path / "speed.json"
+    assert main(["speed", "--backend", "numpy", "--side", "16", "--repeats", "1", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert {r["scene"] for r in rows} == {"sphere", "torus∪box"}
+    for r in rows:
+        assert r["rays"] == 256 and r["x_unit"] > 0 and r["false_hits"] == 0 and r["false_misses"] == 0
+        assert r["err_max"] < 1e-9
+    assert "x_unit" in capsys.readouterr().out
