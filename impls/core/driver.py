@@ -24,7 +24,7 @@ from typing import Any, Callable
 
 from .rootfind import IN, STATE_OUT
 
-def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 1 << 16, pool: int = 256) -> dict:
+def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 1 << 16, pool: int = 4096) -> dict:
     """Run ``alg`` on rays ``o``, ``d`` (n, 3); returns ``{t, status, iterations, evals}`` (n,).
 
     ``soa(a)`` returns a contiguous (3, n) copy of an (n, 3) array (backend-specific: the array

@@ -187,6 +187,11 @@ class MarchRefine:
         s.update(status=status, t=t)
         return s
 
+    # Both stage steps assume every row they are given is IN_PROGRESS in their stage (the
+    # compacting drivers pass only those; the masked jax driver discards the other rows' update),
+    # so statuses are set without re-testing the old one.  Bracket invariant: a ≤ b (marching
+    # goes forward from t_min and refinement keeps c in [a, b]).
+
     def step_march(self, xp, s, o, d, ev):
         t, f = s["t"], s["f"]
         if self._hybrid:
@@ -196,29 +201,31 @@ class MarchRefine:
             h = self.min_step
         t_n = xp.minimum(t + h, self.t_max)
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
-        cross = (f_n == 0) | ((f_n > 0) != (f > 0))
+        zero = f_n == 0
+        cross = zero | ((f_n > 0) != (f > 0))
+        finite = xp.isfinite(f_n)
+        miss = ~cross & finite & (t_n >= self.t_max)
         new = {}
         if self._hybrid:
-            # certified: a safe step, overlapping unbounding spheres, or Δ already at its floor
-            ok = cross | (h <= r) | (r + xp.abs(f_n) * self.inv_lip >= t_n - t) | (s["dl"] <= self.min_step)
-            big = self.overstep or self.min_step
-            new["dl"] = xp.where(ok, xp.minimum(2 * s["dl"], big), xp.maximum(0.5 * s["dl"], self.min_step))
-        else:
-            ok = None  # constant-step marching accepts every step
-        miss = ~cross & (t_n >= self.t_max) & xp.isfinite(f_n)
-        miss = miss if ok is None else miss & ok
+            # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
+            # passes; h ≥ t_n − t, so a step clamped at t_max is judged conservatively), a crossing,
+            # or Δ already at its floor
+            ok = cross | (r + xp.abs(f_n) * self.inv_lip >= h) | (s["dl"] <= self.min_step)
+            new["dl"] = xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self.overstep or self.min_step)
+            miss = miss & ok
         iters = s["iterations"] + 1
-        conv = cross & ((f_n == 0) | (t_n - t <= self.xtol))
-        s2 = dict(s, status=xp.where(miss, MISS, s["status"]))
-        status, t_out = _finish(xp, s2, t_n, f_n, conv, iters, self.max_steps)
-        if ok is not None:  # a rejected step stays where it was
+        conv = cross & (zero | (t_n - t <= self.xtol))
+        status = xp.where(miss, MISS, xp.where(~finite, NONF, xp.where(conv, CONV, xp.where(
+            iters >= self.max_steps, MAXI, IN))))
+        t_out = xp.where(finite, t_n, math.nan)
+        if self._hybrid:  # a rejected step stays where it was
             t_out, f_n = xp.where(ok, t_out, t), xp.where(ok, f_n, f)
             if self.deriv:
                 df_n = xp.where(ok, df_n, s["df"])
-        t_out = xp.where(miss, math.inf, t_out)
-        new.update(t=t_out, f=f_n, p=t, fp=f, a=xp.where(cross, t, s["a"]), fa=xp.where(cross, f, s["fa"]),
-                   b=t_n, fb=f_n, phase=xp.where(cross, 1, s["phase"]), status=status, iterations=iters,
-                   evals=s["evals"] + cost)
+        # on a crossing the bracket is [a, b] = [t, t_n] and the secant starts from (p, t) = (t, t_n);
+        # for other rows a, b are overwritten before they are used
+        new.update(t=xp.where(miss, math.inf, t_out), f=f_n, p=t, fp=f, a=t, fa=f, b=t_n, fb=f_n,
+                   phase=cross, status=status, iterations=iters, evals=s["evals"] + cost)
         if self.deriv:
             new["df"] = df_n
         return _typed(xp, dict(s, **new), s)
@@ -231,20 +238,21 @@ class MarchRefine:
         else:
             with _quiet(xp):  # f = fp or φ' = 0 give inf/NaN: replaced by the midpoint below
                 c = t - f / s["df"] if self.refine == "newton" else t - f * (t - s["p"]) / (f - s["fp"])
-            lo, hi = xp.minimum(a, b), xp.maximum(a, b)
-            # safeguard: outside the closed bracket → bisect.  (Closed: near convergence the secant
-            # step can round to the bracket end itself; that is then a converged step, not a failure.)
-            c = xp.where(xp.isfinite(c) & (c >= lo) & (c <= hi), c, mid)
+            # safeguard: outside the closed bracket (or NaN) → bisect.  (Closed: near convergence the
+            # secant step can round to the bracket end itself; that is then a converged step.)
+            c = xp.where((c >= a) & (c <= b), c, mid)
         f_c, df_c, cost = ev(o, d, c, self.deriv)
         same_a = (f_c > 0) == (s["fa"] > 0)
         na, nfa = xp.where(same_a, c, a), xp.where(same_a, f_c, s["fa"])
         nb, nfb = xp.where(same_a, b, c), xp.where(same_a, s["fb"], f_c)
-        width_ok = xp.abs(nb - na) <= self.xtol
-        step_ok = width_ok if self.refine == "bisect" else (xp.abs(c - t) <= self.xtol)
+        conv = (f_c == 0) | (nb - na <= self.xtol)
+        if self.refine != "bisect":
+            conv = conv | (xp.abs(c - t) <= self.xtol)
         iters = s["iterations"] + 1
-        status, t_out = _finish(xp, s, c, f_c, (f_c == 0) | width_ok | step_ok, iters, self.max_steps)
-        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, fa=nfa, b=nb, fb=nfb, status=status, iterations=iters,
-                   evals=s["evals"] + cost)
+        finite = xp.isfinite(f_c)
+        status = xp.where(~finite, NONF, xp.where(conv, CONV, xp.where(iters >= self.max_steps, MAXI, IN)))
+        new = dict(t=xp.where(finite, c, math.nan), f=f_c, p=t, fp=f, a=na, fa=nfa, b=nb, fb=nfb, status=status,
+                   iterations=iters, evals=s["evals"] + cost)
         if self.deriv:
             new["df"] = df_c
         return _typed(xp, dict(s, **new), s)

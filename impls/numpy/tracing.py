@@ -35,7 +35,7 @@ def ray_eval(backend, scene, theta=None):
 
 
 BLOCK = 1 << 16  # rays per block: state in cache, loop overhead small (bench/speed.py)
-POOL = 256  # a block's last rays in a stage join the straggler pool
+POOL = 4096  # a block's last rays in a stage join the straggler pool (1/16 of a block: bench/speed.py)
 
 
 def soa(a):

@@ -26,7 +26,7 @@ def ray_eval(backend, scene, theta=None):
 
 
 BLOCK = 1 << 16  # see impls/numpy/tracing.py
-POOL = 256
+POOL = 4096  # see impls/numpy/tracing.py
 
 
 def soa(a):
