@@ -7,7 +7,9 @@ Why it looks the way it does (all measured on 2^20 rays, see ``bench/speed.py``)
   passed to the algorithm as their transposed (n, 3) views, so x = o + t d and every scene's
   ``xp.sum(v * v, axis=-1)`` run over three contiguous rows instead of a stride-3 axis (numpy:
   the CSG torus ∪ box φ is 7× faster this way).
-* **Blocks.**  Rays go through in blocks of ``block`` so the per-ray state stays in cache.
+* **Blocks.**  Rays go through in blocks of ``block``, which bounds the memory of the state.
+  Larger blocks mean fewer Python-level steps: sphere, 2^20 rays, ``hybrid_secant``, 256-ray
+  pool: 2^12 → 2.68 s, 2^14 → 2.33 s, 2^16 → 1.89 s, 2^17 → 1.81 s.
 * **Compaction.**  Within a block only rays still iterating in the current stage are stepped;
   a ray's outputs are written the step it finishes, and the others are gathered, so
   ``evals`` counts exactly the evaluations made.
@@ -23,6 +25,7 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from .rootfind import IN, STATE_OUT
+
 
 def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 1 << 16, pool: int = 4096) -> dict:
     """Run ``alg`` on rays ``o``, ``d`` (n, 3); returns ``{t, status, iterations, evals}`` (n,).
