@@ -276,15 +276,15 @@ def _one_per_family(cases: list, lead: tuple[str, ...] = (), shift: int = 0) -> 
     second…), the families rotated by ``shift`` so that different methods cover different
     families."""
     first = [c for lid in lead for c in cases if c.id == lid]
-    rest = [c for c in cases if c not in first]
     by_family: dict[str, list] = {}
-    for c in rest:
-        by_family.setdefault(_family(c), []).append(c)
-    for c in first:  # lead families come last, so the next cases are of other families
-        by_family[_family(c)] = by_family.pop(_family(c), [])
-    groups = list(by_family.values())
-    if first and len(groups) > 1:
-        groups = groups[:-1][shift % (len(groups) - 1):] + groups[:-1][:shift % (len(groups) - 1)] + groups[-1:]
+    for c in cases:
+        if c not in first:
+            by_family.setdefault(_family(c), []).append(c)
+    lead_families = {_family(c) for c in first}
+    others = [g for f, g in by_family.items() if f not in lead_families]
+    k = shift % len(others) if others else 0
+    # lead families come last, so the cases after the lead ones are of other families
+    groups = others[k:] + others[:k] + [g for f, g in by_family.items() if f in lead_families]
     out, depth = list(first), 0
     while len(out) < len(cases):
         out += [g[depth] for g in groups if depth < len(g)]

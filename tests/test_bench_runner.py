@@ -343,7 +343,13 @@ def test_render_family_against_the_integral_and_the_surface_colour(fake_methods,
     assert by_q["color_vs_surface"]["outcome"] == "ok"
 
 
-def test_plan_limits_cases_and_puts_defaults_first(fake_methods):
+def _plan_on(monkeypatch, cases, s):
+    """The plan of suite ``s`` over exactly ``cases`` on one backend."""
+    monkeypatch.setattr(runner, "select_cases", lambda suite, pattern: cases)
+    return runner.plan(s, ["a"], None, None, None)
+
+
+def test_plan_limits_cases_and_puts_defaults_first(fake_methods, monkeypatch):
     case = get_case(CASE)
 
     class NoLipschitz(Sphere):
@@ -354,14 +360,7 @@ def test_plan_limits_cases_and_puts_defaults_first(fake_methods):
     cases = [Case(id=f"c{i}", scene=Sphere() if i != 1 else NoLipschitz(), origins=case.origins,
                   directions=case.directions) for i in range(4)]
     s = dataclasses.replace(suite(["fake_root"]), sweep_cases=1, max_cases=2)
-    import bench.runner as r
-
-    orig = r.select_cases
-    try:
-        r.select_cases = lambda suite, pattern: cases
-        cfgs = runner.plan(s, ["a"], None, None, None)
-    finally:
-        r.select_cases = orig
+    cfgs = _plan_on(monkeypatch, cases, s)
     sweep = s.sweep_for(FAKE_METHODS["fake_root"])
     by_case = {c.id: [x for x in cfgs if x.case.id == c.id] for c in cases}
     assert len(by_case["c0"]) == len(sweep)  # the sweep on the first applicable case
@@ -374,21 +373,14 @@ def test_plan_limits_cases_and_puts_defaults_first(fake_methods):
     assert all(json.dumps(c.knobs, sort_keys=True) not in defaults for c in cfgs[n_first:])
 
 
-def test_plan_spreads_cases_over_scene_families_and_limits_secondary_dtypes(fake_methods):
+def test_plan_spreads_cases_over_scene_families_and_limits_secondary_dtypes(fake_methods, monkeypatch):
     case = get_case(CASE)
     ids = ["sphere.a", "sphere.b", "sphere.lead", "torus.a", "torus.b", "csg.a"]
     cases = [Case(id=i, scene=Sphere(), origins=case.origins, directions=case.directions) for i in ids]
     s = dataclasses.replace(suite(["fake_root"]), sweep_cases=1, max_cases=3, diverse_cases=True,
                             lead_cases={"*": ("nosuch", "sphere.lead")}, dtypes=("float64", "float32"),
                             secondary_dtype_cases=1)
-    import bench.runner as r
-
-    orig = r.select_cases
-    try:
-        r.select_cases = lambda suite, pattern: cases
-        cfgs = runner.plan(s, ["a"], None, None, None)
-    finally:
-        r.select_cases = orig
+    cfgs = _plan_on(monkeypatch, cases, s)
     used = list(dict.fromkeys(c.case.id for c in cfgs if c.dtype == "float64"))
     sweep = s.sweep_for(FAKE_METHODS["fake_root"])
     assert set(used) == {"sphere.lead", "torus.a", "csg.a"}  # the lead, then one case per other family

@@ -84,17 +84,17 @@ def _run_stages(alg, xp, s, gidx, Oc, Dc, ev, out, k0, pools, pool):
         while gidx.shape[0]:
             s = step(xp, s, Oc.T, Dc.T, ev)
             fin = s["status"] != IN
-            leave = fin | (s["phase"] != k)
-            li = _nonzero(xp, leave)
-            if li.shape[0] == 0:
+            moved = s["phase"] != k  # handed on to stage k + 1
+            leave = fin | moved
+            if not xp.any(leave):
                 continue
             fi = _nonzero(xp, fin)
             if fi.shape[0]:
                 gi = gidx[fi]
                 for key in STATE_OUT:
                     out[key][gi] = s[key][fi]
-            if fi.shape[0] < li.shape[0]:  # handed on to stage k + 1
-                handed.append(_take(xp, s, gidx, Oc, Dc, _nonzero(xp, ~fin & (s["phase"] != k))))
+            if xp.any(moved & ~fin):
+                handed.append(_take(xp, s, gidx, Oc, Dc, _nonzero(xp, moved & ~fin)))
             keep = _nonzero(xp, ~leave)
             s, gidx, Oc, Dc = _take(xp, s, gidx, Oc, Dc, keep)
             if pools is not None and 0 < keep.shape[0] < pool:

@@ -234,9 +234,9 @@ def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
             from .param_grad import theta0
 
             theta = theta0(backend, scene, o)
-        th_c = stop_gradient(theta) if differentiable else theta
-        s = solve("render_surface", backend, scene, stop_gradient(o) if differentiable else o,
-                  stop_gradient(d) if differentiable else d, t_min=t_min, t_max=t_max, theta=th_c, **knobs)
+        const = stop_gradient if differentiable else (lambda a: a)
+        th_c = None if theta is None else const(theta)
+        s = solve("render_surface", backend, scene, const(o), const(d), t_min=t_min, t_max=t_max, theta=th_c, **knobs)
         ok = s["status"] == CONV
         o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
         d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
