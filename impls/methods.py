@@ -84,6 +84,8 @@ _MIN_STEP = Knob("min_step", 1e-5, float, 1e-9,
                  "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed")
 _OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,
                  "largest forced step Δ beyond |φ|/L (halved down to min_step while a step is not certified)")
+_BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's bounding sphere (Field.bounding_sphere; "
+               "rays that miss it are MISS at once); 0: all of [t_min, t_max]", 1)
 _HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)")
 _MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
 _REFINE_DOC = {
@@ -114,6 +116,7 @@ def _specs() -> list[MethodSpec]:
                 Knob("tol", 1e-10, float, 0.0, "stop when |φ(o + t d)| ≤ tol"),
                 _MAX_STEPS,
                 Knob("omega", 1.0, float, 1.0, "over-relaxation factor ω (Keinert et al. 2014; 1 = plain)", 1.99),
+                _BOUNDS,
             ),
             requires=("lipschitz",),
             description="Hart's sphere tracing t ← t + ω|φ|/L from t_min until |φ| ≤ tol "
@@ -122,7 +125,7 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="hybrid_secant",
             family="root",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS),
             requires=("lipschitz",),
             description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, Δ in "
             "[min_step, overstep] halved while a step is not certified by overlapping unbounding spheres, "
@@ -134,7 +137,7 @@ def _specs() -> list[MethodSpec]:
             name=f"march_{refine}",
             family="root",
             knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)"),
-                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps")),
+                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps"), _BOUNDS),
             requires=(),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
@@ -177,7 +180,7 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="render_surface", family="render",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS),
             requires=("lipschitz",), outputs=("color",), needs_color=True,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
         ),

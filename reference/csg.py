@@ -19,7 +19,7 @@ import functools
 import numpy as np
 
 from . import intervals as iv
-from .scene import Field, SceneInfo
+from .scene import Field, SceneInfo, enclosing_ball
 
 
 def _combine_info(children, exact_sdf=False) -> SceneInfo:
@@ -121,6 +121,9 @@ class Union(_NAry):
     _set_op = staticmethod(iv.union)
     _xp_op = "minimum"
 
+    def bounding_sphere(self):
+        return enclosing_ball(c.bounding_sphere() for c in self._children)
+
 
 
 class Intersection(_NAry):
@@ -130,6 +133,10 @@ class Intersection(_NAry):
     _pick = staticmethod(np.argmax)
     _set_op = staticmethod(iv.intersection)
     _xp_op = "maximum"
+
+    def bounding_sphere(self):
+        balls = [b for b in (c.bounding_sphere() for c in self._children) if b is not None]
+        return min(balls, key=lambda b: b[1]) if balls else None
 
 
 
@@ -189,3 +196,6 @@ class Difference(_Combination):
 
     def ray_intervals(self, o, d):
         return self._as_intersection.ray_intervals(o, d)
+
+    def bounding_sphere(self):
+        return self._as_intersection.bounding_sphere()  # a's ball (a complement is unbounded)

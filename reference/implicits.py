@@ -16,7 +16,7 @@ from .curvature import principal_from_hessian
 from .primitives import _positive, _vec3
 from .quadric import ray_sphere_roots
 from . import intervals as iv
-from .scene import Field, SceneInfo, _points
+from .scene import Field, SceneInfo, _points, sum_last
 
 
 def _info(lipschitz, domain, **kw):
@@ -53,11 +53,14 @@ class AlgebraicSphere(Field):
     def info(self):
         return _info(2.0 * self.domain_radius, f"|x - c| <= {self.domain_radius:g}")
 
+    def bounding_sphere(self):
+        return np.array(self.center), self.radius
+
     def _eval(self, x, xp, cursor):
         c = cursor.take(self.own_params()["center"])
         r = cursor.take(self.own_params()["radius"])
         v = x - c
-        return xp.sum(v * v, axis=-1) - r * r
+        return sum_last(xp, v * v) - r * r
 
     def ray_intervals(self, o, d):
         return iv.from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
@@ -100,10 +103,13 @@ class Ellipsoid(Field):
     def info(self):
         return _info(2.0 * self.domain_radius / min(self.axes) ** 2, f"|x| <= {self.domain_radius:g}")
 
+    def bounding_sphere(self):
+        return np.zeros(3), max(self.axes)
+
     def _eval(self, x, xp, cursor):
         a = cursor.take(self.own_params()["axes"])
         y = x / a
-        return xp.sum(y * y, axis=-1) - 1.0
+        return sum_last(xp, y * y) - 1.0
 
     def ray_intervals(self, o, d):
         a = np.asarray(self.axes)
@@ -148,6 +154,9 @@ class Scaled(Field):
             ci, exact_sdf=ci.exact_sdf and self.scale == 1.0,
             lipschitz=None if ci.lipschitz is None else self.scale * ci.lipschitz,
             distance_bound=ci.distance_bound and self.scale <= 1.0)
+
+    def bounding_sphere(self):
+        return self.child.bounding_sphere()  # k > 0: the same solid
 
     def _eval(self, x, xp, cursor):
         k = cursor.take(self.own_params()["scale"])

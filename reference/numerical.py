@@ -150,12 +150,14 @@ class CallableField(Field):
 
     It states only what the user tells it: ``lipschitz`` (a valid bound, or None), whether it
     is an ``exact_sdf``; hits come from :func:`first_hit_numeric`.  ``name`` identifies it in
-    case ids and hashes (a function has no stable content hash)."""
+    case ids and hashes (a function has no stable content hash).  ``bounds = (centre, radius)``
+    is an optional ball the user asserts contains every point where φ ≤ 0
+    (:meth:`Field.bounding_sphere`); a wrong ball makes the root finders miss surface outside it."""
 
     kind = "callable"
 
     def __init__(self, fn: Callable[[Any, Any], Any], lipschitz: float | None = None, exact_sdf: bool = False,
-                 name: str | None = None, domain: str | None = None):
+                 name: str | None = None, domain: str | None = None, bounds=None):
         if not callable(fn):
             raise ValueError(f"fn must be callable as fn(x, xp), got {type(fn).__name__}")
         if lipschitz is not None and not (math.isfinite(float(lipschitz)) and float(lipschitz) > 0):
@@ -163,6 +165,18 @@ class CallableField(Field):
         self.fn, self.lipschitz, self.exact_sdf = fn, None if lipschitz is None else float(lipschitz), bool(exact_sdf)
         self.name = name or f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}"
         self.domain = domain
+        self.bounds = None
+        if bounds is not None:
+            try:
+                c, r = np.asarray(bounds[0], np.float64), float(bounds[1])
+            except (TypeError, ValueError, IndexError):
+                raise ValueError(f"bounds must be (centre, radius), e.g. ((0, 0, 0), 1.5); got {bounds!r}") from None
+            if c.shape != (3,) or not np.all(np.isfinite(c)) or not (math.isfinite(r) and r > 0):
+                raise ValueError(f"bounds must be (centre: 3 finite numbers, radius > 0); got {bounds!r}")
+            self.bounds = (c, r)
+
+    def bounding_sphere(self):
+        return self.bounds
 
     @property
     def info(self):
@@ -173,6 +187,8 @@ class CallableField(Field):
     def spec(self):
         s = super().spec()
         s["static"] = {"name": self.name, "lipschitz": self.lipschitz, "exact_sdf": self.exact_sdf}
+        if self.bounds is not None:
+            s["static"]["bounds"] = [self.bounds[0].tolist(), self.bounds[1]]
         return s
 
     def _eval(self, x, xp, cursor):

@@ -22,7 +22,7 @@ import numpy as np
 from . import intervals as iv
 from .quadric import ray_cylinder_roots, ray_sphere_roots, ray_slab
 from .quartic import ray_torus
-from .scene import Field, SceneInfo, _points, const, norm, safe_norm, unit
+from .scene import Field, SceneInfo, _points, const, max_last, norm, safe_norm, sum_last, unit
 
 
 def _vec3(name: str, v) -> np.ndarray:
@@ -93,6 +93,9 @@ class Sphere(Field):
     def info(self) -> SceneInfo:
         return _sdf_info()
 
+    def bounding_sphere(self):
+        return np.array(self.center), self.radius
+
     def _eval(self, x, xp, cursor):
         c = cursor.take(self.own_params()["center"])
         r = cursor.take(self.own_params()["radius"])
@@ -147,9 +150,12 @@ class Plane(Field):
     def info(self):
         return _sdf_info()
 
+    def bounding_sphere(self):
+        return None  # a half-space
+
     def _eval(self, x, xp, cursor):
         h = cursor.take(self.own_params()["offset"])
-        return xp.sum(x * const(xp, x, np.asarray(self.normal)), axis=-1) - h
+        return sum_last(xp, x * const(xp, x, np.asarray(self.normal))) - h
 
     def ray_intervals(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
@@ -198,11 +204,14 @@ class Box(Field):
     def info(self):
         return _sdf_info(smooth=False)
 
+    def bounding_sphere(self):
+        return np.zeros(3), float(np.linalg.norm(self.half_size))
+
     def _eval(self, x, xp, cursor):
         b = cursor.take(self.own_params()["half_size"])
         q = xp.abs(x) - b
         zero = const(xp, q, 0.0)
-        return safe_norm(xp, xp.maximum(q, zero)) + xp.minimum(xp.max(q, axis=-1), const(xp, x[..., 0], 0.0))
+        return safe_norm(xp, xp.maximum(q, zero)) + xp.minimum(max_last(xp, q), const(xp, x[..., 0], 0.0))
 
     def ray_intervals(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
@@ -256,6 +265,9 @@ class Torus(Field):
     @property
     def info(self):
         return _sdf_info()
+
+    def bounding_sphere(self):
+        return np.zeros(3), self.major + self.minor
 
     def _eval(self, x, xp, cursor):
         R = cursor.take(self.own_params()["major"])
@@ -329,12 +341,16 @@ class Capsule(Field):
     def info(self):
         return _sdf_info()
 
+    def bounding_sphere(self):
+        a, b = np.array(self.a), np.array(self.b)
+        return 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + self.radius
+
     def _eval(self, x, xp, cursor):
         a = cursor.take(self.own_params()["a"])
         b = cursor.take(self.own_params()["b"])
         r = cursor.take(self.own_params()["radius"])
         pa, ba = x - a, b - a
-        h = xp.sum(pa * ba, axis=-1) / xp.sum(ba * ba, axis=-1)
+        h = sum_last(xp, pa * ba) / sum_last(xp, ba * ba)
         h = xp.minimum(xp.maximum(h, const(xp, h, 0.0)), const(xp, h, 1.0))
         return norm(xp, pa - h[..., None] * ba) - r
 
@@ -398,12 +414,15 @@ class CappedCylinder(Field):
     def info(self):
         return _sdf_info(smooth=False)
 
+    def bounding_sphere(self):
+        return np.zeros(3), float(np.hypot(self.radius, self.half_height))
+
     def _eval(self, x, xp, cursor):
         r = cursor.take(self.own_params()["radius"])
         h = cursor.take(self.own_params()["half_height"])
         w = xp.stack([norm(xp, x[..., 0:2]) - r, xp.abs(x[..., 2]) - h], axis=-1)
         zero = const(xp, w, 0.0)
-        return safe_norm(xp, xp.maximum(w, zero)) + xp.minimum(xp.max(w, axis=-1), const(xp, x[..., 0], 0.0))
+        return safe_norm(xp, xp.maximum(w, zero)) + xp.minimum(max_last(xp, w), const(xp, x[..., 0], 0.0))
 
     def ray_intervals(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")

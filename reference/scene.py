@@ -96,9 +96,34 @@ def const(xp: Any, like: Any, value: Any) -> Any:
     return _const(xp, like, value)
 
 
+def sum_last(xp: Any, v: Any) -> Any:
+    """Σ over the (short, coordinate) last axis; ``xp.sum(v, axis=-1)`` except in numpy, where it
+    is the explicit adds v[..., 0] + v[..., 1] + …: numpy runs a reduction over a length-3 axis
+    as one short inner loop per output (measured: 40% of a CSG φ at 2^20 rays), while the adds
+    are plain elementwise operations, contiguous on the root finders' structure-of-arrays views
+    (:mod:`impls.core.driver`).  torch and jax are faster with their reductions (measured:
+    torus ∪ box, torch 1.48 s vs 1.73 s, jax 1.09 s vs 1.32 s)."""
+    if xp is not np:
+        return xp.sum(v, axis=-1)
+    out = v[..., 0]
+    for i in range(1, v.shape[-1]):
+        out = out + v[..., i]
+    return out
+
+
+def max_last(xp: Any, v: Any) -> Any:
+    """max over the (short, coordinate) last axis (elementwise maxima in numpy: see :func:`sum_last`)."""
+    if xp is not np:
+        return xp.max(v, axis=-1)
+    out = v[..., 0]
+    for i in range(1, v.shape[-1]):
+        out = xp.maximum(out, v[..., i])
+    return out
+
+
 def norm(xp: Any, v: Any) -> Any:
     """Euclidean norm over the last axis, written with array-API primitives only."""
-    return xp.sqrt(xp.sum(v * v, axis=-1))
+    return xp.sqrt(sum_last(xp, v * v))
 
 
 def safe_norm(xp: Any, v: Any) -> Any:
@@ -107,7 +132,7 @@ def safe_norm(xp: Any, v: Any) -> Any:
     The "double where" keeps √ away from 0 in the traced graph, so the value is exactly |v|
     and reverse-mode through the unused branch sees a finite derivative.  Used where an SDF
     evaluates |max(q, 0)| with q ≤ 0 on the surface itself (box, capped cylinder)."""
-    s = xp.sum(v * v, axis=-1)
+    s = sum_last(xp, v * v)
     pos = s > 0
     return xp.where(pos, xp.sqrt(xp.where(pos, s, const(xp, s, 1.0))), const(xp, s, 0.0))
 
@@ -214,6 +239,19 @@ class Field:
     def _eval(self, x: Any, xp: Any, cursor: ParamCursor) -> Any:  # pragma: no cover
         raise NotImplementedError
 
+    # -- bounds ------------------------------------------------------------------------------
+    def bounding_sphere(self) -> tuple[np.ndarray, float] | None:
+        """A ball ``(centre (3,), radius)`` that contains every point where φ ≤ 0, or ``None``
+        when the solid is unbounded or no such ball is known (the default).
+
+        Outside the ball φ > 0, so a ray has no surface crossing outside it: the root finders
+        clip each ray's search interval to it (:func:`impls.core.rootfind.clip_to_ball`) and a
+        ray that misses it is a MISS without a step.  The ball is that of the stored parameters
+        (not of a θ passed to ``value``).  Composite nodes combine their children's balls:
+        union → a ball enclosing all, intersection → the smallest, difference → the first
+        operand's, complement → ``None``; a rigid transform moves the centre."""
+        return None
+
     # -- exact answers (float64 numpy; override where known) -------------------------------
     def ray_intervals(self, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
         """Per ray, the sorted boundaries of {t ∈ ℝ : φ(o + t d) < 0} as an array of shape
@@ -313,6 +351,19 @@ def _points(x, name: str = "x") -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"{name} must have shape (n, 3), got {a.shape}; reshape with {name}.reshape(-1, 3)")
     return a
+
+
+def enclosing_ball(balls) -> tuple[np.ndarray, float] | None:
+    """A ball containing every ball of ``balls`` (``None`` if any is ``None``): centred at the
+    middle of their bounding box, radius max |cᵢ − c| + rᵢ (not the smallest such ball, which
+    would need an iterative solver for a small gain in the clipped interval)."""
+    balls = list(balls)
+    if not balls or any(b is None for b in balls):
+        return None
+    cs = np.array([b[0] for b in balls], np.float64)
+    rs = np.array([b[1] for b in balls], np.float64)
+    c = 0.5 * ((cs - rs[:, None]).min(axis=0) + (cs + rs[:, None]).max(axis=0))
+    return c, float(np.max(np.linalg.norm(cs - c, axis=1) + rs))
 
 
 def first_hit_from_intervals(intervals: list[np.ndarray], t_min: float = 0.0) -> np.ndarray:

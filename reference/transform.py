@@ -56,6 +56,10 @@ class Transform(Field):
     def info(self):
         return dataclasses.replace(self.child.info)
 
+    def bounding_sphere(self):
+        b = self.child.bounding_sphere()
+        return None if b is None else (self.rotation @ b[0] + self.translation, b[1])
+
     def _rebuild(self, own, children):
         return Transform(children[0], self.rotation, own["translation"])
 

@@ -24,7 +24,7 @@ from tests.conftest import BACKEND_IDS, resolve_or_skip
 from reference import Sphere
 from reference.rendering import SineColor, render_exact
 from reference.rays import normalize, pinhole
-from reference.scene import Field, SceneInfo, norm
+from reference.scene import Field, SceneInfo, enclosing_ball, norm
 
 # -- test scenes with exact answers -------------------------------------------------------------
 
@@ -97,6 +97,9 @@ class SphereUnion(Field):
 
     def first_hit(self, o, d, t_min=0.0):
         return np.minimum(self.a.first_hit(o, d, t_min), self.b.first_hit(o, d, t_min))
+
+    def bounding_sphere(self):
+        return enclosing_ball([self.a.bounding_sphere(), self.b.bounding_sphere()])
 
 
 class LambdaField(Field):
@@ -241,6 +244,57 @@ def test_every_root_status_is_produced_on_purpose(any_backend):
     assert np.all(r.status == Status.NON_FINITE) and np.all(np.isnan(r.t))
     seen |= set(r.status.tolist())
     assert {Status.CONVERGED, Status.MISS, Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT} <= seen
+
+
+def silhouette_rays(ball, n=64, delta_min=1e-12):
+    """Rays from distance 3 that pass the ball's centre at impact parameters r(1 ± δ), δ from
+    ``delta_min`` to 1e-2 (the rays the clipping's padding must not turn from hits into misses
+    or back), plus rays that miss the ball by a wide margin."""
+    c, r = ball
+    rng = np.random.default_rng(3)
+    delta = np.geomspace(delta_min, 1e-2, n // 2)
+    b = r * np.concatenate([1 - delta, 1 + delta, [1.5, 3.0]])
+    u = normalize(rng.normal(size=(b.size, 3)))
+    d = normalize(np.cross(u, rng.normal(size=(b.size, 3))))  # ⟂ u
+    return c + b[:, None] * u - 3.0 * d, d
+
+
+@pytest.mark.parametrize("method", ROOT_METHODS)
+@pytest.mark.parametrize("scene_name", ["sphere", "union"])
+def test_bounding_sphere_clip_keeps_every_answer_and_skips_the_rest(any_backend, method, scene_name):
+    """Knob ``bounds``: clipping rays to the scene's bounding sphere changes no answer (status,
+    depth), makes rays that miss the ball a MISS after the start evaluation and no iteration, and
+    costs fewer evaluations in all.  Certified methods also get rays grazing the ball (the
+    sphere's own silhouette); the marchers, which may miss a chord shorter than their step
+    wherever their samples fall, get the camera's rays only."""
+    scene = SCENES[scene_name]
+    ball = scene.bounding_sphere()
+    o, d = camera(8)
+    if method in ("sphere_trace", "hybrid_secant"):
+        # plain sphere tracing certifies a miss that passes δ·r from the surface in ~√(1/δ) steps
+        # (never, when δ·r < tol): it gets δ ≥ 1e-8
+        o2, d2 = silhouette_rays(ball, delta_min=1e-8 if method == "sphere_trace" else 1e-12)
+        o, d = np.concatenate([o, o2]), np.concatenate([d, d2])
+    exact = scene.first_hit(o, d, 0.0)
+    hit = np.isfinite(exact)
+    knobs = dict(TIGHT[method], max_steps=200000) if method == "sphere_trace" else TIGHT[method]
+    on = run(any_backend, method, scene, o, d, bounds=1, **knobs)
+    off = run(any_backend, method, scene, o, d, bounds=0, **knobs)
+    outside = np.linalg.norm(np.cross(ball[0] - o, d), axis=1) > ball[1] * (1 + 1e-3)
+    assert outside.any() and hit.any()
+    # one evaluation at the start (numpy's Newton: its 3-point derivative stencil), no iteration
+    assert np.all(on.status[outside] == Status.MISS) and np.all(on.evals[outside] == on.evals.min())
+    assert on.evals.min() <= 3
+    assert np.all(on.iterations[outside] == 0)
+    # hybrid_secant's documented limit: a crossing whose chord is shorter than min_step (1e-5)
+    # may be missed, with or without the clip (where its samples fall decides)
+    spheres = scene.children or (scene,)
+    chord = np.max([[b[1] - b[0] if b.size else 0.0 for b in s.ray_intervals(o, d)] for s in spheres], axis=0)
+    sure = hit & (chord >= 1e-5) if method == "hybrid_secant" else hit
+    for r in (on, off):
+        assert np.all(r.status[sure] == Status.CONVERGED) and np.all(r.status[~hit] == Status.MISS), r.status_counts()
+        np.testing.assert_allclose(r.t[sure], exact[sure], rtol=0, atol=1e-9)
+    assert on.evals.sum() < off.evals.sum()
 
 
 def test_over_relaxation_is_safe(any_backend):

@@ -230,13 +230,15 @@ def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
     def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=None, **knobs):
         xp = backend.xp
         differentiable = grad_hess is not None
+        given = theta is not None  # a caller's θ: the root finder uses it (and so no bounding sphere)
         if differentiable and theta is None:
             from .param_grad import theta0
 
             theta = theta0(backend, scene, o)
         const = stop_gradient if differentiable else (lambda a: a)
         th_c = None if theta is None else const(theta)
-        s = solve("render_surface", backend, scene, const(o), const(d), t_min=t_min, t_max=t_max, theta=th_c, **knobs)
+        s = solve("render_surface", backend, scene, const(o), const(d), t_min=t_min, t_max=t_max,
+                  theta=th_c if given else None, **knobs)
         ok = s["status"] == CONV
         o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
         d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))

@@ -35,6 +35,32 @@ def bad_rays(xp, o, d):
     return ~(xp.all(xp.isfinite(o), axis=1) & xp.all(xp.isfinite(d), axis=1))
 
 
+def clip_to_ball(xp, o, d, t_min: float, t_max: float, ball):
+    """Per-ray search interval [lo, hi] = [t_min, t_max] ∩ {t : |o + t d − c| ≤ R} and the
+    rays for which it is empty (``outside``), for a scene whose solid lies in the ball (c, r)
+    (:meth:`reference.scene.Field.bounding_sphere`); ``ball`` None: no clipping.
+
+    With |d| = 1, w = c − o, t_c = ⟨w, d⟩ and the perpendicular p = w − t_c d (computed directly,
+    not as |w|² − t_c², which cancels for distant origins): the chord is t_c ± √(R² − |p|²).
+    R = r + pad with pad = 1e-6·r + 32ε(|w| + r) per ray: the computed end points are off the
+    sphere by a few ε(|w| + r) (ε of the working dtype), and the pad keeps them outside the
+    solid, where φ > 0, so no crossing is clipped away."""
+    if ball is None:
+        return xp.full_like(o[:, 0], t_min), xp.full_like(o[:, 0], t_max), xp.zeros_like(o[:, 0], dtype=xp.bool)
+    c, r = ball
+    eps = float(xp.finfo(o.dtype).eps)
+    w = xp.stack([c[i] - o[:, i] for i in range(3)], axis=1)
+    tc = xp.sum(w * d, axis=1)
+    p = w - tc[:, None] * d
+    rad = (1.0 + 1e-6) * r + 32 * eps * (xp.sqrt(xp.sum(w * w, axis=1)) + r)
+    q = rad * rad - xp.sum(p * p, axis=1)
+    half = xp.sqrt(xp.where(q >= 0, q, 0.0))
+    lo = xp.maximum(tc - half, t_min)
+    hi = xp.minimum(tc + half, t_max)
+    outside = ~((q >= 0) & (lo <= hi))
+    return lo, hi, outside
+
+
 def _quiet(xp):
     """Silence numpy's divide warnings where a non-finite result is handled explicitly."""
     import contextlib
@@ -61,6 +87,15 @@ def _finish(xp, s, t_new, f_new, conv, iters, max_steps):
     return status, t_new
 
 
+def _start(xp, o, d, t_min, t_max, ball):
+    """Start depth, per-ray end ``hi`` and initial status of every ray: BAD_INPUT, MISS (the
+    search interval clipped to the bounding sphere is empty; evaluated at t_min, harmlessly,
+    so that every ray costs one evaluation at start) or IN_PROGRESS."""
+    lo, hi, outside = clip_to_ball(xp, o, d, t_min, t_max, ball)
+    status = xp.where(bad_rays(xp, o, d), BAD, xp.where(outside, MISS, IN))
+    return xp.where(outside, t_min, lo), hi, xp.astype(status, xp.int32)
+
+
 # -- sphere tracing ----------------------------------------------------------------------------
 
 
@@ -74,7 +109,8 @@ class SphereTrace:
     t_{k−1}, r = |φ|/L) the relaxed step may have jumped over the surface, so the tracer goes
     back to the safe point t_{k−1} + r_{k−1} and continues with ω = 1; a point is accepted only
     when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
-    when the next t exceeds t_max; MAX_ITER after ``max_steps`` steps.  One φ evaluation at
+    when the next t exceeds t_max (or leaves the bounding sphere, see :func:`clip_to_ball`);
+    MAX_ITER after ``max_steps`` steps.  One φ evaluation at
     t_min plus one per step (a step that leaves the range re-evaluates the last point: one
     evaluation per iteration keeps the loop shape fixed).
     """
@@ -85,19 +121,18 @@ class SphereTrace:
     omega: float
     t_min: float
     t_max: float
+    ball: tuple | None = None  # the scene's bounding sphere (c, r): search only inside it
 
     stages = ("step",)
 
     def init(self, xp, o, d, ev):
-        n = o.shape[0]
-        t = xp.full_like(o[:, 0], self.t_min)
-        bad = bad_rays(xp, o, d)
+        t, hi, status = _start(xp, o, d, self.t_min, self.t_max, self.ball)
         f, _, cost = ev(o, d, t, False)
-        s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega),
-             "status": xp.astype(xp.where(bad, BAD, IN), xp.int32), "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
+        s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
+             "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
              "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32), "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
         status, t = _finish(xp, s, t, f, xp.abs(f) <= self.tol, s["iterations"], self.max_steps + 1)
-        s.update(status=status, t=t)
+        s.update(status=status, t=xp.where(status == MISS, math.inf, t))
         return s
 
     def step(self, xp, s, o, d, ev):
@@ -108,7 +143,7 @@ class SphereTrace:
         t_prev = xp.where(fail, s["t_prev"], t)
         r_prev = xp.where(fail, s["r_prev"], r)
         om = xp.where(fail, xp.ones_like(om), om)
-        out = t_new > self.t_max
+        out = t_new > s["hi"]
         f_new, _, cost = ev(o, d, xp.where(out, t, t_new), False)
         iters = s["iterations"] + 1
         # accept a point only if its unbounding sphere overlaps the previous one (Keinert et al.)
@@ -129,7 +164,7 @@ class MarchRefine:
     bracket (stage ``step_refine``).
 
     Marching (DVR, UNISURF): samples t_{k+1} = t_k + h_k from t_min, the last one clamped to
-    t_max.  Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a
+    t_max (both clipped to the scene's bounding sphere when ``ball`` is set: :func:`clip_to_ball`).  Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a
     surface crossed twice within one step (a feature thinner than the step) is not seen — that
     is marching's documented limit.
 
@@ -149,7 +184,11 @@ class MarchRefine:
     (1+√5)/2 near a simple root); ``newton`` t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2).  Secant
     and Newton iterates that leave the bracket are replaced by the midpoint (safeguard), so
     every variant converges.  Converged when φ = 0 exactly, the bracket is narrower than
-    ``xtol``, or (secant/Newton) the last step was shorter than ``xtol``.  ``t`` is the last
+    ``xtol``, or (secant/Newton) the last step or the next one is shorter than ``xtol``: the
+    next step, f_c·(c − t)/(f_c − f) (Newton: f_c/φ'(c)), estimates the error of the iterate c
+    just evaluated, so stopping on it saves the evaluation that would only confirm it; ``t`` is
+    then that step's end (clipped to the bracket; the secant's error there is of the
+    order of the step squared over the previous one), otherwise the last iterate.  ``t`` is the last
     iterate.  ``max_steps`` bounds marching plus refinement steps.
     """
 
@@ -161,6 +200,7 @@ class MarchRefine:
     t_min: float
     t_max: float
     overstep: float | None = None  # hybrid only: largest forced step Δ (None: = min_step)
+    ball: tuple | None = None  # the scene's bounding sphere (c, r): search only inside it
 
     stages = ("step_march", "step_refine")
 
@@ -173,18 +213,17 @@ class MarchRefine:
         return self.inv_lip is not None
 
     def init(self, xp, o, d, ev):
-        t = xp.full_like(o[:, 0], self.t_min)
-        bad = bad_rays(xp, o, d)
+        t, hi, status = _start(xp, o, d, self.t_min, self.t_max, self.ball)
         f, df, cost = ev(o, d, t, self.deriv)
-        s = {"t": t, "f": f, "p": t, "fp": f, "a": t, "fa": f, "b": t, "fb": f,
-             "phase": xp.zeros_like(o[:, 0], dtype=xp.int32), "status": xp.astype(xp.where(bad, BAD, IN), xp.int32),
+        s = {"t": t, "f": f, "p": t, "fp": f, "a": t, "fa": f, "b": t, "fb": f, "hi": hi,
+             "phase": xp.zeros_like(o[:, 0], dtype=xp.int32), "status": status,
              "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32), "evals": xp.full_like(o[:, 0], cost, dtype=xp.int32)}
         if self.deriv:
             s["df"] = df
         if self._hybrid:
             s["dl"] = xp.full_like(t, max(self.overstep or self.min_step, self.min_step))
         status, t = _finish(xp, s, t, f, f == 0, s["iterations"], self.max_steps + 1)
-        s.update(status=status, t=t)
+        s.update(status=status, t=xp.where(status == MISS, math.inf, t))
         return s
 
     # Both stage steps assume every row they are given is IN_PROGRESS in their stage (the
@@ -199,12 +238,12 @@ class MarchRefine:
             h = xp.maximum(r, s["dl"])
         else:
             h = self.min_step
-        t_n = xp.minimum(t + h, self.t_max)
+        t_n = xp.minimum(t + h, s["hi"])
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
         zero = f_n == 0
         cross = zero | ((f_n > 0) != (f > 0))
         finite = xp.isfinite(f_n)
-        miss = ~cross & finite & (t_n >= self.t_max)
+        miss = ~cross & finite & (t_n >= s["hi"])
         new = {}
         if self._hybrid:
             # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
@@ -247,7 +286,13 @@ class MarchRefine:
         nb, nfb = xp.where(same_a, b, c), xp.where(same_a, s["fb"], f_c)
         conv = (f_c == 0) | (nb - na <= self.xtol)
         if self.refine != "bisect":
-            conv = conv | (xp.abs(c - t) <= self.xtol)
+            with _quiet(xp):  # the next iterate is c − nxt (NaN/inf when f_c = f or φ' = 0: no verdict)
+                nxt = f_c / df_c if self.refine == "newton" else f_c * (c - t) / (f_c - f)
+            predicted = (xp.abs(nxt) <= self.xtol) & ~conv & ~(xp.abs(c - t) <= self.xtol)
+            conv = conv | (xp.abs(c - t) <= self.xtol) | predicted
+            # stopped on the predicted step: report the step's end (kept in the bracket), which is
+            # far more accurate than c and costs no evaluation
+            c = xp.where(predicted, xp.minimum(xp.maximum(c - xp.where(predicted, nxt, 0.0), na), nb), c)
         iters = s["iterations"] + 1
         finite = xp.isfinite(f_c)
         status = xp.where(~finite, NONF, xp.where(conv, CONV, xp.where(iters >= self.max_steps, MAXI, IN)))

@@ -95,7 +95,7 @@ def run_loop(alg, o, d, ev, chunk=CHUNK, cap=CAP):
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
-    alg = make_root_finder(method, scene, t_min, t_max, knobs)
+    alg = make_root_finder(method, scene, t_min, t_max, knobs, theta)
     return run_loop(alg, o, d, ray_eval(backend, scene, theta))
 
 
