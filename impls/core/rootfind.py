@@ -110,8 +110,8 @@ class SphereTrace:
     back to the safe point t_{k−1} + r_{k−1} and continues with ω = 1; a point is accepted only
     when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
     when the next t exceeds t_max (or leaves the bounding sphere, see :func:`clip_to_ball`);
-    MAX_ITER after ``max_steps`` steps.  One φ evaluation at
-    t_min plus one per step (a step that leaves the range re-evaluates the last point: one
+    MAX_ITER after ``max_steps`` steps.  One φ evaluation at t_min (the bounding sphere's entry,
+    when that is later) plus one per step (a step that leaves the range re-evaluates the last point: one
     evaluation per iteration keeps the loop shape fixed).
     """
 
@@ -164,8 +164,9 @@ class MarchRefine:
     bracket (stage ``step_refine``).
 
     Marching (DVR, UNISURF): samples t_{k+1} = t_k + h_k from t_min, the last one clamped to
-    t_max (both clipped to the scene's bounding sphere when ``ball`` is set: :func:`clip_to_ball`).  Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a
-    surface crossed twice within one step (a feature thinner than the step) is not seen — that
+    t_max (both clipped to the scene's bounding sphere when ``ball`` is set: :func:`clip_to_ball`).
+    Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a surface
+    crossed twice within one step (a feature thinner than the step) is not seen — that
     is marching's documented limit.
 
     IDR-style hybrid (``inv_lip`` = 1/L set): h_k = max(r_k, Δ_k) with r_k = |φ(t_k)|/L, the
