@@ -24,6 +24,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from reference.scene import norm, sum_last
+
 from ..protocol import Status
 
 IN, CONV, MISS, MAXI, NONF, BAD = (int(s) for s in (Status.IN_PROGRESS, Status.CONVERGED, Status.MISS,
@@ -50,10 +52,10 @@ def clip_to_ball(xp, o, d, t_min: float, t_max: float, ball):
     c, r = ball
     eps = float(xp.finfo(o.dtype).eps)
     w = xp.stack([c[i] - o[:, i] for i in range(3)], axis=1)
-    tc = xp.sum(w * d, axis=1)
+    tc = sum_last(xp, w * d)
     p = w - tc[:, None] * d
-    rad = (1.0 + 1e-6) * r + 32 * eps * (xp.sqrt(xp.sum(w * w, axis=1)) + r)
-    q = rad * rad - xp.sum(p * p, axis=1)
+    rad = (1.0 + 1e-6) * r + 32 * eps * (norm(xp, w) + r)
+    q = rad * rad - sum_last(xp, p * p)
     half = xp.sqrt(xp.where(q >= 0, q, 0.0))
     lo = xp.maximum(tc - half, t_min)
     hi = xp.minimum(tc + half, t_max)
@@ -289,11 +291,12 @@ class MarchRefine:
         if self.refine != "bisect":
             with _quiet(xp):  # the next iterate is c − nxt (NaN/inf when f_c = f or φ' = 0: no verdict)
                 nxt = f_c / df_c if self.refine == "newton" else f_c * (c - t) / (f_c - f)
-            predicted = (xp.abs(nxt) <= self.xtol) & ~conv & ~(xp.abs(c - t) <= self.xtol)
-            conv = conv | (xp.abs(c - t) <= self.xtol) | predicted
+            small_step = xp.abs(c - t) <= self.xtol
+            predicted = (xp.abs(nxt) <= self.xtol) & ~conv & ~small_step
+            conv = conv | small_step | predicted
             # stopped on the predicted step: report the step's end (kept in the bracket), which is
             # far more accurate than c and costs no evaluation
-            c = xp.where(predicted, xp.minimum(xp.maximum(c - xp.where(predicted, nxt, 0.0), na), nb), c)
+            c = xp.where(predicted, xp.minimum(xp.maximum(c - nxt, na), nb), c)
         iters = s["iterations"] + 1
         finite = xp.isfinite(f_c)
         status = xp.where(~finite, NONF, xp.where(conv, CONV, xp.where(iters >= self.max_steps, MAXI, IN)))
