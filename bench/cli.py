@@ -274,7 +274,10 @@ def cmd_speed(args) -> int:
     ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
     knobs = json.loads(args.knobs) if args.knobs else {}
     rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=knobs)
-    print(f"{args.side}² rays, {args.method}, × unit = time / numpy closed-form sphere hit of the same rays (same run)")
+    for row in rows:
+        row["threads"] = args.threads
+    print(f"{args.side}² rays, {args.method}, {args.threads} thread(s) per library and root-finder driver, "
+          "× unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)")
     print(speed.format_rows(rows))
     if args.out:
         from .results import write_json
@@ -361,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--knobs", help='JSON knob dict, e.g. \'{"xtol": 1e-8}\' (default: the method\'s defaults)')
     sp.add_argument("--side", type=int, default=1024, help="rays per image side (default 1024: 2^20 rays)")
     sp.add_argument("--repeats", type=int, default=3)
-    sp.add_argument("--threads", type=int, default=1)
+    sp.add_argument("--threads", type=int, default=1, help="threads per library and worker threads of the numpy/torch "
+                    "root-finder drivers (default 1)")
     sp.add_argument("--out", help="write the rows as JSON")
     sp.set_defaults(fn=cmd_speed)
 

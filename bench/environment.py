@@ -35,6 +35,7 @@ def _cpu_model() -> str:
 
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+RECORDED_VARS = THREAD_VARS + ("ISOBENCH_THREADS", "XLA_FLAGS")
 
 
 def configure_threads(n: int) -> dict[str, str]:
@@ -48,6 +49,10 @@ def configure_threads(n: int) -> dict[str, str]:
     for var in THREAD_VARS:
         if not os.environ.get(var):
             os.environ[var] = done[var] = str(n)
+    # isobench's own: the worker threads of the numpy/torch root-finder drivers
+    # (impls.core.driver.worker_threads)
+    if not os.environ.get("ISOBENCH_THREADS"):
+        os.environ["ISOBENCH_THREADS"] = done["ISOBENCH_THREADS"] = str(n)
     if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
         # XLA's CPU client spreads element-wise work over its Eigen thread pool; off = one thread
         flags = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
@@ -57,7 +62,7 @@ def configure_threads(n: int) -> dict[str, str]:
 
 def thread_counts() -> dict[str, str]:
     """Thread counts in effect (recorded with every run)."""
-    out = {f"env.{v}": os.environ.get(v, "") for v in THREAD_VARS + ("XLA_FLAGS",)}
+    out = {f"env.{v}": os.environ.get(v, "") for v in RECORDED_VARS}
     import sys
 
     if "torch" in sys.modules:

@@ -84,8 +84,8 @@ _MIN_STEP = Knob("min_step", 1e-5, float, 1e-9,
                  "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed")
 _OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,
                  "largest forced step Δ beyond |φ|/L (halved down to min_step while a step is not certified)")
-_BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's bounding sphere (Field.bounding_sphere; "
-               "rays that miss it are MISS at once); 0: all of [t_min, t_max]", 1)
+_BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's ray bounds (Field.ray_bounds: bounding "
+               "spheres, boxes, a union's hull; rays outside them are MISS at once); 0: all of [t_min, t_max]", 1)
 _HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)")
 _MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
 _REFINE_DOC = {

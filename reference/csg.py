@@ -19,6 +19,7 @@ import functools
 import numpy as np
 
 from . import intervals as iv
+from . import raybounds
 from .scene import Field, SceneInfo, enclosing_ball
 
 
@@ -124,6 +125,9 @@ class Union(_NAry):
     def bounding_sphere(self):
         return enclosing_ball(c.bounding_sphere() for c in self._children)
 
+    def ray_bounds(self, xp, o, d):
+        return raybounds.hull(xp, *(c.ray_bounds(xp, o, d) for c in self._children))
+
 
 
 class Intersection(_NAry):
@@ -137,6 +141,9 @@ class Intersection(_NAry):
     def bounding_sphere(self):
         balls = [b for b in (c.bounding_sphere() for c in self._children) if b is not None]
         return min(balls, key=lambda b: b[1]) if balls else None
+
+    def ray_bounds(self, xp, o, d):
+        return raybounds.meet(xp, *(c.ray_bounds(xp, o, d) for c in self._children))
 
 
 
@@ -199,3 +206,6 @@ class Difference(_Combination):
 
     def bounding_sphere(self):
         return self._as_intersection.bounding_sphere()  # a's ball (a complement is unbounded)
+
+    def ray_bounds(self, xp, o, d):
+        return self._as_intersection.ray_bounds(xp, o, d)  # a's bound

@@ -16,6 +16,7 @@ from .curvature import principal_from_hessian
 from .primitives import _positive, _vec3
 from .quadric import ray_sphere_roots
 from . import intervals as iv
+from . import raybounds
 from .scene import Field, SceneInfo, _points, sum_last
 
 
@@ -106,6 +107,9 @@ class Ellipsoid(Field):
     def bounding_sphere(self):
         return np.zeros(3), max(self.axes)
 
+    def ray_bounds(self, xp, o, d):
+        return raybounds.box_chord(xp, o, d, self.axes, max(self.axes))  # its bounding box
+
     def _eval(self, x, xp, cursor):
         a = cursor.take(self.own_params()["axes"])
         y = x / a
@@ -157,6 +161,9 @@ class Scaled(Field):
 
     def bounding_sphere(self):
         return self.child.bounding_sphere()  # k > 0: the same solid
+
+    def ray_bounds(self, xp, o, d):
+        return self.child.ray_bounds(xp, o, d)
 
     def _eval(self, x, xp, cursor):
         k = cursor.take(self.own_params()["scale"])

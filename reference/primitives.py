@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from . import intervals as iv
+from . import raybounds
 from .quadric import ray_cylinder_roots, ray_sphere_roots, ray_slab
 from .quartic import ray_torus
 from .scene import Field, SceneInfo, _points, const, max_last, norm, safe_norm, sum_last, unit
@@ -207,6 +208,9 @@ class Box(Field):
     def bounding_sphere(self):
         return np.zeros(3), float(np.linalg.norm(self.half_size))
 
+    def ray_bounds(self, xp, o, d):
+        return raybounds.box_chord(xp, o, d, self.half_size, self.bounding_sphere()[1])  # the box itself
+
     def _eval(self, x, xp, cursor):
         b = cursor.take(self.own_params()["half_size"])
         q = xp.abs(x) - b
@@ -268,6 +272,11 @@ class Torus(Field):
 
     def bounding_sphere(self):
         return np.zeros(3), self.major + self.minor
+
+    def ray_bounds(self, xp, o, d):
+        size = self.major + self.minor  # the ball of radius R + r ∩ the slab |z| ≤ r
+        return raybounds.meet(xp, raybounds.ball_chord(xp, o, d, (0.0, 0.0, 0.0), size),
+                              raybounds.slab_chord(xp, o, d, 2, self.minor, size))
 
     def _eval(self, x, xp, cursor):
         R = cursor.take(self.own_params()["major"])
@@ -416,6 +425,10 @@ class CappedCylinder(Field):
 
     def bounding_sphere(self):
         return np.zeros(3), float(np.hypot(self.radius, self.half_height))
+
+    def ray_bounds(self, xp, o, d):
+        r, h = self.radius, self.half_height  # the box |x|, |y| ≤ r, |z| ≤ h around it
+        return raybounds.box_chord(xp, o, d, (r, r, h), self.bounding_sphere()[1])
 
     def _eval(self, x, xp, cursor):
         r = cursor.take(self.own_params()["radius"])

@@ -70,7 +70,7 @@ def ray_slab(o_axis: np.ndarray, d_axis: np.ndarray, lo: float, hi: float):
     o_axis = np.asarray(o_axis, np.float64)
     d_axis = np.asarray(d_axis, np.float64)
     par = d_axis == 0
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # overflow: ±inf, which is right
         ta = (lo - o_axis) / d_axis
         tb = (hi - o_axis) / d_axis
     t0, t1 = np.fmin(ta, tb), np.fmax(ta, tb)

@@ -242,13 +242,31 @@ class Field:
         """A ball ``(centre (3,), radius)`` that contains every point where φ ≤ 0, or ``None``
         when the solid is unbounded or no such ball is known (the default).
 
-        Outside the ball φ > 0, so a ray has no surface crossing outside it: the root finders
-        clip each ray's search interval to it (:func:`impls.core.rootfind.clip_to_ball`) and a
-        ray that misses it is a MISS without a step.  The ball is that of the stored parameters
+        Outside the ball φ > 0, so a ray has no surface crossing outside it: the default
+        :meth:`ray_bounds`, to which the root finders clip each ray's search interval
+        (:func:`impls.core.rootfind.clip_to_bounds`), is its chord.  The ball is that of the stored parameters
         (not of a θ passed to ``value``).  Composite nodes combine their children's balls:
         union → a ball enclosing all, intersection → the smallest, difference → the first
         operand's, complement → ``None``; a rigid transform moves the centre."""
         return None
+
+    def ray_bounds(self, xp: Any, o: Any, d: Any) -> tuple[Any, Any]:
+        """Per ray o + t d (rows of ``o``, ``d``; |d| = 1), arrays ``(lo, hi)`` such that every t
+        with φ(o + t d) ≤ 0 lies in [lo, hi] (+inf, −inf: none; −inf, +inf: no bound), for the
+        stored parameters, computed with ``xp`` (:mod:`reference.raybounds`; padded against
+        rounding).  The root finders search only inside it.
+
+        Default: the chord of :meth:`bounding_sphere`, or the whole line without one.  Nodes
+        that know more override it: a box is its slab test, a torus a ball ∩ slab, a union the
+        hull of its children's bounds (so a ray between two far-apart children that misses
+        both is a miss), an intersection their overlap, a transform its child's in local
+        coordinates."""
+        from .raybounds import ball_chord, unbounded_like
+
+        ball = self.bounding_sphere()
+        if ball is None:
+            return unbounded_like(xp, o)
+        return ball_chord(xp, o, d, ball[0], float(ball[1]))
 
     # -- exact answers (float64 numpy; override where known) -------------------------------
     def ray_intervals(self, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:

@@ -60,6 +60,10 @@ class Transform(Field):
         b = self.child.bounding_sphere()
         return None if b is None else (self.rotation @ b[0] + self.translation, b[1])
 
+    def ray_bounds(self, xp, o, d):
+        R = const(xp, o, self.rotation)  # a rigid motion keeps t: bound the local ray
+        return self.child.ray_bounds(xp, xp.matmul(o - const(xp, o, self.translation), R), xp.matmul(d, R))
+
     def _rebuild(self, own, children):
         return Transform(children[0], self.rotation, own["translation"])
 

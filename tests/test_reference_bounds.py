@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from reference import Sphere
 from reference.cases import case_ids, get_case
 from reference.csg import Complement, Difference, Intersection, Union
-from reference.implicits import Scaled
+from reference.implicits import Ellipsoid, Scaled
 from reference.numerical import CallableField
 from reference.transform import Transform
 from test_reference_hits import _placements, _primitive
@@ -78,15 +78,146 @@ def test_balls_of_the_nodes():
         CallableField(lambda x, xp: x[..., 0], bounds=((0, 0), 1.0))
 
 
-@settings(max_examples=40, deadline=None)
-@given(_placements, _placements, st.sampled_from(["union", "intersection", "difference", "scaled"]))
-def test_property_random_csg_ball_contains_the_solid(p, q, op):
+def _random_csg(p, q, op):
+    """Two randomly placed primitives combined by ``op``."""
     a = Transform.from_rotvec(_primitive(p[0]), p[1], p[2])
     b = Transform.from_rotvec(_primitive(q[0]), q[1], q[2])
-    scene = {"union": lambda: Union(a, b), "intersection": lambda: Intersection(a, b),
-             "difference": lambda: Difference(a, b), "scaled": lambda: Scaled(Union(a, b), 0.3)}[op]()
+    return {"union": lambda: Union(a, b), "intersection": lambda: Intersection(a, b),
+            "difference": lambda: Difference(a, b), "scaled": lambda: Scaled(Union(a, b), 0.3)}[op]()
+
+
+_OPS = st.sampled_from(["union", "intersection", "difference", "scaled"])
+
+
+@settings(max_examples=40, deadline=None)
+@given(_placements, _placements, _OPS)
+def test_property_random_csg_ball_contains_the_solid(p, q, op):
+    scene = _random_csg(p, q, op)
     rng = np.random.default_rng(q[3])
     o = rng.uniform(-3, 3, size=(64, 3))
     d = rng.normal(size=(64, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     assert _check_ball(scene, o, d, rng)
+
+
+# -- ray bounds (Field.ray_bounds): per-ray intervals that contain the solid's part of the ray ---
+
+
+def _check_ray_bounds(scene, o, d, rng, xp_name="numpy"):
+    """Every exact interval boundary lies inside [lo, hi]; φ > 0 at sampled depths outside it
+    (at 1e-9 to 1 of its ends, in the working dtype's arithmetic); a ray with an empty bound
+    has no crossing.  Returns the fraction of rays with an empty bound."""
+    lo, hi = scene.ray_bounds(np, o, d)
+    assert lo.shape == hi.shape == (o.shape[0],) and not np.any(np.isnan(lo) | np.isnan(hi))
+    empty = ~(lo <= hi)
+    if scene.info.exact_hits:
+        for i, bnd in enumerate(scene.ray_intervals(o, d)):
+            bnd = bnd[np.isfinite(bnd)]
+            assert not (empty[i] and bnd.size), f"ray {i}: the bound is empty but the ray crosses at {bnd}"
+            assert np.all((bnd >= lo[i]) & (bnd <= hi[i])), f"ray {i}: crossings {bnd} outside [{lo[i]}, {hi[i]}]"
+    off = np.concatenate([np.geomspace(1e-9, 1.0, 12), rng.uniform(0, 3, 4)])
+    for side, end in ((-1, lo), (1, hi)):
+        ok = np.isfinite(end)
+        t = end[ok, None] + side * off[None, :]
+        x = o[ok, None, :] + t[..., None] * d[ok, None, :]
+        phi = scene.value(x.reshape(-1, 3))
+        assert np.all(phi > 0), f"φ = {phi.min():.3g} ≤ 0 outside the ray bound"
+    # rays with an empty bound: φ > 0 all along them (sampled)
+    if empty.any():
+        t = np.linspace(-4, 8, 200)
+        x = o[empty, None, :] + t[None, :, None] * d[empty, None, :]
+        assert np.all(scene.value(x.reshape(-1, 3)) > 0)
+    return float(empty.mean())
+
+
+def _rays_at(rng, n=256, spread=2.5):
+    o = rng.uniform(-spread, spread, size=(n, 3)) + rng.normal(size=(n, 3)) * 2
+    d = rng.normal(size=(n, 3))
+    # a quarter of the rays run parallel to a coordinate plane or along an axis (the slab test's
+    # division-free branch)
+    d[: n // 8, 2] = 0.0
+    d[n // 8 : n // 4, :2] = 0.0
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("cid", case_ids())
+def test_every_case_ray_bounds_contain_the_solid(cid):
+    case = get_case(cid)
+    rng = np.random.default_rng(1)
+    _check_ray_bounds(case.scene, case.origins, case.directions, rng)
+    o, d = _rays_at(rng)
+    _check_ray_bounds(case.scene, o, d, rng)
+
+
+def test_ray_bounds_of_the_nodes_are_tight_where_they_can_be():
+    """A box's bound is its slab test; a torus's excludes the space above and below it; a union's
+    is the hull of its children's; an unbounded solid has no bound."""
+    from reference import Box, Plane, Torus
+
+    rng = np.random.default_rng(2)
+    o, d = _rays_at(rng, 2000)
+    box = Box((0.5, 0.2, 0.3))
+    lo, hi = box.ray_bounds(np, o, d)
+    for i, bnd in enumerate(box.ray_intervals(o, d)):
+        if bnd.size:
+            np.testing.assert_allclose([lo[i], hi[i]], [bnd[0], bnd[-1]], atol=1e-5)
+        else:
+            assert not lo[i] <= hi[i]
+    # a ray in the plane z = 0.3 > r passes through the torus's ball, above the tube
+    torus = Torus(1.0, 0.25)
+    lo, hi = torus.ray_bounds(np, np.array([[-3.0, 0.0, 0.3]]), np.array([[1.0, 0.0, 0.0]]))
+    assert not lo[0] <= hi[0]
+    far = Transform(Sphere(radius=0.5), translation=(6.0, 0.0, 0.0))
+    u = Union(box, far)
+    lo, hi = u.ray_bounds(np, o, d)
+    for part in (box, far):
+        a, b = part.ray_bounds(np, o, d)
+        some = a <= b
+        assert np.all(lo[some] <= a[some]) and np.all(hi[some] >= b[some])
+    hit_none = ~(box.ray_bounds(np, o, d)[0] <= box.ray_bounds(np, o, d)[1]) & ~(far.ray_bounds(np, o, d)[0] <= far.ray_bounds(np, o, d)[1])
+    assert np.all(~(lo[hit_none] <= hi[hit_none])) and hit_none.any()
+    lo, hi = Union(box, Plane()).ray_bounds(np, o, d)
+    assert np.all(np.isneginf(lo) & np.isposinf(hi))
+    assert _check_ray_bounds(Complement(box), o, d, rng) == 0.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(_placements, _placements, _OPS)
+def test_property_random_csg_ray_bounds_contain_the_solid(p, q, op):
+    scene = _random_csg(p, q, op)
+    rng = np.random.default_rng(q[3])
+    o, d = _rays_at(rng, 96)
+    _check_ray_bounds(scene, o, d, rng)
+
+
+@pytest.mark.parametrize("backend", ["torch", "jax"])
+def test_ray_bounds_agree_across_array_libraries(backend):
+    """torch and jax (jitted) give numpy's bounds in float64; in float32 (a larger pad) their
+    bounds still contain every exact crossing of the float32 rays."""
+    case = get_case("csg.union.camera.32x32")
+    scene = Union(case.scene, Transform.from_rotvec(Ellipsoid(), (0.3, 0.1, 0.0), (0.5, 0.0, 1.0)))
+    rng = np.random.default_rng(4)
+    o, d = _rays_at(rng, 512)
+    if backend == "torch":
+        torch = pytest.importorskip("torch")
+        from array_api_compat import torch as xt
+
+        def bounds(o, d):
+            return [g.double().numpy() for g in scene.ray_bounds(xt, torch.from_numpy(o), torch.from_numpy(d))]
+    else:
+        jax = pytest.importorskip("jax")
+        import jax.numpy as jnp
+
+        jax.config.update("jax_enable_x64", True)  # as the jax backend does
+
+        def bounds(o, d):
+            return [np.asarray(g, np.float64) for g in jax.jit(lambda o, d: scene.ray_bounds(jnp, o, d))(o, d)]
+    for g, w in zip(bounds(o, d), scene.ray_bounds(np, o, d)):
+        np.testing.assert_array_equal(np.isfinite(g), np.isfinite(w))
+        same = np.isfinite(w)
+        np.testing.assert_allclose(g[same], w[same], rtol=1e-9, atol=1e-12)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    lo, hi = bounds(o32, d32)
+    for i, bnd in enumerate(scene.ray_intervals(o32.astype(np.float64), d32.astype(np.float64))):
+        bnd = bnd[np.isfinite(bnd)]
+        assert np.all((bnd >= lo[i]) & (bnd <= hi[i])), f"ray {i}: crossings {bnd} outside [{lo[i]}, {hi[i]}]"

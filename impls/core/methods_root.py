@@ -12,32 +12,28 @@ def lipschitz_step(scene) -> float:
     return 1.0 / float(lip)
 
 
-def search_ball(scene, knobs: dict, theta=None):
-    """The ball the root finders clip rays to: the scene's bounding sphere when knob ``bounds``
-    is on and φ is evaluated at the stored parameters (a θ passed in may move the surface out
-    of the stored parameters' ball), else None.  Centre and radius as Python floats (constants
-    in any backend and under jit)."""
+def search_bounds(scene, knobs: dict, theta=None):
+    """The scene whose ray bounds (:meth:`reference.scene.Field.ray_bounds`) the root finders
+    clip rays to when knob ``bounds`` is on and φ is evaluated at the stored parameters (a θ
+    passed in may move the surface out of the stored parameters' bounds), else None."""
     if not knobs.get("bounds", 1) or theta is not None:
         return None
-    ball = scene.bounding_sphere()
-    if ball is None:
-        return None
-    return tuple(float(v) for v in ball[0]), float(ball[1])
+    return scene
 
 
 def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict, theta=None):
     """The algorithm object (``init``/``step``) of root method ``method`` with validated knobs."""
-    ball = search_ball(scene, knobs, theta)
+    bounds = search_bounds(scene, knobs, theta)
     if method == "sphere_trace":
         return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
-                           omega=knobs["omega"], t_min=t_min, t_max=t_max, ball=ball)
+                           omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=bounds)
     if method in ("hybrid_secant", "render_surface"):
         return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
-                           overstep=max(knobs["overstep"], knobs["min_step"]), ball=ball)
+                           overstep=max(knobs["overstep"], knobs["min_step"]), bounds=bounds)
     if method.startswith("march_"):
         return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
-                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, ball=ball)
+                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds)
     raise ValueError(f"{method!r} is not a root finder")
 
 

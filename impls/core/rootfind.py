@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-
-from reference.scene import norm, sum_last
+from typing import Any
 
 from ..protocol import Status
 
@@ -37,30 +36,18 @@ def bad_rays(xp, o, d):
     return ~(xp.all(xp.isfinite(o), axis=1) & xp.all(xp.isfinite(d), axis=1))
 
 
-def clip_to_ball(xp, o, d, t_min: float, t_max: float, ball):
-    """Per-ray search interval [lo, hi] = [t_min, t_max] ∩ {t : |o + t d − c| ≤ R} and the
-    rays for which it is empty (``outside``), for a scene whose solid lies in the ball (c, r)
-    (:meth:`reference.scene.Field.bounding_sphere`); ``ball`` None: no clipping.
+def clip_to_bounds(xp, o, d, t_min: float, t_max: float, scene):
+    """Per-ray search interval [lo, hi] = [t_min, t_max] ∩ ``scene.ray_bounds`` and the rays
+    for which it is empty (``outside``); ``scene`` None: no clipping.
 
-    With |d| = 1, w = c − o, t_c = ⟨w, d⟩ and the perpendicular p = w − t_c d (computed directly,
-    not as |w|² − t_c², which cancels for distant origins): the chord is t_c ± √(R² − |p|²).
-    R = r + pad with pad = 1e-6·r + 32ε(|w| + r) per ray: the computed end points are off the
-    sphere by a few ε(|w| + r) (ε of the working dtype), and the pad keeps them outside the
-    solid, where φ > 0, so no crossing is clipped away."""
-    if ball is None:
+    :meth:`reference.scene.Field.ray_bounds` contains every t where φ(o + t d) ≤ 0 (a ball's
+    chord, a box's slab test, a union's hull of its children's bounds, …, padded against
+    rounding), so no crossing lies outside [lo, hi]."""
+    if scene is None:
         return xp.full_like(o[:, 0], t_min), xp.full_like(o[:, 0], t_max), xp.zeros_like(o[:, 0], dtype=xp.bool)
-    c, r = ball
-    eps = float(xp.finfo(o.dtype).eps)
-    w = xp.stack([c[i] - o[:, i] for i in range(3)], axis=1)
-    tc = sum_last(xp, w * d)
-    p = w - tc[:, None] * d
-    rad = (1.0 + 1e-6) * r + 32 * eps * (norm(xp, w) + r)
-    q = rad * rad - sum_last(xp, p * p)
-    half = xp.sqrt(xp.where(q >= 0, q, 0.0))
-    lo = xp.maximum(tc - half, t_min)
-    hi = xp.minimum(tc + half, t_max)
-    outside = ~((q >= 0) & (lo <= hi))
-    return lo, hi, outside
+    lo, hi = scene.ray_bounds(xp, o, d)
+    lo, hi = xp.maximum(lo, t_min), xp.minimum(hi, t_max)
+    return lo, hi, ~(lo <= hi)
 
 
 def _quiet(xp):
@@ -89,11 +76,11 @@ def _finish(xp, s, t_new, f_new, conv, iters, max_steps):
     return status, t_new
 
 
-def _start(xp, o, d, t_min, t_max, ball):
+def _start(xp, o, d, t_min, t_max, bounds):
     """Start depth, per-ray end ``hi`` and initial status of every ray: BAD_INPUT, MISS (the
-    search interval clipped to the bounding sphere is empty; evaluated at t_min, harmlessly,
+    search interval clipped to the scene's ray bounds is empty; evaluated at t_min, harmlessly,
     so that every ray costs one evaluation at start) or IN_PROGRESS."""
-    lo, hi, outside = clip_to_ball(xp, o, d, t_min, t_max, ball)
+    lo, hi, outside = clip_to_bounds(xp, o, d, t_min, t_max, bounds)
     status = xp.where(bad_rays(xp, o, d), BAD, xp.where(outside, MISS, IN))
     return xp.where(outside, t_min, lo), hi, xp.astype(status, xp.int32)
 
@@ -111,9 +98,9 @@ class SphereTrace:
     t_{k−1}, r = |φ|/L) the relaxed step may have jumped over the surface, so the tracer goes
     back to the safe point t_{k−1} + r_{k−1} and continues with ω = 1; a point is accepted only
     when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
-    when the next t exceeds t_max (or leaves the bounding sphere, see :func:`clip_to_ball`);
-    MAX_ITER after ``max_steps`` steps.  One φ evaluation at t_min (the bounding sphere's entry,
-    when that is later) plus one per step (a step that leaves the range re-evaluates the last point: one
+    when the next t exceeds t_max (or leaves the scene's ray bounds, see :func:`clip_to_bounds`);
+    MAX_ITER after ``max_steps`` steps.  One φ evaluation at t_min (the start of the ray
+    bounds, when that is later) plus one per step (a step that leaves the range re-evaluates the last point: one
     evaluation per iteration keeps the loop shape fixed).
     """
 
@@ -123,12 +110,12 @@ class SphereTrace:
     omega: float
     t_min: float
     t_max: float
-    ball: tuple | None = None  # the scene's bounding sphere (c, r): search only inside it
+    bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
 
     stages = ("step",)
 
     def init(self, xp, o, d, ev):
-        t, hi, status = _start(xp, o, d, self.t_min, self.t_max, self.ball)
+        t, hi, status = _start(xp, o, d, self.t_min, self.t_max, self.bounds)
         f, _, cost = ev(o, d, t, False)
         s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
@@ -166,7 +153,7 @@ class MarchRefine:
     bracket (stage ``step_refine``).
 
     Marching (DVR, UNISURF): samples t_{k+1} = t_k + h_k from t_min, the last one clamped to
-    t_max (both clipped to the scene's bounding sphere when ``ball`` is set: :func:`clip_to_ball`).
+    t_max (both clipped to the scene's ray bounds when ``bounds`` is set: :func:`clip_to_bounds`).
     Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a surface
     crossed twice within one step (a feature thinner than the step) is not seen — that
     is marching's documented limit.
@@ -203,7 +190,7 @@ class MarchRefine:
     t_min: float
     t_max: float
     overstep: float | None = None  # hybrid only: largest forced step Δ (None: = min_step)
-    ball: tuple | None = None  # the scene's bounding sphere (c, r): search only inside it
+    bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
 
     stages = ("step_march", "step_refine")
 
@@ -216,7 +203,7 @@ class MarchRefine:
         return self.inv_lip is not None
 
     def init(self, xp, o, d, ev):
-        t, hi, status = _start(xp, o, d, self.t_min, self.t_max, self.ball)
+        t, hi, status = _start(xp, o, d, self.t_min, self.t_max, self.bounds)
         f, df, cost = ev(o, d, t, self.deriv)
         s = {"t": t, "f": f, "p": t, "fp": f, "a": t, "fa": f, "b": t, "fb": f, "hi": hi,
              "phase": xp.zeros_like(o[:, 0], dtype=xp.int32), "status": status,

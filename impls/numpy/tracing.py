@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.driver import run_compacted
+from ..core.driver import run_compacted, worker_threads
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -43,12 +43,17 @@ def soa(a):
     return np.ascontiguousarray(a.T)
 
 
-def run_loop(alg, o, d, ev, block=BLOCK, pool=POOL):
-    """Run ``alg`` to completion with active-set compaction (:func:`impls.core.driver.run_compacted`)."""
+def _quiet():
     # finished rays are dropped before they step again, but a stage may still evaluate φ at
     # inf/NaN (MISS, NON_FINITE) on its way out: harmless, and silenced
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        return run_compacted(alg, np, o, d, ev, soa=soa, block=block, pool=pool)
+    return np.errstate(invalid="ignore", over="ignore", divide="ignore")
+
+
+def run_loop(alg, o, d, ev, block=BLOCK, pool=POOL, workers=None):
+    """Run ``alg`` to completion with active-set compaction (:func:`impls.core.driver.run_compacted`)
+    on ``workers`` threads (default :func:`impls.core.driver.worker_threads`)."""
+    return run_compacted(alg, np, o, d, ev, soa=soa, block=block, pool=pool, guard=_quiet,
+                         workers=worker_threads() if workers is None else workers)
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):

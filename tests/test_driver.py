@@ -1,0 +1,58 @@
+"""The compacting loop driver (impls.core.driver): per-ray results do not depend on the block
+size, the straggler pool or the number of worker threads."""
+
+import numpy as np
+import pytest
+
+from impls.core.methods_root import make_root_finder
+from impls.methods import METHODS
+from reference.cases import get_case
+
+
+def _backend_loop(name):
+    if name == "numpy":
+        from impls.numpy import tracing
+
+        return lambda alg, o, d, scene, **kw: tracing.run_loop(alg, o, d, tracing.ray_eval(None, scene), **kw)
+    pytest.importorskip("torch")
+    import torch
+
+    from impls import registry
+    from impls.torch import tracing
+
+    b = registry.resolve("torch:cpu")
+
+    def run(alg, o, d, scene, **kw):
+        out = tracing.run_loop(b, alg, torch.from_numpy(o), torch.from_numpy(d), tracing.ray_eval(b, scene), **kw)
+        return {k: v.numpy() for k, v in out.items()}
+
+    return run
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_secant"])
+def test_results_do_not_depend_on_blocks_pool_or_threads(backend, method):
+    case = get_case("csg.union.camera.32x32")
+    knobs = {k.name: k.default for k in METHODS[method].knobs}
+    alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
+    loop = _backend_loop(backend)
+    ref = loop(alg, case.origins, case.directions, case.scene, block=1 << 16, pool=0, workers=1)
+    assert (ref["iterations"] > 20).any()  # stragglers exist, so the pool is exercised
+    for block, pool, workers in ((100, 30, 1), (100, 30, 2), (37, 200, 3), (1 << 16, 4096, 2)):
+        got = loop(alg, case.origins, case.directions, case.scene, block=block, pool=pool, workers=workers)
+        for k in ("status", "iterations", "evals"):
+            np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}: block={block} pool={pool} workers={workers}")
+        np.testing.assert_array_equal(got["t"], ref["t"])
+
+
+def test_worker_threads_reads_the_environment(monkeypatch):
+    from impls.core.driver import worker_threads
+
+    monkeypatch.delenv("ISOBENCH_THREADS", raising=False)
+    assert worker_threads() == 1
+    monkeypatch.setenv("ISOBENCH_THREADS", "2")
+    assert worker_threads() == 2
+    for bad in ("0", "two"):
+        monkeypatch.setenv("ISOBENCH_THREADS", bad)
+        with pytest.raises(ValueError, match="ISOBENCH_THREADS"):
+            worker_threads()
