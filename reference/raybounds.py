@@ -30,11 +30,6 @@ def pad(xp: Any, o: Any, size: float) -> Any:
     return 1e-6 * size + 32 * eps * (norm(xp, o) + size)
 
 
-def empty_like(xp: Any, o: Any) -> tuple[Any, Any]:
-    """The empty bound (+inf, −inf) for every ray."""
-    return xp.full_like(o[..., 0], math.inf), xp.full_like(o[..., 0], -math.inf)
-
-
 def unbounded_like(xp: Any, o: Any) -> tuple[Any, Any]:
     """The whole line (−inf, +inf) for every ray."""
     return xp.full_like(o[..., 0], -math.inf), xp.full_like(o[..., 0], math.inf)
@@ -88,7 +83,8 @@ def meet(xp: Any, *bounds) -> tuple[Any, Any]:
 
 
 def hull(xp: Any, *bounds) -> tuple[Any, Any]:
-    """Smallest interval containing every bound: (min lo, max hi); empty bounds drop out."""
+    """Smallest interval containing every bound: (min lo, max hi); empty bounds drop out because
+    every bound here is empty only as (+inf, −inf) (:func:`meet` makes it so)."""
     lo, hi = bounds[0]
     for a, b in bounds[1:]:
         lo, hi = xp.minimum(lo, a), xp.maximum(hi, b)

@@ -244,8 +244,8 @@ class Field:
 
         Outside the ball φ > 0, so a ray has no surface crossing outside it: the default
         :meth:`ray_bounds`, to which the root finders clip each ray's search interval
-        (:func:`impls.core.rootfind.clip_to_bounds`), is its chord.  The ball is that of the stored parameters
-        (not of a θ passed to ``value``).  Composite nodes combine their children's balls:
+        (:func:`impls.core.rootfind.clip_to_bounds`), is its chord.  The ball is that of the
+        stored parameters (not of a θ passed to ``value``).  Composite nodes combine their children's balls:
         union → a ball enclosing all, intersection → the smallest, difference → the first
         operand's, complement → ``None``; a rigid transform moves the centre."""
         return None
@@ -261,7 +261,7 @@ class Field:
         hull of its children's bounds (so a ray between two far-apart children that misses
         both is a miss), an intersection their overlap, a transform its child's in local
         coordinates."""
-        from .raybounds import ball_chord, unbounded_like
+        from .raybounds import ball_chord, unbounded_like  # here: raybounds builds on this module
 
         ball = self.bounding_sphere()
         if ball is None:

@@ -265,9 +265,10 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     """Knob ``bounds``: clipping rays to the scene's ray bounds (here the default, the chord of
     the bounding sphere; the reference scenes' tighter bounds are covered by every conformance
     case, which runs with the clip on) changes no answer (status, depth), makes rays that miss
-    the ball a MISS after the start evaluation and no iteration, and costs fewer evaluations in all.  Certified methods also get rays grazing the ball (the
-    sphere's own silhouette); the marchers, which may miss a chord shorter than their step
-    wherever their samples fall, get the camera's rays only."""
+    the ball a MISS after the start evaluation and no iteration, and costs fewer evaluations in
+    all.  Certified methods also get rays grazing the ball (the sphere's own silhouette); the
+    marchers, which may miss a chord shorter than their step wherever their samples fall, get
+    the camera's rays only."""
     scene = SCENES[scene_name]
     ball = scene.bounding_sphere()
     o, d = camera(8)

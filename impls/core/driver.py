@@ -37,11 +37,12 @@ from .rootfind import IN, STATE_OUT
 
 
 def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 1 << 16, pool: int = 4096,
-                  workers: int = 1, guard: Callable[[], Any] = contextlib.nullcontext) -> dict:
+                  workers: int | None = None, guard: Callable[[], Any] = contextlib.nullcontext) -> dict:
     """Run ``alg`` on rays ``o``, ``d`` (n, 3); returns ``{t, status, iterations, evals}`` (n,).
 
     ``soa(a)`` returns a contiguous (3, n) copy of an (n, 3) array (backend-specific: the array
-    API has no contiguity control).  ``workers`` > 1 runs the blocks on that many threads:
+    API has no contiguity control).  ``workers`` (default :func:`worker_threads`) > 1 runs the
+    blocks on that many threads:
     numpy and torch release the GIL inside their array operations, so blocks overlap; each
     thread writes only its own rays' outputs.  The straggler pool then runs on one thread: its
     steps are on few rays, where the per-call overhead (under the GIL) dominates, and split
@@ -72,18 +73,16 @@ def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 
             _run_stages(alg, xp, *part, ev, out, k, None, 0)
 
     starts = range(0, max(n, 1), block)
+    workers = worker_threads() if workers is None else workers
     if workers <= 1:
         for start in starts:
             run_block(start)
-        for k, parts in enumerate(pools):
-            if parts:
-                run_pool(k, _concat(xp, parts))
-        return out
-    with ThreadPoolExecutor(workers) as ex:
-        list(ex.map(run_block, starts))  # list(): re-raises a worker's exception here
-        for k, parts in enumerate(pools):  # stage by stage: a pool run hands rays on to later stages itself
-            if parts:
-                run_pool(k, _concat(xp, parts))
+    else:
+        with ThreadPoolExecutor(workers) as ex:
+            list(ex.map(run_block, starts))  # list(): re-raises a worker's exception here
+    for k, parts in enumerate(pools):  # stage by stage: a pool run hands rays on to later stages itself
+        if parts:
+            run_pool(k, _concat(xp, parts))
     return out
 
 
@@ -104,15 +103,14 @@ def _take(xp, s: dict, gidx, Oc, Dc, sel):
     return {k: v[sel] for k, v in s.items()}, gidx[sel], Oc[:, sel], Dc[:, sel]
 
 
-def _drop(xp, s: dict, gidx, Oc, Dc, leave):
+def _drop(xp, s: dict, gidx, Oc, Dc, leave, k: int):
     """Remove the rows in ``leave`` in place: the kept rows of the tail move into the holes the
-    leaving rows open in the first m − k places (k = number leaving), then every array is cut
+    leaving rows open in the first m − k places (k = ``leave.sum()``), then every array is cut
     to its first m − k rows.  Cost O(k) per array instead of the O(m) of gathering the kept rows;
     the order of the rays changes, which no per-ray result depends on.  Every array here is
     owned by the loop (stage entry and hand-off gather copies), and arrays that alias each
     other are moved twice with the same result (holes and sources are disjoint)."""
-    m = gidx.shape[0]
-    kept = m - int(xp.sum(xp.astype(leave, xp.int64)))
+    kept = gidx.shape[0] - k
     holes = _nonzero(xp, leave[:kept])
     src = _nonzero(xp, ~leave[kept:]) + kept
     for v in s.values():
@@ -151,16 +149,17 @@ def _run_stages(alg, xp, s, gidx, Oc, Dc, ev, out, k0, pools, pool):
             fin = s["status"] != IN
             moved = s["phase"] != k  # handed on to stage k + 1
             leave = fin | moved
-            if not xp.any(leave):
+            n_leave = int(xp.sum(xp.astype(leave, xp.int64)))  # the step's one host sync
+            if not n_leave:
                 continue
             fi = _nonzero(xp, fin)
             if fi.shape[0]:
                 gi = gidx[fi]
                 for key in STATE_OUT:
                     out[key][gi] = s[key][fi]
-            if xp.any(moved & ~fin):
+            if fi.shape[0] < n_leave:
                 handed.append(_take(xp, s, gidx, Oc, Dc, _nonzero(xp, moved & ~fin)))
-            s, gidx, Oc, Dc = _drop(xp, s, gidx, Oc, Dc, leave)
+            s, gidx, Oc, Dc = _drop(xp, s, gidx, Oc, Dc, leave, n_leave)
             if pools is not None and 0 < gidx.shape[0] < pool:
                 pools[k].append((s, gidx, Oc, Dc))
                 break

@@ -230,7 +230,7 @@ def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
     def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=None, **knobs):
         xp = backend.xp
         differentiable = grad_hess is not None
-        given = theta is not None  # a caller's θ: the root finder uses it (and so no bounding sphere)
+        given = theta is not None  # a caller's θ: the root finder uses it (and so no ray bounds)
         if differentiable and theta is None:
             from .param_grad import theta0
 

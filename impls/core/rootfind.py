@@ -100,8 +100,8 @@ class SphereTrace:
     when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
     when the next t exceeds t_max (or leaves the scene's ray bounds, see :func:`clip_to_bounds`);
     MAX_ITER after ``max_steps`` steps.  One φ evaluation at t_min (the start of the ray
-    bounds, when that is later) plus one per step (a step that leaves the range re-evaluates the last point: one
-    evaluation per iteration keeps the loop shape fixed).
+    bounds, when that is later) plus one per step (a step that leaves the range re-evaluates
+    the last point: one evaluation per iteration keeps the loop shape fixed).
     """
 
     inv_lip: float
@@ -178,8 +178,8 @@ class MarchRefine:
     next step, f_c·(c − t)/(f_c − f) (Newton: f_c/φ'(c)), estimates the error of the iterate c
     just evaluated, so stopping on it saves the evaluation that would only confirm it; ``t`` is
     then that step's end (clipped to the bracket; the secant's error there is of the
-    order of the step squared over the previous one), otherwise the last iterate.  ``t`` is the last
-    iterate.  ``max_steps`` bounds marching plus refinement steps.
+    order of the step squared over the previous one), otherwise the last iterate.
+    ``max_steps`` bounds marching plus refinement steps.
     """
 
     refine: str  # "bisect" | "secant" | "newton"

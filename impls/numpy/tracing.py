@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.driver import run_compacted, worker_threads
+from ..core.driver import run_compacted
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -51,9 +51,8 @@ def _quiet():
 
 def run_loop(alg, o, d, ev, block=BLOCK, pool=POOL, workers=None):
     """Run ``alg`` to completion with active-set compaction (:func:`impls.core.driver.run_compacted`)
-    on ``workers`` threads (default :func:`impls.core.driver.worker_threads`)."""
-    return run_compacted(alg, np, o, d, ev, soa=soa, block=block, pool=pool, guard=_quiet,
-                         workers=worker_threads() if workers is None else workers)
+    on ``workers`` threads (default: :func:`impls.core.driver.worker_threads`)."""
+    return run_compacted(alg, np, o, d, ev, soa=soa, block=block, pool=pool, guard=_quiet, workers=workers)
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):

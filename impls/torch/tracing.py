@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.driver import run_compacted, worker_threads
+from ..core.driver import run_compacted
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -36,11 +36,11 @@ def soa(a):
 
 def run_loop(backend, alg, o, d, ev, block=BLOCK, pool=POOL, workers=None):
     """Run ``alg`` to completion with active-set compaction (:func:`impls.core.driver.run_compacted`)
-    on ``workers`` threads (default :func:`impls.core.driver.worker_threads`); each stage's
+    on ``workers`` threads (default: :func:`impls.core.driver.worker_threads`); each stage's
     termination test is one host sync per iteration.  No autograd graph (``no_grad`` is per
     thread, so every thread enters it)."""
     return run_compacted(alg, backend.xp, o, d, ev, soa=soa, block=block, pool=pool, guard=torch.no_grad,
-                         workers=worker_threads() if workers is None else workers)
+                         workers=workers)
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
