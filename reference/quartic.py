@@ -92,9 +92,9 @@ def ray_torus(o: np.ndarray, d: np.ndarray, R: float, r: float):
     roots = lo + (hi - lo) / 2
     tol = 8 * EPS * (R + r + np.linalg.norm(oc_, axis=1))
     scale = R + r
+    starts = np.searchsorted(kr, np.arange(m + 1))  # np.nonzero lists kr in row order
     for j in range(m):
-        sel = kr == j
-        s_cross = np.sort(roots[sel])
+        s_cross = np.sort(roots[starts[j]:starts[j + 1]])
         tang = []
         for k in (1, 2, 3):
             p = probes[j, k]

@@ -82,13 +82,34 @@ class ParamCursor:
         return piece[0] if value.ndim == 0 else self.xp.reshape(piece, value.shape)
 
 
+_CONSTS: dict = {}
+_CONSTS_MAX = 4096
+
+
 def _const(xp: Any, like: Any, value: Any) -> Any:
-    """``value`` as an array of ``like``'s namespace, dtype and device."""
+    """``value`` as an array of ``like``'s namespace, dtype and device.
+
+    torch tensors are cached per (dtype, device, value): creating one costs microseconds per
+    call, about 8% of a torus ∪ box φ on the root finders' few-ray straggler steps
+    (cProfile), where φ is called thousands of times with the same constants.  The cache
+    holds at most ``_CONSTS_MAX`` entries (cleared when full); cached tensors are never
+    written to.  (jax traces φ once per compilation, and a cached array made while tracing
+    could leak a tracer, so jax is not cached.)"""
     import array_api_compat
 
     if xp is np or array_api_compat.is_numpy_array(like):
         return np.asarray(value, dtype=like.dtype)
-    return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))
+    if not array_api_compat.is_torch_array(like):
+        return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))
+    device = array_api_compat.device(like)
+    v = np.asarray(value, dtype=np.float64)
+    key = (id(xp), str(like.dtype), str(device), v.shape, v.tobytes())
+    out = _CONSTS.get(key)
+    if out is None:
+        if len(_CONSTS) >= _CONSTS_MAX:
+            _CONSTS.clear()
+        out = _CONSTS[key] = xp.asarray(v, dtype=like.dtype, device=device)
+    return out
 
 
 def const(xp: Any, like: Any, value: Any) -> Any:
@@ -105,18 +126,20 @@ def _fold_last(v: Any, op: Any) -> Any:
 
 
 def sum_last(xp: Any, v: Any) -> Any:
-    """Σ over the (short, coordinate) last axis; ``xp.sum(v, axis=-1)`` except in numpy, where it
-    is the explicit adds v[..., 0] + v[..., 1] + …: numpy runs a reduction over a length-3 axis
-    as one short inner loop per output (measured: 40% of a CSG φ at 2^20 rays), while the adds
-    are plain elementwise operations, contiguous on the root finders' structure-of-arrays views
-    (:mod:`impls.core.driver`).  torch and jax are faster with their reductions (measured:
-    torus ∪ box, torch 1.48 s vs 1.73 s, jax 1.09 s vs 1.32 s)."""
-    return _fold_last(v, np.add) if xp is np else xp.sum(v, axis=-1)
+    """Σ over the (short, coordinate) last axis as the explicit adds v[..., 0] + v[..., 1] + …,
+    not ``xp.sum(v, axis=-1)``: every backend runs a reduction over a length-3 axis slowly.
+    numpy loops over one short axis per output (40% of a CSG φ at 2^20 rays); XLA on the CPU
+    emits a reduction that does not vectorise (torus ∪ box φ at 2^20 rays, jit: 29 ms with the
+    reductions, 1.8 ms with the adds); torch launches a reduction kernel per call (unit-sphere
+    hybrid_secant, 2^20 rays: 0.41 s → 0.27 s).  The adds are elementwise operations, which
+    also run on contiguous rows of the root finders' structure-of-arrays views
+    (:mod:`impls.core.driver`)."""
+    return _fold_last(v, xp.add)
 
 
 def max_last(xp: Any, v: Any) -> Any:
-    """max over the (short, coordinate) last axis (elementwise maxima in numpy: see :func:`sum_last`)."""
-    return _fold_last(v, np.maximum) if xp is np else xp.max(v, axis=-1)
+    """max over the (short, coordinate) last axis as elementwise maxima (see :func:`sum_last`)."""
+    return _fold_last(v, xp.maximum)
 
 
 def norm(xp: Any, v: Any) -> Any:

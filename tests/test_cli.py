@@ -133,3 +133,18 @@ def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys)
         assert r["rays"] == 256 and r["x_unit"] > 0 and r["false_hits"] == 0 and r["false_misses"] == 0
         assert r["err_max"] < 1e-9
     assert "x_unit" in capsys.readouterr().out
+
+
+def test_speed_unit_is_the_exact_sphere_hit_with_or_without_buffers():
+    from bench.speed import lean_sphere_hits, unit_timer
+    from reference import Sphere
+
+    rng = np.random.default_rng(7)
+    o = rng.normal(size=(500, 3)) * 2
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    exact = Sphere().first_hit(o, d, -np.inf)  # every crossing, behind the origin too
+    for t in (lean_sphere_hits(o, d), lean_sphere_hits(o, d, np.empty(500), (np.empty(500), np.empty(500)))):
+        assert np.array_equal(np.isinf(t), np.isinf(exact))
+        np.testing.assert_allclose(t[np.isfinite(t)], exact[np.isfinite(exact)], rtol=0, atol=1e-12)
+    unit_timer(o, d)()  # runs on its own buffers

@@ -56,3 +56,38 @@ def test_worker_threads_reads_the_environment(monkeypatch):
         monkeypatch.setenv("ISOBENCH_THREADS", bad)
         with pytest.raises(ValueError, match="ISOBENCH_THREADS"):
             worker_threads()
+
+
+@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_newton"])
+def test_jax_results_do_not_depend_on_chunks_or_levels(method):
+    """The jax driver (impls.jax.tracing.run_loop: chunks, then batches compacted level by
+    level) gives the same per-ray results for any chunk size, shrink ratio and last size,
+    including a single uncompacted level."""
+    pytest.importorskip("jax")
+    import jax
+    import jax.numpy as jnp
+
+    from impls import registry
+    from impls.jax import tracing
+
+    registry.resolve("jax:cpu")  # float64 on
+    case = get_case("csg.union.camera.32x32")
+    o, d = case.origins, case.directions
+    knobs = {k.name: k.default for k in METHODS[method].knobs}
+    alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
+    ev = tracing.ray_eval(None, case.scene)
+
+    def run(chunk, ratio, last):
+        f = jax.jit(lambda o, d: tracing.run_loop(alg, o, d, ev, chunk=chunk, ratio=ratio, last=last))
+        return {k: np.asarray(v) for k, v in f(jnp.asarray(o), jnp.asarray(d)).items()}
+
+    n = o.shape[0]
+    ref = run(n, 2, n)  # one chunk, one level: every ray stepped until the last one is done
+    assert (ref["iterations"] > 20).any() and (ref["iterations"] < 5).any()  # levels really compact
+    for chunk, ratio, last in ((n, 2, 4), (100, 3, 8), (333, 2, 1), (64, 8, 16)):
+        got = run(chunk, ratio, last)
+        for k in ("status", "iterations", "evals"):
+            np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}: chunk={chunk} ratio={ratio} last={last}")
+        np.testing.assert_array_equal(got["t"], ref["t"])
+    assert tracing.level_sizes(1000, 2, 64) == [1000, 500, 250, 125, 64]
+    assert tracing.level_sizes(50, 2, 64) == [50]
