@@ -60,9 +60,9 @@ def test_worker_threads_reads_the_environment(monkeypatch):
 
 @pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_newton"])
 def test_jax_results_do_not_depend_on_chunks_or_levels(method):
-    """The jax driver (impls.jax.tracing.run_loop: chunks, then batches compacted level by
-    level) gives the same per-ray results for any chunk size, shrink ratio and last size,
-    including a single uncompacted level."""
+    """The jax driver (impls.jax.tracing.run_loop: chunks, batches compacted level by level,
+    the chunks' capped stragglers finished together) gives the same per-ray results for any
+    chunk size, shrink ratio, last size and cap, including a single uncompacted level."""
     pytest.importorskip("jax")
     import jax
     import jax.numpy as jnp
@@ -77,17 +77,18 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
     ev = tracing.ray_eval(None, case.scene)
 
-    def run(chunk, ratio, last):
-        f = jax.jit(lambda o, d: tracing.run_loop(alg, o, d, ev, chunk=chunk, ratio=ratio, last=last))
+    def run(chunk, ratio, last, cap=1):
+        f = jax.jit(lambda o, d: tracing.run_loop(alg, o, d, ev, chunk=chunk, ratio=ratio, last=last, tail_cap=cap))
         return {k: np.asarray(v) for k, v in f(jnp.asarray(o), jnp.asarray(d)).items()}
 
     n = o.shape[0]
     ref = run(n, 2, n)  # one chunk, one level: every ray stepped until the last one is done
     assert (ref["iterations"] > 20).any() and (ref["iterations"] < 5).any()  # levels really compact
-    for chunk, ratio, last in ((n, 2, 4), (100, 3, 8), (333, 2, 1), (64, 8, 16)):
-        got = run(chunk, ratio, last)
+    for chunk, ratio, last, cap in ((n, 2, 4, 1), (100, 3, 8, 1), (333, 2, 1, 30), (64, 8, 16, 1000)):
+        got = run(chunk, ratio, last, cap)
         for k in ("status", "iterations", "evals"):
-            np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}: chunk={chunk} ratio={ratio} last={last}")
+            np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}: chunk={chunk} ratio={ratio} last={last} "
+                                                                  f"cap={cap}")
         np.testing.assert_array_equal(got["t"], ref["t"])
     assert tracing.level_sizes(1000, 2, 64) == [1000, 500, 250, 125, 64]
     assert tracing.level_sizes(50, 2, 64) == [50]

@@ -52,35 +52,28 @@ def ray_eval(backend, scene, theta=None):
 
 
 # Measured (bench/speed.py, torus ∪ box, 2^20 rays, hybrid_secant): a masked step costs about
-# 14 ns per ray on a 2^16-ray batch and about 30 ns on a 2^20-ray one (the state no longer
-# stays in cache), so chunks of 2^16; halving the batch (RATIO 2) wastes fewer masked steps
-# than quartering it; below LAST rays the loop overhead dominates, so the last level runs to
-# the end.
+# 7-9 ns per ray on a 2^16-ray batch, about 30 ns on a 2^20-ray one (the state no longer stays
+# in cache) and about 25 ns on 64 rays, so chunks of 2^16; batches shrink by RATIO per level;
+# the last level of a chunk (LAST rays) stops after TAIL_CAP steps and hands its stragglers to
+# one pass over all chunks' stragglers, so the long tail's loop runs once, not once per chunk
+# (torus ∪ box: 0.25 s → see the README's throughput table).
 CHUNK = 1 << 16
 RATIO = 2
 LAST = 64
+TAIL_CAP = 128
 
 
 def level_sizes(m: int, ratio: int = RATIO, last: int = LAST) -> list[int]:
-    """Batch sizes of the levels of a chunk of ``m`` rays: m, ⌈m/ratio⌉, … down to ``last``."""
+    """Batch sizes of the levels of a batch of ``m`` rays: m, ⌈m/ratio⌉, … down to ``last``."""
     sizes = [m]
     while sizes[-1] > last:
         sizes.append(max(-(-sizes[-1] // ratio), last))
     return sizes
 
 
-def _levels(alg, s: dict, o, d, ev, sizes: list[int]) -> dict:
-    """Run the rays of state ``s`` (a batch of ``sizes[0]`` rows, rays ``o``, ``d``) to the end;
-    returns their outputs (:data:`impls.core.rootfind.STATE_OUT`).
-
-    This level's loop for stage k runs while more than ``sizes[1]``/(number of stages) rays
-    are in stage k, so at most ``sizes[1]`` rays are left; they are gathered into a batch of
-    that size (``jnp.nonzero`` with a static ``size``; padding rows are marked finished and
-    never written back) and run by the next level, skipped (``lax.cond``) when no ray is
-    left, and only their outputs are scattered back.  The last level runs every stage to the
-    end.  Per-ray results do not depend on the levels: each ray's iteration is independent."""
-    m = sizes[0]
-    keep = sizes[1] // len(alg.stages) if len(sizes) > 1 else 0
+def _stage_loops(alg, s: dict, o, d, ev, keep: int, cap: int | None) -> dict:
+    """Step the rays of ``s`` stage by stage, each stage while more than ``keep`` of its rays
+    are iterating (and, with ``cap``, for at most ``cap`` steps); other rows keep their values."""
     for k, name in enumerate(alg.stages):
         step = getattr(alg, name)
 
@@ -92,31 +85,76 @@ def _levels(alg, s: dict, o, d, ev, sizes: list[int]) -> dict:
             a = active(c)
             return {key: jnp.where(a, new[key], c[key]) for key in c}
 
-        s = lax.while_loop(lambda c, active=active: jnp.sum(active(c)) > keep, body, s)
+        if cap is None:
+            s = lax.while_loop(lambda c, active=active: jnp.sum(active(c)) > keep, body, s)
+        else:
+            s = lax.while_loop(lambda c, active=active: (jnp.sum(active(c[0])) > keep) & (c[1] < cap),
+                               lambda c, body=body: (body(c[0]), c[1] + 1), (s, 0))[0]
+    return s
+
+
+def _gather(s: dict, o, d, mask, size: int):
+    """The first ``size`` rows where ``mask`` (indices ``sel``, = m past the last one), as a
+    batch whose padding rows are marked finished."""
+    m = mask.shape[0]
+    sel = jnp.nonzero(mask, size=size, fill_value=m)[0]
+    g = jnp.minimum(sel, m - 1)
+    sub = {k: v[g] for k, v in s.items()}
+    sub["status"] = jnp.where(sel < m, sub["status"], rootfind.CONV)
+    return sel, sub, o[g], d[g]
+
+
+def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None = None):
+    """Run the rays of state ``s`` (a batch of ``sizes[0]`` rows, rays ``o``, ``d``); returns
+    ``(outputs, rest)``.
+
+    This level's loop for stage k runs while more than ``sizes[1]``/(number of stages) rays
+    are in stage k, so at most ``sizes[1]`` rays are left; they are gathered into a batch of
+    that size (``jnp.nonzero`` with a static ``size``; padding rows are marked finished) and
+    run by the next level, skipped (``lax.cond``) when no ray is left; only their outputs are
+    scattered back.  The last level runs every stage to the end (``cap`` None; ``rest`` is
+    None) or for at most ``cap`` steps per stage: ``rest = (idx, state, o, d)`` is then that
+    last batch, ``idx`` its rows' indices in ``s`` (= ``sizes[0]`` for padding), for the
+    caller to finish.  Per-ray results do not depend on the levels: each ray's iteration is
+    independent of the others."""
+    m = sizes[0]
+    last = len(sizes) == 1
+    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // len(alg.stages), cap if last else None)
     out = rootfind.outputs(s)
-    if len(sizes) == 1:
-        return out
+    if last:
+        return out, (None if cap is None else (jnp.arange(m), s, o, d))
     left = s["status"] == rootfind.IN
 
     def next_level(out):
-        sel = jnp.nonzero(left, size=sizes[1], fill_value=m)[0]
-        g = jnp.minimum(sel, m - 1)
-        sub = {k: v[g] for k, v in s.items()}
-        sub["status"] = jnp.where(sel < m, sub["status"], rootfind.CONV)  # padding: finished
-        res = _levels(alg, sub, o[g], d[g], ev, sizes[1:])
-        return {k: v.at[sel].set(res[k], mode="drop") for k, v in out.items()}
+        sel, sub, oc, dc = _gather(s, o, d, left, sizes[1])
+        res, rest = _levels(alg, sub, oc, dc, ev, sizes[1:], cap)
+        out = {k: v.at[sel].set(res[k], mode="drop") for k, v in out.items()}
+        if rest is not None:
+            rest = (jnp.where(rest[0] < sizes[1], sel[jnp.minimum(rest[0], sizes[1] - 1)], m),) + rest[1:]
+        return out, rest
 
-    return lax.cond(jnp.any(left), next_level, lambda out: out, out)
+    def done(out):  # nothing left: an empty rest of the same shape
+        if cap is None:
+            return out, None
+        idx = jnp.full((sizes[-1],), m)
+        sub = {k: v[:sizes[-1]] for k, v in s.items()}
+        sub["status"] = jnp.full_like(sub["status"], rootfind.CONV)
+        return out, (idx, sub, o[:sizes[-1]], d[:sizes[-1]])
+
+    return lax.cond(jnp.any(left), next_level, done, out)
 
 
-def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = LAST) -> dict:
+def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = LAST,
+             tail_cap: int = TAIL_CAP) -> dict:
     """Run ``alg`` on every ray; returns the per-ray outputs.
 
     Per-ray step counts are heavy-tailed (grazing rays need thousands of steps, most rays a
     few), and a fixed-shape loop runs as long as its slowest ray, so the rays still iterating
     are compacted into ever smaller batches (:func:`_levels`), chunk by chunk (``lax.map``
-    over chunks of ``chunk`` rays keeps each chunk's state in cache).  The algorithm is a
-    per-ray state machine, so the results do not depend on chunks or levels."""
+    over chunks of ``chunk`` rays keeps each chunk's state in cache).  With several chunks,
+    each chunk's last level stops after ``tail_cap`` steps and the stragglers of all chunks
+    are finished together, again level by level.  The algorithm is a per-ray state machine,
+    so the results do not depend on chunks, levels or caps."""
     n = o.shape[0]
     if n == 0:
         return rootfind.outputs(alg.init(jnp, o, d, ev))
@@ -126,9 +164,19 @@ def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = 
         o = jnp.concatenate([o, jnp.broadcast_to(o[:1], (pad, 3))])
         d = jnp.concatenate([d, jnp.broadcast_to(d[:1], (pad, 3))])
     sizes = level_sizes(chunk, ratio, last)
-    out = lax.map(lambda od: _levels(alg, alg.init(jnp, od[0], od[1], ev), od[0], od[1], ev, sizes),
-                  (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
-    return {k: v.reshape(-1)[:n] for k, v in out.items()}
+    n_chunks = o.shape[0] // chunk
+    cap = tail_cap if n_chunks > 1 else None
+    out, rest = lax.map(lambda od: _levels(alg, alg.init(jnp, od[0], od[1], ev), od[0], od[1], ev, sizes, cap),
+                        (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
+    out = {k: v.reshape(-1) for k, v in out.items()}
+    if rest is not None:  # the stragglers of every chunk, finished together
+        idx, s, oc, dc = rest
+        starts = (jnp.arange(n_chunks) * chunk)[:, None]
+        idx = jnp.where(idx < chunk, idx + starts, o.shape[0]).reshape(-1)
+        s = {k: v.reshape(-1) for k, v in s.items()}
+        res, _ = _levels(alg, s, oc.reshape(-1, 3), dc.reshape(-1, 3), ev, level_sizes(idx.shape[0], ratio, last))
+        out = {k: v.at[idx].set(res[k], mode="drop") for k, v in out.items()}
+    return {k: v[:n] for k, v in out.items()}
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
