@@ -97,18 +97,17 @@ def _const(xp: Any, like: Any, value: Any) -> Any:
     could leak a tracer, so jax is not cached.)"""
     import array_api_compat
 
-    if xp is np or array_api_compat.is_numpy_array(like):
+    if xp is np or isinstance(like, np.ndarray) or array_api_compat.is_numpy_array(like):
         return np.asarray(value, dtype=like.dtype)
     if not array_api_compat.is_torch_array(like):
         return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))
-    device = array_api_compat.device(like)
     v = np.asarray(value, dtype=np.float64)
-    key = (id(xp), str(like.dtype), str(device), v.shape, v.tobytes())
+    key = (like.dtype, like.device, v.shape, v.tobytes())  # bytes: −0.0 and 0.0 stay apart
     out = _CONSTS.get(key)
     if out is None:
         if len(_CONSTS) >= _CONSTS_MAX:
             _CONSTS.clear()
-        out = _CONSTS[key] = xp.asarray(v, dtype=like.dtype, device=device)
+        out = _CONSTS[key] = xp.asarray(v, dtype=like.dtype, device=like.device)
     return out
 
 

@@ -43,7 +43,8 @@ class JaxBackend(ArrayBackend):
             jit=True,
             notes=("methods run under jax.jit; fixed-shape masked loops: lax.map over chunks of "
                    f"{tracing.CHUNK} rays, each compacted level by level into batches {tracing.RATIO}× smaller, one "
-                   "lax.while_loop per stage and level",),
+                   f"lax.while_loop per stage and level; the chunks' stragglers after {tracing.TAIL_CAP} steps of "
+                   "the last level finished together",),
             expected_failures=(
                 ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
                  "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
