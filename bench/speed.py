@@ -85,16 +85,21 @@ def _median_time(fn, k: int) -> float:
 
 def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repeats: int = 3, knobs=None,
             t_max: float = 10.0) -> list[dict]:
-    """One row per scene × backend (see the module docstring)."""
+    """One row per scene × backend (see the module docstring).
+
+    Backends run one after the other, each on every scene (jax, last by default, leaves XLA's
+    worker threads behind), and every run is timed before any exact hit is computed (the
+    exact torus hits make about a million small arrays), so that neither disturbs the
+    timings.  Even so, torus ∪ box numpy measures 0.75–0.79 s in a process of its own
+    (``python -m bench speed --backend numpy``) and 0.86–0.89 s after the other backends'
+    runs; the cause is not known."""
     from impls import Status, registry
 
-    rows = []
-    for name, (scene, o, d) in scenes(n_side).items():
-        exact = scene.first_hit(o, d, 0.0)
-        exact = np.where(exact <= t_max, exact, np.inf)
-        hit = np.isfinite(exact)
-        for bid in backend_ids:
-            b = registry.resolve(bid)
+    runs = []
+    cases = scenes(n_side)
+    for bid in backend_ids:
+        b = registry.resolve(bid)
+        for name, (scene, o, d) in cases.items():
             p = b.prepare(method, scene, o, d, t_min=0.0, t_max=t_max, **(knobs or {}))
             t0 = time.perf_counter()
             out = p.run()
@@ -111,20 +116,29 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
                 times.append(dt)
                 units.append(unit)
                 ratios.append(dt / unit)
-            r = p.result(out)
-            got = r.status == Status.CONVERGED
-            err = np.abs(r.t[hit & got] - exact[hit & got])
-            rows.append({
+            runs.append((name, bid, b.id, p.result(out), {
                 "scene": name, "backend": bid, "method": method, "rays": int(o.shape[0]),
                 "time_s": float(np.median(times)), "unit_s": float(np.median(units)),
                 "x_unit": float(np.median(ratios)), "x_unit_min": float(np.min(ratios)),
                 "x_unit_max": float(np.max(ratios)), "target": TARGETS.get(b.id),
-                "compile_s": p.compile_s, "first_call_s": first,
-                "err_max": float(err.max()) if err.size else float("nan"), "n_err_gt_1e-6": int((err > 1e-6).sum()),
-                "false_hits": int((got & ~hit).sum()), "false_misses": int((hit & ~got).sum()),
-                "evals_mean": float(r.evals.mean()), "evals_max": int(r.evals.max()),
-                "status_counts": {int(s): int(c) for s, c in zip(*np.unique(r.status, return_counts=True))},
-            })
+                "compile_s": p.compile_s, "first_call_s": first}))
+    rows = []
+    exact_of = {}
+    for name, _, _, r, row in runs:
+        if name not in exact_of:
+            scene, o, d = cases[name]
+            exact = scene.first_hit(o, d, 0.0)
+            exact_of[name] = np.where(exact <= t_max, exact, np.inf)
+        exact = exact_of[name]
+        hit = np.isfinite(exact)
+        got = r.status == Status.CONVERGED
+        err = np.abs(r.t[hit & got] - exact[hit & got])
+        rows.append(dict(row, **{
+            "err_max": float(err.max()) if err.size else float("nan"), "n_err_gt_1e-6": int((err > 1e-6).sum()),
+            "false_hits": int((got & ~hit).sum()), "false_misses": int((hit & ~got).sum()),
+            "evals_mean": float(r.evals.mean()), "evals_max": int(r.evals.max()),
+            "status_counts": {int(s): int(c) for s, c in zip(*np.unique(r.status, return_counts=True))},
+        }))
     return rows
 
 
@@ -132,6 +146,8 @@ def format_rows(rows: list[dict]) -> str:
     import pandas as pd
 
     df = pd.DataFrame(rows)
+    df = df.iloc[np.argsort(pd.Categorical(df["scene"], categories=list(dict.fromkeys(df["scene"]))).codes,
+                            kind="stable")]  # scene by scene, backends in run order
     cols = ["scene", "backend", "time_s", "x_unit", "x_unit_min", "x_unit_max", "target", "err_max", "n_err_gt_1e-6",
             "false_hits", "false_misses", "evals_mean", "evals_max", "compile_s"]
     return df[cols].to_markdown(index=False, floatfmt=".3g")
