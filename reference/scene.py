@@ -97,7 +97,7 @@ def _const(xp: Any, like: Any, value: Any) -> Any:
     could leak a tracer, so jax is not cached.)"""
     import array_api_compat
 
-    if xp is np or isinstance(like, np.ndarray) or array_api_compat.is_numpy_array(like):
+    if xp is np or array_api_compat.is_numpy_array(like):
         return np.asarray(value, dtype=like.dtype)
     if not array_api_compat.is_torch_array(like):
         return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))

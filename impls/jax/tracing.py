@@ -132,17 +132,12 @@ def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None = None):
         sel, sub, oc, dc = _gather(s, o, d, left, sizes[1])
         res, rest = _levels(alg, sub, oc, dc, ev, sizes[1:], cap)
         out = {k: v.at[sel].set(res[k], mode="drop") for k, v in out.items()}
-        if rest is not None:
-            rest = (jnp.where(rest[0] < sizes[1], sel[jnp.minimum(rest[0], sizes[1] - 1)], m),) + rest[1:]
+        if rest is not None:  # indices in sub → in s (sub's padding index sizes[1] → m)
+            rest = (jnp.append(sel, m)[rest[0]],) + rest[1:]
         return out, rest
 
-    def done(out):  # nothing left: an empty rest of the same shape
-        if cap is None:
-            return out, None
-        idx = jnp.full((sizes[-1],), m)
-        sub = {k: v[:sizes[-1]] for k, v in s.items()}
-        sub["status"] = jnp.full_like(sub["status"], rootfind.CONV)
-        return out, (idx, sub, o[:sizes[-1]], d[:sizes[-1]])
+    def done(out):  # nothing left: a rest of the same shape, all padding
+        return out, (None if cap is None else _gather(s, o, d, jnp.zeros_like(left), sizes[-1]))
 
     return lax.cond(jnp.any(left), next_level, done, out)
 
