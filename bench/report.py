@@ -275,9 +275,12 @@ def fastest_to_target(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
         row = {"case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid}
         for tgt in targets:
             hit = g[g["error_max"] <= tgt].sort_values("time_median_s")
-            row[f"≤ {tgt:.0e}"] = ("not reached" if hit.empty else
-                                   f"{1e3 * hit['time_median_s'].iloc[0]:.3g} ms (×{hit['time_ratio_cf'].iloc[0]:.3g}) "
-                                   f"@ {hit['knob'].iloc[0]}")
+            if hit.empty:
+                row[f"≤ {tgt:.0e}"] = "not reached"
+                continue
+            knob = hit["knob"].iloc[0]  # "" for a method without knobs: no "@"
+            row[f"≤ {tgt:.0e}"] = (f"{1e3 * hit['time_median_s'].iloc[0]:.3g} ms (×{hit['time_ratio_cf'].iloc[0]:.3g})"
+                                   + (f" @ {knob}" if knob else ""))
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -38,6 +38,8 @@ def test_fastest_to_target_and_support_matrix():
     t = report.fastest_to_target(frame()).set_index("backend")
     assert t.loc["numpy", "≤ 1e-04"].startswith("16 ms") and "max_steps=16" in t.loc["numpy", "≤ 1e-04"]
     assert t.loc["jax:cpu", "≤ 1e-12"].startswith("128 ms") and "max_steps=64" in t.loc["jax:cpu", "≤ 1e-12"]
+    t = report.fastest_to_target(frame().assign(knob="")).set_index("backend")  # a method without knobs
+    assert t.loc["numpy", "≤ 1e-04"] == "16 ms (×16)" and "@" not in t.loc["jax:cpu", "≤ 1e-12"]
     sup = report.support_matrix(frame()).set_index("backend")
     assert sup.loc["numpy", "m"] == "ran 3" and sup.loc["numpy", "m2"] == "FAILED 1"
     assert sup.loc["torch:cpu", "m"] == "skipped 1" and sup.loc["torch:cpu", "m2"] == "not planned"
