@@ -1,7 +1,10 @@
 """``python -m bench``: run suites, compare runs, list cases and backends.
 
     python -m bench run --suite quick [--backend numpy,jax:cpu] [--method sphere_trace] [--case 'sphere.*']
-                        [--dtype float64] [--out DIR] [--resume] [--threads 1] [--accuracy-only] [--no-claims]
+                        [--dtype float64] [--out DIR] [--resume] [--threads 1] [--allocator tuned|default]
+                        [--accuracy-only] [--no-claims]
+    python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
+                          [--allocator tuned|default]
     python -m bench compare BASE NEW [--timing] [--factor 1.1]
     python -m bench claims [--out DIR] [--full]
     python -m bench cases [--tag grazing]
@@ -55,6 +58,10 @@ def cmd_run(args) -> int:
     from .environment import configure_threads
 
     configure_threads(args.threads)  # before any array library is imported
+    if args.allocator == "tuned":
+        from .environment import tune_allocator
+
+        tune_allocator()
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
     from rich.table import Table
@@ -271,19 +278,25 @@ def cmd_speed(args) -> int:
     from impls import registry
 
     environment.configure_threads(args.threads)
+    allocator = environment.tune_allocator() if args.allocator == "tuned" else "default"
     ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
     knobs = json.loads(args.knobs) if args.knobs else {}
     rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=knobs)
     for row in rows:
         row["threads"] = args.threads
+        row["allocator"] = allocator
     print(f"{args.side}² rays, {args.method}, {args.threads} thread(s) per library and root-finder driver, "
-          "× unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)")
+          f"allocator: {allocator}; × unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)")
     print(speed.format_rows(rows))
     if args.out:
         from .results import write_json
 
         write_json(Path(args.out), rows)
     return 0
+
+
+ALLOCATOR_HELP = ("tuned (default): glibc keeps freed memory instead of mmapping and faulting in fresh pages for "
+                  "every large temporary (bench.environment.tune_allocator; recorded); default: leave malloc alone")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -306,6 +319,7 @@ def main(argv: list[str] | None = None) -> int:
                    "configuration is a failed 'timeout' row and the run goes on (default 120, 0: none)")
     r.add_argument("--threads", type=int, default=1, help="threads per library (BLAS/OpenMP, torch, XLA), fixed and "
                    "recorded (default 1)")
+    r.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     r.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
                    "(deterministic, for baselines)")
     r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR")
@@ -366,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--repeats", type=int, default=3)
     sp.add_argument("--threads", type=int, default=1, help="threads per library and worker threads of the numpy/torch "
                     "root-finder drivers (default 1)")
+    sp.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     sp.add_argument("--out", help="write the rows as JSON")
     sp.set_defaults(fn=cmd_speed)
 

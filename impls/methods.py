@@ -87,6 +87,14 @@ _OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,
 _BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's ray bounds (Field.ray_bounds: bounding "
                "spheres, boxes, a union's hull; rays outside them are MISS at once); 0: all of [t_min, t_max]", 1)
 _HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)")
+_LADDER = Knob("ladder", -1, int, -1, "a ray still marching after ladder_after steps goes on in ladder steps: this "
+               "many marching samples evaluated together, judged pair by pair as single steps (0 or 1: off; -1: the "
+               "backend's loop driver chooses: 16 on the compacting numpy/torch drivers, off on jax's masked loops)",
+               4096)
+_LADDER_AFTER = Knob("ladder_after", 64, int, 0, "marching steps before a ray goes on in ladder steps")
+_EXTRAPOLATE = Knob("extrapolate", 1.5, float, 0.0, "forced step at least this × the distance to the zero of the "
+                    "secant through the last two marching points, within overstep, so that a shallow approach "
+                    "crosses (0: off)")
 _MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
 _REFINE_DOC = {
     "bisect": "bisection (linear, ratio 1/2)",
@@ -125,11 +133,12 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="hybrid_secant",
             family="root",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE),
             requires=("lipschitz",),
             description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, Δ in "
-            "[min_step, overstep] halved while a step is not certified by overlapping unbounding spheres, "
-            "then safeguarded secant on the bracket",
+            "[min_step, overstep] halved while a step is not certified by overlapping unbounding spheres (and at "
+            "least the secant's extrapolation past a shallow approach, within overstep), in ladder steps of several "
+            "samples after ladder_after steps, then safeguarded secant on the bracket",
         ),
     ]
     for refine, doc in _REFINE_DOC.items():
@@ -137,7 +146,8 @@ def _specs() -> list[MethodSpec]:
             name=f"march_{refine}",
             family="root",
             knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)"),
-                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps"), _BOUNDS),
+                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps"), _BOUNDS, _LADDER,
+                   _LADDER_AFTER),
             requires=(),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
@@ -180,7 +190,7 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="render_surface", family="render",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE),
             requires=("lipschitz",), outputs=("color",), needs_color=True,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
         ),

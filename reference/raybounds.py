@@ -44,32 +44,33 @@ def ball_chord(xp: Any, o: Any, d: Any, centre, radius: float) -> tuple[Any, Any
     p = w - tc[..., None] * d
     rad = radius + pad(xp, w, radius)
     q = rad * rad - sum_last(xp, p * p)
-    half = xp.sqrt(xp.where(q >= 0, q, 0.0))
-    inf = xp.full_like(tc, math.inf)
-    return xp.where(q >= 0, tc - half, inf), xp.where(q >= 0, tc + half, -inf)
+    through = q >= 0
+    half = xp.sqrt(xp.where(through, q, 0.0))
+    return xp.where(through, tc - half, math.inf), xp.where(through, tc + half, -math.inf)
 
 
-def slab_chord(xp: Any, o: Any, d: Any, axis: int, half_width: float, size: float) -> tuple[Any, Any]:
-    """Interval of t with |o_axis + t d_axis| ≤ half_width + pad (``size`` sets the pad): the
-    two plane crossings in order, or the whole line / nothing for a ray parallel to the slab.
-    "Parallel" includes every d_axis so small that the crossings would overflow (|t| beyond the
-    largest float): those are handled without dividing."""
+def slab_chord(xp: Any, o: Any, d: Any, axis: int, half_width: float, size: float, padding: Any = None
+               ) -> tuple[Any, Any]:
+    """Interval of t with |o_axis + t d_axis| ≤ half_width + pad (``size`` sets the pad, or
+    ``padding`` gives it precomputed): the two plane crossings in order, or the whole line /
+    nothing for a ray parallel to the slab.  "Parallel" includes every d_axis so small that the
+    crossings would overflow (|t| beyond the largest float): those are handled without dividing."""
     oa, da = o[..., axis], d[..., axis]
-    h = half_width + pad(xp, o, size)
-    flat = xp.abs(da) < (xp.abs(oa) + h) * (1.0 / float(xp.finfo(o.dtype).max))
+    h = half_width + (pad(xp, o, size) if padding is None else padding)
+    aoa = xp.abs(oa)
+    flat = xp.abs(da) < (aoa + h) * (1.0 / float(xp.finfo(o.dtype).max))
     safe = xp.where(flat, 1.0, da)
     t1, t2 = (-h - oa) / safe, (h - oa) / safe
-    inside = xp.abs(oa) <= h
     inf = xp.full_like(oa, math.inf)
-    lo = xp.where(flat, xp.where(inside, -inf, inf), xp.minimum(t1, t2))
-    hi = xp.where(flat, xp.where(inside, inf, -inf), xp.maximum(t1, t2))
-    return lo, hi
+    whole = xp.where(aoa <= h, inf, -inf)  # a parallel ray: hi = +inf inside, −inf outside; lo = −hi
+    return xp.where(flat, -whole, xp.minimum(t1, t2)), xp.where(flat, whole, xp.maximum(t1, t2))
 
 
 def box_chord(xp: Any, o: Any, d: Any, half_size, size: float) -> tuple[Any, Any]:
     """Interval of t inside the origin-centred box |x_i| ≤ half_size_i (+ pad): the
-    intersection of three slabs (Kay and Kajiya's slab test)."""
-    return meet(xp, *(slab_chord(xp, o, d, i, float(b), size) for i, b in enumerate(half_size)))
+    intersection of three slabs (Kay and Kajiya's slab test), padded alike (one pad)."""
+    padding = pad(xp, o, size)
+    return meet(xp, *(slab_chord(xp, o, d, i, float(b), size, padding) for i, b in enumerate(half_size)))
 
 
 def meet(xp: Any, *bounds) -> tuple[Any, Any]:

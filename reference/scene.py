@@ -150,8 +150,12 @@ def safe_norm(xp: Any, v: Any) -> Any:
 
     The "double where" keeps √ away from 0 in the traced graph, so the value is exactly |v|
     and reverse-mode through the unused branch sees a finite derivative.  Used where an SDF
-    evaluates |max(q, 0)| with q ≤ 0 on the surface itself (box, capped cylinder)."""
+    evaluates |max(q, 0)| with q ≤ 0 on the surface itself (box, capped cylinder).  numpy
+    arrays, which nothing differentiates, take the plain √ (the same value; 3 of a box φ's 20
+    array operations fewer)."""
     s = sum_last(xp, v * v)
+    if isinstance(s, np.ndarray) and s.dtype.kind == "f":  # (object arrays: the mpmath references')
+        return xp.sqrt(s)
     pos = s > 0
     return xp.where(pos, xp.sqrt(xp.where(pos, s, const(xp, s, 1.0))), const(xp, s, 0.0))
 

@@ -41,6 +41,12 @@ def test_run_writes_every_file(quick_run):
     assert len(csv) == len(df)
     env = json.loads((quick_run / "environment.json").read_text())
     assert env["version.numpy"] and env["commit"] and env["cpu_count"]
+    import platform
+
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":  # the default --allocator tuned
+        assert env["allocator"].startswith("glibc mallopt M_MMAP_THRESHOLD=1GiB")
+    else:
+        assert env["allocator"] == "default"
 
 
 def test_every_available_backend_appears(quick_run):
@@ -133,6 +139,11 @@ def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys)
         assert r["rays"] == 256 and r["x_unit"] > 0 and r["false_hits"] == 0 and r["false_misses"] == 0
         assert r["err_max"] < 1e-9
     assert "x_unit" in capsys.readouterr().out
+    assert all(r["allocator"] != "" for r in rows)
+    assert main(["speed", "--backend", "numpy", "--side", "8", "--repeats", "1", "--allocator", "default",
+                 "--out", str(out)]) == 0
+    assert {r["allocator"] for r in json.loads(out.read_text())} == {"default"}
+    assert "allocator: default" in capsys.readouterr().out
 
 
 def test_speed_unit_is_the_exact_sphere_hit_with_or_without_buffers():

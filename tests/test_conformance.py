@@ -216,6 +216,17 @@ def test_reported_evals_equal_counted_calls(request, any_backend, method):
     assert int(r.evals.sum()) == scene.points
 
 
+@pytest.mark.parametrize("method", ["hybrid_secant", "march_secant"])
+def test_reported_evals_equal_counted_calls_in_ladder_steps(request, any_backend, method):
+    """Ladder steps evaluate ``ladder`` samples per ray per iteration, every one counted."""
+    xfail_if_expected(request, any_backend, "eval_count")
+    scene = CountingField(SPHERE)
+    o, d = camera(6)
+    r = run(any_backend, method, scene, o, d, **TIGHT[method], ladder_after=1, ladder=5)
+    assert (r.evals > r.iterations + 1).any()  # ladder steps were taken
+    assert int(r.evals.sum()) == scene.points
+
+
 def grazing_rays():
     """Rays tangent-ish to the sphere (impact parameter 1 ± 1e-3), plus one NaN ray."""
     o = np.tile([[-3.0, 0.0, 0.0]], (3, 1))
@@ -614,6 +625,8 @@ def _knobs_for(method):
     kw = {}
     if spec.family == "render" and "n_samples" in {k.name for k in spec.knobs}:
         kw.update(n_samples=48, t_threshold=1e-3)
+    if "ladder" in {k.name for k in spec.knobs}:
+        kw.update(ladder=16)  # one schedule on every backend (the default, -1, is each driver's own)
     return kw
 
 

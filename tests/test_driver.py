@@ -34,10 +34,14 @@ def _backend_loop(name):
 def test_results_do_not_depend_on_blocks_pool_or_threads(backend, method):
     case = get_case("csg.union.camera.32x32")
     knobs = {k.name: k.default for k in METHODS[method].knobs}
+    if method != "sphere_trace":
+        knobs["ladder_after"] = 8  # the ladder stage, and rays skipping it (0 → 2), on many rays
     alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
     loop = _backend_loop(backend)
     ref = loop(alg, case.origins, case.directions, case.scene, block=1 << 16, pool=0, workers=1)
-    assert (ref["iterations"] > 20).any()  # stragglers exist, so the pool is exercised
+    assert (ref["iterations"] > 12).any()  # stragglers exist, so the pool is exercised
+    if method != "sphere_trace":
+        assert (ref["evals"] > ref["iterations"] + 1).any()  # and ladder steps
     for block, pool, workers in ((100, 30, 1), (100, 30, 2), (37, 200, 3), (1 << 16, 4096, 2)):
         got = loop(alg, case.origins, case.directions, case.scene, block=block, pool=pool, workers=workers)
         for k in ("status", "iterations", "evals"):
@@ -74,6 +78,8 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     case = get_case("csg.union.camera.32x32")
     o, d = case.origins, case.directions
     knobs = {k.name: k.default for k in METHODS[method].knobs}
+    if method != "sphere_trace":
+        knobs["ladder_after"] = 8  # ladder steps in the masked loops and the straggler pass
     alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
     ev = tracing.ray_eval(None, case.scene)
 
@@ -83,7 +89,9 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
 
     n = o.shape[0]
     ref = run(n, 2, n)  # one chunk, one level: every ray stepped until the last one is done
-    assert (ref["iterations"] > 20).any() and (ref["iterations"] < 5).any()  # levels really compact
+    assert (ref["iterations"] > 12).any() and (ref["iterations"] < 5).any()  # levels really compact
+    if method != "sphere_trace":
+        assert (ref["evals"] > ref["iterations"] + 1).any()  # ladder steps taken
     for chunk, ratio, last, cap in ((n, 2, 4, 1), (100, 3, 8, 1), (333, 2, 1, 30), (64, 8, 16, 1000)):
         got = run(chunk, ratio, last, cap)
         for k in ("status", "iterations", "evals"):

@@ -224,3 +224,11 @@ def test_ray_bounds_agree_across_array_libraries(backend):
     for i, bnd in enumerate(scene.ray_intervals(o32.astype(np.float64), d32.astype(np.float64))):
         bnd = bnd[np.isfinite(bnd)]
         assert np.all((bnd >= lo[i]) & (bnd <= hi[i])), f"ray {i}: crossings {bnd} outside [{lo[i]}, {hi[i]}]"
+
+
+@pytest.mark.parametrize("cid", ["csg.union.camera.32x32", "box.camera.32x32", "sphere.camera.64x64"])
+def test_ray_bounds_keep_the_working_dtype(cid):
+    case = get_case(cid)
+    for dt in (np.float32, np.float64):
+        lo, hi = case.scene.ray_bounds(np, case.origins.astype(dt), case.directions.astype(dt))
+        assert lo.dtype == dt and hi.dtype == dt

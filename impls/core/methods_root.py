@@ -21,19 +21,31 @@ def search_bounds(scene, knobs: dict, theta=None):
     return scene
 
 
-def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict, theta=None):
-    """The algorithm object (``init``/``step``) of root method ``method`` with validated knobs."""
+LADDER = 16  # ladder samples when the knob is -1 ("the driver's choice") and the driver states none
+
+
+def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict, theta=None, ladder: int = LADDER):
+    """The algorithm object (``init``/``step``) of root method ``method`` with validated knobs
+    (a knob left out takes its default: callers inside isobench may pass only some); ``ladder``
+    is the loop driver's choice of ladder samples where the knob leaves it to the driver (-1)."""
+    from ..methods import METHODS
+
+    knobs = {**{k.name: k.default for k in METHODS[method].knobs}, **knobs}
     bounds = search_bounds(scene, knobs, theta)
+    if knobs.get("ladder", -1) == -1:
+        knobs["ladder"] = ladder
     if method == "sphere_trace":
         return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
                            omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=bounds)
     if method in ("hybrid_secant", "render_surface"):
         return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
-                           overstep=max(knobs["overstep"], knobs["min_step"]), bounds=bounds)
+                           overstep=max(knobs["overstep"], knobs["min_step"]), bounds=bounds, ladder=knobs["ladder"],
+                           ladder_after=knobs["ladder_after"], extrapolate=knobs["extrapolate"])
     if method.startswith("march_"):
         return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
-                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds)
+                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds, ladder=knobs["ladder"],
+                           ladder_after=knobs["ladder_after"], extrapolate=0.0)
     raise ValueError(f"{method!r} is not a root finder")
 
 

@@ -40,7 +40,7 @@ POOL = 4096  # a block's last rays in a stage join the straggler pool (1/16 of a
 
 def soa(a):
     """Contiguous (3, n) copy of an (n, 3) array (see :mod:`impls.core.driver`)."""
-    return np.ascontiguousarray(a.T)
+    return np.array(a.T, order="C")  # a copy even when a.T is contiguous: the driver writes to it
 
 
 def _quiet():

@@ -31,7 +31,7 @@ POOL = 4096  # see impls/numpy/tracing.py
 
 def soa(a):
     """Contiguous (3, n) copy of an (n, 3) tensor (see :mod:`impls.core.driver`)."""
-    return a.T.contiguous()
+    return a.T.clone(memory_format=torch.contiguous_format)  # a copy even when contiguous: the driver writes to it
 
 
 def run_loop(backend, alg, o, d, ev, block=BLOCK, pool=POOL, workers=None):
@@ -40,7 +40,15 @@ def run_loop(backend, alg, o, d, ev, block=BLOCK, pool=POOL, workers=None):
     termination test is one host sync per iteration.  No autograd graph (``no_grad`` is per
     thread, so every thread enters it)."""
     return run_compacted(alg, backend.xp, o, d, ev, soa=soa, block=block, pool=pool, guard=torch.no_grad,
-                         workers=workers)
+                         workers=workers, take=_take, move=_move)
+
+
+def _take(a, idx, axis):
+    return torch.index_select(a, axis, idx)
+
+
+def _move(v, holes, src):
+    v.index_copy_(0, holes, torch.index_select(v, 0, src))
 
 
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):

@@ -1,0 +1,46 @@
+"""The torch backend's namespace (impls.torch.backend.xp_fast): torch's own kernels for a few hot
+functions, with array_api_compat's meaning (dtype rules, values, NaN and inf) on every argument
+kind the library passes, and array_api_compat itself for anything else."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+xp_compat = pytest.importorskip("array_api_compat.torch")
+
+from impls.torch.backend import TorchBackend, xp_fast  # noqa: E402
+
+SPECIAL = [1.0, np.inf, -np.inf, np.nan, 0.0, -0.0, 1e308, -5e-324, 2.5]
+
+
+def _same(a, b):
+    assert a.dtype == b.dtype and a.shape == b.shape
+    assert torch.equal(torch.isnan(a), torch.isnan(b)) if a.is_floating_point() else True
+    ok = ~torch.isnan(a) if a.is_floating_point() else torch.ones_like(a, dtype=torch.bool)
+    assert torch.equal(a[ok], b[ok])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_where_clip_isfinite_match_array_api_compat(dtype):
+    a = torch.tensor(SPECIAL, dtype=dtype)
+    b = torch.linspace(-3, 3, len(SPECIAL), dtype=dtype)
+    m = torch.tensor([True, False] * 4 + [True])
+    i32 = torch.arange(len(SPECIAL), dtype=torch.int32)
+    cases = [(a, b), (1.5, a), (a, -2.0), (i32, 3), (7, i32), (a, float("inf")), (2, a), (a, 3),
+             (True, m), (m, False), (1.5, i32), (a.double(), b.float()), (m, i32)]
+    for x1, x2 in cases:
+        _same(xp_fast.where(m, x1, x2), xp_compat.where(m, x1, x2))
+    _same(xp_fast.isfinite(a), xp_compat.isfinite(a))
+    _same(xp_fast.isfinite(i32), xp_compat.isfinite(i32))
+    _same(xp_fast.clip(a, -1.0, 2.0), xp_compat.clip(a, -1.0, 2.0))
+    _same(xp_fast.clip(i32, 1, 4), xp_compat.clip(i32, 1, 4))
+
+
+def test_take_along_axis_and_delegation():
+    x = torch.arange(12.0, dtype=torch.float64).reshape(3, 4)
+    idx = torch.tensor([[3], [0], [2]])
+    _same(xp_fast.take_along_axis(x, idx, axis=1), xp_compat.take_along_axis(x, idx, axis=1))
+    assert xp_fast.float64 is torch.float64 and xp_fast.concat is xp_compat.concat
+    assert TorchBackend.xp is xp_fast
