@@ -248,13 +248,30 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
         best = g.sort_values(["error_max", "time_median_s"]).iloc[0]
         rows.append({
             "case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid,
-            "best max error": best["error_max"], "at knob": best["knob"],
+            "best max error": best["error_max"], "at knob": knob_label(method, best["knob"]),
             "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
             "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
             "evals/ray mean": best["evals_per_ray"], "p99": best.get("evals_p99"), "max": best.get("evals_max"),
             "ray statuses": _statuses(best.get("status_counts")),
         })
     return pd.DataFrame(rows)
+
+
+def knob_label(method: str, knob: str) -> str:
+    """``knob`` (a :func:`bench.results.knob_string`) without the settings that are the method's
+    defaults, so that a table shows what was chosen: ``xtol=1e-08`` rather than all eight knobs
+    of ``hybrid_secant``; ``defaults`` when every knob is at its default, ``""`` for a method
+    without knobs, and the whole string for a method the catalog does not know."""
+    from impls.methods import METHODS
+
+    from .results import knob_string
+
+    spec = METHODS.get(method)
+    if not knob or spec is None:
+        return knob
+    default = set(knob_string({k.name: k.default for k in spec.knobs}).split(","))
+    chosen = [kv for kv in knob.split(",") if kv not in default]
+    return ",".join(chosen) or "defaults"
 
 
 def _statuses(v) -> str:
@@ -278,7 +295,7 @@ def fastest_to_target(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
             if hit.empty:
                 row[f"≤ {tgt:.0e}"] = "not reached"
                 continue
-            knob = hit["knob"].iloc[0]  # "" for a method without knobs: no "@"
+            knob = knob_label(method, hit["knob"].iloc[0])  # "" for a method without knobs: no "@"
             row[f"≤ {tgt:.0e}"] = (f"{1e3 * hit['time_median_s'].iloc[0]:.3g} ms (×{hit['time_ratio_cf'].iloc[0]:.3g})"
                                    + (f" @ {knob}" if knob else ""))
         rows.append(row)

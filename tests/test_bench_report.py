@@ -103,3 +103,16 @@ def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch):
     assert cli.main(["claims", "--out", str(tmp_path / "cl"), "--full"]) == 0
     assert seen == {"quick": False}
     assert "Claims ledger" in (tmp_path / "cl" / "report.html").read_text()
+
+
+def test_knob_labels_show_only_what_differs_from_the_defaults():
+    from bench.report import knob_label
+    from bench.results import knob_string
+    from impls.methods import METHODS
+
+    defaults = {k.name: k.default for k in METHODS["hybrid_secant"].knobs}
+    assert knob_label("hybrid_secant", knob_string(defaults)) == "defaults"
+    assert knob_label("hybrid_secant", knob_string(dict(defaults, xtol=1e-8))) == "xtol=1e-08"
+    assert knob_label("hybrid_secant", knob_string(dict(defaults, xtol=1e-8, ladder=0))) == "ladder=0,xtol=1e-08"
+    assert knob_label("normal", "") == ""
+    assert knob_label("not_in_the_catalog", "max_steps=16,tol=1e-06") == "max_steps=16,tol=1e-06"
