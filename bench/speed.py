@@ -10,8 +10,8 @@ knobs) and is scored on
   maximum and the number of rays above 1e-6, false hits and false misses;
 * time as a multiple of the *unit*: the exact closed-form ray–sphere intersection of the same
   rays in numpy (b = ⟨o, d⟩, c = |o|² − 1, t = −b − √(b² − c), into preallocated arrays:
-  :func:`lean_sphere_hits`; about 14 ms here, where the issue quoted ≈ 8 ms), timed right before every run
-  so that both see the same machine load (medians of ``repeats`` runs; the unit's own median
+  :func:`lean_sphere_hits`; 13–17 ms here, where the issue quoted ≈ 8 ms), timed right before
+  every run so that both see the same machine load (medians of ``repeats`` runs; the unit's own median
   of 3 each time).
 
 Compile time (jax) and the first call are reported apart.  The targets the issue sets are
@@ -90,9 +90,9 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
     Backends run one after the other, each on every scene (jax, last by default, leaves XLA's
     worker threads behind), and every run is timed before any exact hit is computed (the
     exact torus hits make about a million small arrays), so that neither disturbs the
-    timings.  Even so, torus ∪ box numpy measures 0.75–0.79 s in a process of its own
-    (``python -m bench speed --backend numpy``) and 0.86–0.89 s after the other backends'
-    runs; the cause is not known."""
+    timings.  (With the default allocator, torus ∪ box numpy measured 0.75–0.79 s in a process
+    of its own and 0.86–0.89 s after the other backends' runs; with the tuned one,
+    :func:`bench.environment.tune_allocator`, 0.43 s alone and 0.40–0.44 s after them.)"""
     from impls import Status, registry
 
     runs = []

@@ -45,7 +45,7 @@ import numpy as np
 
 from reference import rendering as R
 
-from .rootfind import BAD, CONV, MISS, bad_rays
+from .rootfind import BAD, CONV, MISS, _device, bad_rays
 
 BLOCK = 16
 
@@ -67,12 +67,6 @@ def _grid(xp, t0, t1, n):
     """Edges (rays, n + 1) of n equal bins of [t0, t1] per ray."""
     u = xp.asarray(np.linspace(0.0, 1.0, n + 1), dtype=t0.dtype, device=_device(t0))
     return t0[:, None] + (t1 - t0)[:, None] * u[None, :]
-
-
-def _device(a):
-    import array_api_compat
-
-    return array_api_compat.device(a)
 
 
 def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs):

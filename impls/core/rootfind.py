@@ -5,8 +5,9 @@ Each algorithm is ``init(xp, o, d, ev) -> state`` plus one step function per *st
 arrays (leading dimension n), written with elementwise array-API operations only, in the style
 of scipy's elementwise iterative methods (``scipy/_lib/_elementwise_iterative_method.py``).
 ``state["phase"]`` is the index of the stage a ray is in; a stage hands a ray on by raising its
-phase (to any later stage: a marching step that crosses skips the ladder stage).  Splitting an algorithm into stages keeps each step lean (a marching step does
-not also compute the secant update).  A backend's *loop driver* runs stage k while any ray has
+phase (to any later stage: a marching step that crosses skips the ladder stage).  Splitting an
+algorithm into stages keeps each step lean (a marching step does not also compute the secant
+update).  A backend's *loop driver* runs stage k while any ray has
 status IN_PROGRESS and phase k: numpy and torch pass only those rays (compaction,
 :mod:`impls.core.driver`), jax passes all rays of a chunk and keeps the old values of the others
 (masking).  Both give identical per-ray results.
@@ -62,6 +63,7 @@ def _quiet(xp):
 
 
 def _device(a):
+    """The device of array ``a`` (array_api_compat's, for every backend)."""
     import array_api_compat
 
     return array_api_compat.device(a)
@@ -224,9 +226,10 @@ class MarchRefine:
     t_max: float
     overstep: float | None = None  # hybrid only: largest forced step Δ (None: = min_step)
     bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
-    ladder: int = 16  # samples per ladder step (≤ 1: no ladder stage)
-    ladder_after: int = 64  # marching steps before a ray goes on in ladder steps
-    extrapolate: float = 1.5  # hybrid only: forced step ≥ this × the secant's distance to the zero (0: off)
+    # off by default, the plain algorithm; the methods' defaults are their knobs' (impls.methods)
+    ladder: int = 0  # samples per ladder step (≤ 1: no ladder stage)
+    ladder_after: int = 0  # marching steps before a ray goes on in ladder steps
+    extrapolate: float = 0.0  # hybrid only: forced step ≥ this × the secant's distance to the zero (0: off)
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -365,9 +368,11 @@ class MarchRefine:
             # are shorter (the samples past hi all sit at hi: pairs of length 0)
             R = self._radius(xp, F)
             spacing = xp.where(T >= hi[:, None], T - Tp, h[:, None])
-            event = event | ~((xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None])
+            certified = (xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None]
+            event = event | ~certified
         stopped = xp.any(event, axis=1)
-        e = xp.where(stopped, xp.argmax(xp.astype(event, xp.int8), axis=1), k - 1)[:, None]  # first event, or the last pair
+        first = xp.argmax(xp.astype(event, xp.int8), axis=1)
+        e = xp.where(stopped, first, k - 1)[:, None]  # the first event's pair, or the last pair
 
         def at(a):
             return xp.take_along_axis(a, e, axis=1)[:, 0]
