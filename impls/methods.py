@@ -93,8 +93,10 @@ _LADDER = Knob("ladder", -1, int, -1, "a ray still marching after ladder_after s
                4096)
 _LADDER_AFTER = Knob("ladder_after", 64, int, 0, "marching steps before a ray goes on in ladder steps")
 _EXTRAPOLATE = Knob("extrapolate", 1.5, float, 0.0, "forced step at least this × the distance to the zero of the "
-                    "secant through the last two marching points, within overstep, so that a shallow approach "
+                    "secant through the last two marching points, within reach, so that a shallow approach "
                     "crosses (0: off)")
+_REACH = Knob("reach", 0.1, float, 0.0, "largest extrapolated step (depth units; a step not certified is rejected, "
+              "so this bounds what a rejection wastes, not what can be missed)")
 _MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
 _REFINE_DOC = {
     "bisect": "bisection (linear, ratio 1/2)",
@@ -133,11 +135,12 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="hybrid_secant",
             family="root",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+                   _REACH),
             requires=("lipschitz",),
             description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, Δ in "
             "[min_step, overstep] halved while a step is not certified by overlapping unbounding spheres (and at "
-            "least the secant's extrapolation past a shallow approach, within overstep), in ladder steps of several "
+            "least the secant's extrapolation past a shallow approach, within reach), in ladder steps of several "
             "samples after ladder_after steps, then safeguarded secant on the bracket",
         ),
     ]
@@ -190,7 +193,8 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="render_surface", family="render",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE),
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+                   _REACH),
             requires=("lipschitz",), outputs=("color",), needs_color=True,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
         ),

@@ -29,8 +29,12 @@ def test_depth_within_1e9_of_exact_at_tight_tolerance(backend):
     assert np.all(res.status[~hit] == Status.MISS)
     assert np.max(np.abs(res.t[hit] - exact[hit])) <= 1e-9
     assert np.all(np.isinf(res.t[~hit]))
-    # one φ evaluation at the start and one per step
-    assert np.all(res.evals == res.iterations + 1)
+    # one φ evaluation at the start and one per step, none for a ray outside the ray bounds
+    lo, hi = case.scene.ray_bounds(np, case.origins, case.directions)
+    outside = ~(np.maximum(lo, case.t_min) <= np.minimum(hi, case.t_max))
+    assert outside.any() and (~outside).any()
+    assert np.all(res.evals[~outside] == res.iterations[~outside] + 1)
+    assert np.all(res.evals[outside] == 0) and np.all(res.iterations[outside] == 0)
 
 
 def test_budget_exhaustion_is_reported_not_hidden(backend):

@@ -100,3 +100,36 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
         np.testing.assert_array_equal(got["t"], ref["t"])
     assert tracing.level_sizes(1000, 2, 64) == [1000, 500, 250, 125, 64]
     assert tracing.level_sizes(50, 2, 64) == [50]
+
+
+@pytest.mark.parametrize("method", ["hybrid_secant", "march_secant", "march_newton", "march_bisect"])
+def test_steps_read_only_what_they_declare(method):
+    """The compacting drivers carry only ``alg.reads(stage)`` into a stage: each step, given only
+    those entries, computes what it computes on the whole state (every stage, on rays in it)."""
+    from impls.core import rootfind
+    from impls.numpy import tracing
+
+    case = get_case("csg.union.camera.32x32")
+    knobs = {k.name: k.default for k in METHODS[method].knobs}
+    knobs["ladder_after"] = 2
+    alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
+    assert len(alg.stages) == 3
+    ev = tracing.ray_eval(None, case.scene)
+    o, d = case.origins, case.directions
+    s = alg.init(np, o, d, ev)
+    seen = set()
+    for _ in range(40):  # step every stage on its own rays, full state against declared entries
+        for k, name in enumerate(alg.stages):
+            rows = np.nonzero((s["status"] == rootfind.IN) & (s["phase"] == k))[0]
+            if not rows.size:
+                continue
+            seen.add(name)
+            sub = {key: v[rows] for key, v in s.items()}
+            full = getattr(alg, name)(np, sub, o[rows], d[rows], ev)
+            lean = getattr(alg, name)(np, {key: sub[key] for key in alg.reads(name)}, o[rows], d[rows], ev)
+            for key in lean:
+                np.testing.assert_array_equal(lean[key], full[key], err_msg=f"{name}: {key}")
+            assert {"status", "t", "iterations", "evals"} <= set(lean)
+            for key, v in full.items():
+                s[key][rows] = v
+    assert seen == set(alg.stages)

@@ -72,7 +72,8 @@ def test_ladder_cuts_the_iterations_of_grazing_misses():
 def test_extrapolation_crosses_a_shallow_approach_in_few_steps():
     """A ray closing in on a box face at 1°–5°: sphere tracing shortens its steps geometrically
     (ratio about 1 − sin θ); the secant through the last two points aims past the crossing as
-    soon as it lies within ``overstep`` (1e-2) of the ray: measured 661 → 312 iterations at 1°."""
+    soon as it lies within ``reach`` (0.1) of the ray: measured 661 → 157 iterations at 1°, and
+    4 with no limit on the reach (a plane's secant is exact)."""
     scene = Box((0.5, 0.5, 0.5))
     theta = np.radians([1.0, 2.0, 5.0])
     exact = 0.04 / np.sin(theta)  # from 0.04 above the top face to its centre
@@ -84,9 +85,31 @@ def test_extrapolation_crosses_a_shallow_approach_in_few_steps():
     np.testing.assert_allclose(fast.t, exact, rtol=0, atol=1e-10)
     np.testing.assert_allclose(slow.t, exact, rtol=0, atol=1e-10)
     assert np.all(fast.iterations < 0.6 * slow.iterations)
+    far = _run("hybrid_secant", scene, o, d, ladder=0, bounds=0, reach=1e9)
+    np.testing.assert_allclose(far.t, exact, rtol=0, atol=1e-10)
+    assert np.all(far.iterations <= 10)
 
 
-@pytest.mark.parametrize("knob,value", [("ladder", -2), ("ladder", 1.5), ("ladder_after", -2), ("extrapolate", -0.5)])
+@pytest.mark.parametrize("backend", ["numpy", "jax:cpu"])
+def test_reach_changes_the_steps_not_the_hits(backend):
+    """``reach`` bounds the extrapolated step; a step is accepted only if it crosses or is
+    certified, so every reach finds the same crossings (torus ∪ box camera and grazing rays)."""
+    pytest.importorskip(backend.split(":")[0])
+    case = get_case("csg.union.camera.32x32")
+    og, dg = _grazing_sphere_rays([3e-7, 1e-5, -1e-5, -1e-3])
+    og[:, 1] *= 1.25
+    o, d = np.concatenate([case.origins, og]), np.concatenate([case.directions, dg])
+    exact = _exact_or_inf(case.scene, o, d)
+    hit = np.isfinite(exact)
+    runs = {reach: _run("hybrid_secant", case.scene, o, d, backend, reach=reach) for reach in (0.0, 0.01, 0.1, 1e9)}
+    for r in runs.values():
+        np.testing.assert_array_equal(r.status, np.where(hit, Status.CONVERGED, Status.MISS))
+        assert np.abs(r.t[hit] - exact[hit]).max() < 1e-9
+    assert runs[0.1].evals.sum() < runs[0.01].evals.sum() < runs[0.0].evals.sum()
+
+
+@pytest.mark.parametrize("knob,value", [("ladder", -2), ("ladder", 1.5), ("ladder_after", -2), ("extrapolate", -0.5),
+                                        ("reach", -1.0)])
 def test_bad_ladder_knobs_name_the_knob(knob, value):
     case = get_case("csg.union.camera.32x32")
     with pytest.raises(ValueError, match=knob):

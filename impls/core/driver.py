@@ -15,9 +15,14 @@ Why it looks the way it does (all measured on 2^20 rays, see ``bench/speed.py``)
   evaluations made.  The rays that stay are compacted in place by moving the last ones into
   the holes (:func:`_drop`, O(leaving) per array) rather than gathered (O(staying)): torus ∪
   box, numpy, 1.26 s → 1.15 s.  A block's rays that finish at the start (outside the ray
-  bounds) are dropped the same way, and rays handed on to a later stage are gathered into
-  that stage's bucket; state entries that are one array are moved once.  Rows are gathered
-  with ``take`` (numpy's ``Oc[:, sel]`` on a (3, 2^16) array is 5× slower) and moved row by row.
+  bounds, ``alg.start``) are dropped the same way before φ is evaluated (``alg.init`` runs on
+  the others only), and rays handed on to a later stage are gathered into that stage's
+  bucket; state entries that are one array are moved once.  Rows are gathered with ``take``
+  (numpy's ``Oc[:, sel]`` on a (3, 2^16) array is 5× slower) and moved row by row.
+* **Carry only what is read.**  A stage's rows carry only the state entries its step reads
+  (``alg.reads``): every step writes ``status`` and ``phase`` afresh, and a refining ray
+  no longer needs its marching step size or bound.  Together with the leaner steps and the
+  start above: torus ∪ box, numpy, 0.39–0.41 s → 0.34–0.35 s (side by side).
 * **Threads.**  ``workers`` threads run blocks side by side (``--threads`` of the bench
   commands): torus ∪ box, numpy, about 1.3× faster with 2 threads on this 2-core machine;
   torch gains little (its per-call overhead holds the GIL).
@@ -36,7 +41,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
-from .rootfind import IN, STATE_OUT
+from .rootfind import IN, STATE_OUT, final_t
 
 
 def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 1 << 16, pool: int = 4096,
@@ -73,19 +78,34 @@ def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 
         with guard():
             stop = min(start + block, n)
             Ob, Db = O[:, start:stop], D[:, start:stop]
-            s = alg.init(xp, Ob.T, Db.T, ev)
+            t, hi, status = alg.start(xp, Ob.T, Db.T)
             with lock:
                 if not out:
-                    out.update({k: xp.empty((n,), dtype=s[k].dtype, device=s[k].device) for k in STATE_OUT})
-            for k in STATE_OUT:
-                out[k][start:stop] = s[k]
-            gidx = xp.arange(start, stop, device=s["t"].device)
-            done = s["status"] != IN  # finished at the start (MISS outside the ray bounds, BAD_INPUT)
-            n_done = int(xp.count_nonzero(done))
-            if n_done:  # in place, O(finished): the block's own slice of O, D and its fresh state
-                s, gidx, Ob, Db = _drop(xp, move, s, gidx, Ob, Db, done, n_done)
+                    out.update(t=xp.empty((n,), dtype=t.dtype, device=t.device),
+                               **{k: xp.empty((n,), dtype=xp.int32, device=t.device) for k in STATE_OUT[1:]})
+            out["t"][start:stop] = final_t(xp, t, status)
+            out["status"][start:stop] = status
+            out["iterations"][start:stop] = 0
+            out["evals"][start:stop] = 0
+            s, gidx = {"t": t, "hi": hi, "status": status}, xp.arange(start, stop, device=t.device)
+            # the rays that finish at the start (MISS outside the ray bounds, BAD_INPUT) leave before
+            # φ is evaluated, in place, O(finished): the block's own slice of O, D and its fresh state
+            s, gidx, Ob, Db = leave_finished(s, gidx, Ob, Db, None, write=False)
+            if gidx.shape[0]:
+                s = alg.init(xp, Ob.T, Db.T, ev, start=(s["t"], s["hi"], s["status"]))
+                # and those that init's evaluation finishes (φ = 0 or not finite at the start)
+                s, gidx, Ob, Db = leave_finished(s, gidx, Ob, Db, _reads(alg, 0), write=True)
             if gidx.shape[0]:
                 _run_stages(alg, xp, take, move, s, gidx, Ob, Db, ev, out, 0, pools, pool)
+
+    def leave_finished(s, gidx, Ob, Db, keys, write: bool):
+        done = s["status"] != IN
+        n_done = int(xp.count_nonzero(done))
+        if not n_done:
+            return s, gidx, Ob, Db
+        if write:
+            _write(xp, take, out, s, gidx, _nonzero(xp, done))
+        return _drop(xp, move, s, gidx, Ob, Db, done, n_done, keys)
 
     def run_pool(k, part):
         with guard():
@@ -118,19 +138,30 @@ def worker_threads() -> int:
     return n
 
 
-def _take(take, s: dict, gidx, Oc, Dc, sel):
-    """The rows ``sel`` (indices) of every array, gathered with ``take`` (numpy: 5× faster than
-    ``Oc[:, sel]`` on (3, 2^16) arrays, 1.4× on vectors).  State entries that are one array
-    (a step's ``p = t``) are gathered once and stay one array."""
+def _reads(alg, k: int):
+    """The state entries stage ``k`` reads (``alg.reads``, :meth:`impls.core.rootfind.MarchRefine.reads`),
+    the only ones carried into and through it; None (all) for an algorithm that does not say.
+    Carrying only those cut the torus ∪ box driver's moves by a quarter (a refining ray no longer
+    carries its marching step size, bound and phase)."""
+    reads = getattr(alg, "reads", None)
+    return None if reads is None else reads(alg.stages[k])
+
+
+def _take(take, s: dict, gidx, Oc, Dc, sel, keys=None):
+    """The rows ``sel`` (indices) of every array (of the state entries ``keys``; None: all),
+    gathered with ``take`` (numpy: 5× faster than ``Oc[:, sel]`` on (3, 2^16) arrays, 1.4× on
+    vectors).  State entries that are one array (a step's ``p = t``) are gathered once and stay
+    one array."""
     got: dict = {}
-    new = {k: got[id(v)] if id(v) in got else got.setdefault(id(v), take(v, sel, 0)) for k, v in s.items()}
+    new = {k: got[id(v)] if id(v) in got else got.setdefault(id(v), take(v, sel, 0)) for k, v in s.items()
+           if keys is None or k in keys}
     return new, take(gidx, sel, 0), take(Oc, sel, 1), take(Dc, sel, 1)
 
 
-def _drop(xp, move, s: dict, gidx, Oc, Dc, leave, k: int):
+def _drop(xp, move, s: dict, gidx, Oc, Dc, leave, k: int, keys=None):
     """Remove the rows in ``leave`` in place: the kept rows of the tail move into the holes the
     leaving rows open in the first m − k places (k = ``leave.sum()``), then every array is cut
-    to its first m − k rows.  Cost O(k) per array instead of the O(m) of gathering the kept rows;
+    to its first m − k rows; state entries not in ``keys`` (None: all are kept) are dropped.  Cost O(k) per array instead of the O(m) of gathering the kept rows;
     the order of the rays changes, which no per-ray result depends on.  Every array here is
     owned by the loop (stage entry and hand-off gather copies); entries that are one array are
     moved once and stay one array (distinct arrays sharing memory would be moved twice, with
@@ -139,11 +170,22 @@ def _drop(xp, move, s: dict, gidx, Oc, Dc, leave, k: int):
     kept = gidx.shape[0] - k
     holes = _nonzero(xp, leave[:kept])
     src = _nonzero(xp, ~leave[kept:]) + kept
+    if keys is not None:
+        s = {key: v for key, v in s.items() if key in keys}
     arrays = {id(v): v for v in s.values()}
     for v in (*arrays.values(), gidx, *Oc, *Dc):  # row by row: numpy's 2-D Oc[:, holes] is 3× slower
         move(v, holes, src)
     cut = {i: v[:kept] for i, v in arrays.items()}
     return {k: cut[id(v)] for k, v in s.items()}, gidx[:kept], Oc[:, :kept], Dc[:, :kept]
+
+
+def _write(xp, take, out: dict, s: dict, gidx, rows) -> None:
+    """Write the outputs of the finished ``rows`` (indices) into ``out`` at their global indices."""
+    gi = take(gidx, rows, 0)
+    got = {key: take(s[key], rows, 0) for key in STATE_OUT}
+    got["t"] = final_t(xp, got["t"], got["status"])
+    for key in STATE_OUT:
+        out[key][gi] = got[key]
 
 
 def _concat(xp, parts):
@@ -172,28 +214,28 @@ def _run_stages(alg, xp, take, move, s, gidx, Oc, Dc, ev, out, k0, pools, pool):
         if not buckets[k]:
             continue
         step = getattr(alg, alg.stages[k])
+        keys = _reads(alg, k)
         s, gidx, Oc, Dc = _concat(xp, buckets[k])
         while gidx.shape[0]:
             s = step(xp, s, Oc.T, Dc.T, ev)
             fin = s["status"] != IN
-            moved = s["phase"] != k  # handed on to a later stage
-            leave = fin | moved
+            last = k + 1 == n_stages  # (the last stage's step need not write a phase)
+            moved = None if last else s["phase"] != k  # handed on to a later stage
+            leave = fin if last else fin | moved
             n_leave = int(xp.count_nonzero(leave))  # the step's one host sync
             if not n_leave:
                 continue
             fi = _nonzero(xp, fin)
             if fi.shape[0]:
-                gi = take(gidx, fi, 0)
-                for key in STATE_OUT:
-                    out[key][gi] = take(s[key], fi, 0)
+                _write(xp, take, out, s, gidx, fi)
             if fi.shape[0] < n_leave:
                 on = moved & ~fin
                 later = range(k + 1, n_stages)
                 for k2 in later:
                     sel = _nonzero(xp, on if len(later) == 1 else on & (s["phase"] == k2))
                     if sel.shape[0]:
-                        buckets[k2].append(_take(take, s, gidx, Oc, Dc, sel))
-            s, gidx, Oc, Dc = _drop(xp, move, s, gidx, Oc, Dc, leave, n_leave)
+                        buckets[k2].append(_take(take, s, gidx, Oc, Dc, sel, _reads(alg, k2)))
+            s, gidx, Oc, Dc = _drop(xp, move, s, gidx, Oc, Dc, leave, n_leave, keys)
             if pools is not None and 0 < gidx.shape[0] < pool:
                 pools[k].append((s, gidx, Oc, Dc))
                 break

@@ -41,7 +41,8 @@ def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict
         return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
                            overstep=max(knobs["overstep"], knobs["min_step"]), bounds=bounds, ladder=knobs["ladder"],
-                           ladder_after=knobs["ladder_after"], extrapolate=knobs["extrapolate"])
+                           ladder_after=knobs["ladder_after"], extrapolate=knobs["extrapolate"],
+                           reach=knobs["reach"])
     if method.startswith("march_"):
         return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds, ladder=knobs["ladder"],

@@ -123,7 +123,7 @@ def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None = None):
     m = sizes[0]
     last = len(sizes) == 1
     s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // len(alg.stages), cap if last else None)
-    out = rootfind.outputs(s)
+    out = rootfind.outputs(jnp, s)
     if last:
         return out, (None if cap is None else (jnp.arange(m), s, o, d))
     left = s["status"] == rootfind.IN
@@ -155,7 +155,7 @@ def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = 
     so the results do not depend on chunks, levels or caps."""
     n = o.shape[0]
     if n == 0:
-        return rootfind.outputs(alg.init(jnp, o, d, ev))
+        return rootfind.outputs(jnp, alg.init(jnp, o, d, ev))
     chunk = min(chunk, n)
     pad = (-n) % chunk
     if pad:  # pad with copies of the first ray; their results are dropped
