@@ -99,6 +99,13 @@ def test_committed_baseline_has_no_accuracy_regression(quick_run):
     `python -m bench baseline` when an accuracy change is intended)."""
     p = bench("compare", str(ROOT / "reports" / "baseline"), str(quick_run))
     assert p.returncode == 0, p.stdout + p.stderr
+    # and it compares every row: a knob added or renamed changes the rows' keys, and rows on one
+    # side only ("missing"/"new") never fail a comparison, so a stale baseline would gate nothing
+    from bench.compare import compare
+
+    verdicts = compare(read_results(ROOT / "reports" / "baseline"), read_results(quick_run), same_machine=False)
+    unmatched = verdicts[verdicts["accuracy"].isin(["missing", "new"])]
+    assert unmatched.empty, f"regenerate the baseline (python -m bench baseline): {len(unmatched)} unmatched rows"
 
 
 def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):

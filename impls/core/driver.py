@@ -21,8 +21,9 @@ Why it looks the way it does (all measured on 2^20 rays, see ``bench/speed.py``)
   (numpy's ``Oc[:, sel]`` on a (3, 2^16) array is 5× slower) and moved row by row.
 * **Carry only what is read.**  A stage's rows carry only the state entries its step reads
   (``alg.reads``): every step writes ``status`` and ``phase`` afresh, and a refining ray
-  no longer needs its marching step size or bound.  Together with the leaner steps and the
-  start above: torus ∪ box, numpy, 0.39–0.41 s → 0.34–0.35 s (side by side).
+  no longer needs its marching step size or bound.  Together with the start above and the
+  leaner steps and longer extrapolated steps of :mod:`impls.core.rootfind`: torus ∪ box,
+  numpy, 0.39–0.41 s → 0.34–0.35 s (side by side).
 * **Threads.**  ``workers`` threads run blocks side by side (``--threads`` of the bench
   commands): torus ∪ box, numpy, about 1.3× faster with 2 threads on this 2-core machine;
   torch gains little (its per-call overhead holds the GIL).
