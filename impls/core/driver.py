@@ -142,8 +142,9 @@ def worker_threads() -> int:
 def _reads(alg, k: int):
     """The state entries stage ``k`` reads (``alg.reads``, :meth:`impls.core.rootfind.MarchRefine.reads`),
     the only ones carried into and through it; None (all) for an algorithm that does not say.
-    Carrying only those cut the torus ∪ box driver's moves by a quarter (a refining ray no longer
-    carries its marching step size, bound and phase)."""
+    Arrays moved per leaving ray (with the 7 rows of ray index, origin and direction): marching
+    17 → 15, refinement 21 → 16 (a refining ray no longer carries its marching step size, bound,
+    phase, status and φ at the bracket's second end)."""
     reads = getattr(alg, "reads", None)
     return None if reads is None else reads(alg.stages[k])
 
@@ -162,12 +163,12 @@ def _take(take, s: dict, gidx, Oc, Dc, sel, keys=None):
 def _drop(xp, move, s: dict, gidx, Oc, Dc, leave, k: int, keys=None):
     """Remove the rows in ``leave`` in place: the kept rows of the tail move into the holes the
     leaving rows open in the first m − k places (k = ``leave.sum()``), then every array is cut
-    to its first m − k rows; state entries not in ``keys`` (None: all are kept) are dropped.  Cost O(k) per array instead of the O(m) of gathering the kept rows;
-    the order of the rays changes, which no per-ray result depends on.  Every array here is
-    owned by the loop (stage entry and hand-off gather copies); entries that are one array are
-    moved once and stay one array (distinct arrays sharing memory would be moved twice, with
-    the same result: holes and sources are disjoint).  ``move(v, holes, src)`` does
-    v[holes] = v[src]."""
+    to its first m − k rows; state entries not in ``keys`` (None: all are kept) are dropped.
+    Cost O(k) per array instead of the O(m) of gathering the kept rows; the order of the rays
+    changes, which no per-ray result depends on.  Every array here is owned by the loop (stage
+    entry and hand-off gather copies); entries that are one array are moved once and stay one
+    array (distinct arrays sharing memory would be moved twice, with the same result: holes and
+    sources are disjoint).  ``move(v, holes, src)`` does v[holes] = v[src]."""
     kept = gidx.shape[0] - k
     holes = _nonzero(xp, leave[:kept])
     src = _nonzero(xp, ~leave[kept:]) + kept

@@ -281,10 +281,6 @@ class MarchRefine:
         return ("step_march", "step_refine")
 
     @property
-    def _refine_phase(self) -> int:
-        return len(self.stages) - 1
-
-    @property
     def deriv(self) -> bool:
         return self.refine == "newton"
 
@@ -365,7 +361,8 @@ class MarchRefine:
                 df_n = xp.where(ok, df_n, s["df"])
         iters = s["iterations"] + 1
         status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss)
-        # on to refinement on a crossing, else (with a ladder stage) to the ladder after ladder_after steps
+        # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
+        # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
         phase = xp.astype(cross | (iters >= self.ladder_after), xp.int32) + to_refine if self.ladder > 1 else to_refine
         # on a crossing the bracket is [a, b] = [t, t_n] and the secant starts from (p, t) = (t, t_n):
