@@ -26,6 +26,15 @@ def _grazing_sphere_rays(deltas):
     return o, d
 
 
+def _torus_box_camera_and_grazing_rays():
+    """The torus ∪ box camera case's scene and rays, plus rays grazing the torus's outer equator
+    at x = 0 (3e-7 and 1e-5 outside it, 1e-5 and 1e-3 inside)."""
+    case = get_case("csg.union.camera.32x32")
+    og, dg = _grazing_sphere_rays([3e-7, 1e-5, -1e-5, -1e-3])
+    og[:, 1] *= 1.25
+    return case.scene, np.concatenate([case.origins, og]), np.concatenate([case.directions, dg])
+
+
 def _exact_or_inf(scene, o, d):
     t = scene.first_hit(o, d, 0.0)
     return np.where(t <= 10.0, t, np.inf)
@@ -36,11 +45,7 @@ def _exact_or_inf(scene, o, d):
 def test_ladder_and_extrapolation_find_the_same_hits(backend, method):
     if backend == "torch":
         pytest.importorskip("torch")
-    case = get_case("csg.union.camera.32x32")
-    og, dg = _grazing_sphere_rays([3e-7, 1e-5, -1e-5, -1e-3])  # grazing the torus's outer equator at x = 0
-    og[:, 1] *= 1.25
-    o, d = np.concatenate([case.origins, og]), np.concatenate([case.directions, dg])
-    scene = case.scene
+    scene, o, d = _torus_box_camera_and_grazing_rays()
     extra = {"extrapolate": 0.0} if method == "hybrid_secant" else {}
     plain = _run(method, scene, o, d, backend, xtol=1e-12, ladder=0, **extra)
     fast = _run(method, scene, o, d, backend, xtol=1e-12, ladder_after=4)
@@ -95,13 +100,10 @@ def test_reach_changes_the_steps_not_the_hits(backend):
     """``reach`` bounds the extrapolated step; a step is accepted only if it crosses or is
     certified, so every reach finds the same crossings (torus ∪ box camera and grazing rays)."""
     pytest.importorskip(backend.split(":")[0])
-    case = get_case("csg.union.camera.32x32")
-    og, dg = _grazing_sphere_rays([3e-7, 1e-5, -1e-5, -1e-3])
-    og[:, 1] *= 1.25
-    o, d = np.concatenate([case.origins, og]), np.concatenate([case.directions, dg])
-    exact = _exact_or_inf(case.scene, o, d)
+    scene, o, d = _torus_box_camera_and_grazing_rays()
+    exact = _exact_or_inf(scene, o, d)
     hit = np.isfinite(exact)
-    runs = {reach: _run("hybrid_secant", case.scene, o, d, backend, reach=reach) for reach in (0.0, 0.01, 0.1, 1e9)}
+    runs = {reach: _run("hybrid_secant", scene, o, d, backend, reach=reach) for reach in (0.0, 0.01, 0.1, 1e9)}
     for r in runs.values():
         np.testing.assert_array_equal(r.status, np.where(hit, Status.CONVERGED, Status.MISS))
         assert np.abs(r.t[hit] - exact[hit]).max() < 1e-9

@@ -210,13 +210,13 @@ def _run_stages(alg, xp, take, move, s, gidx, Oc, Dc, ev, out, k0, pools, pool):
     may hand a ray on to any later stage (a marching step that crosses goes straight to
     refinement): rays handed on wait in their stage's bucket."""
     n_stages = len(alg.stages)
+    reads = [_reads(alg, k) for k in range(n_stages)]
     buckets: list[list] = [[] for _ in range(n_stages)]
     buckets[k0].append((s, gidx, Oc, Dc))
     for k in range(k0, n_stages):
         if not buckets[k]:
             continue
         step = getattr(alg, alg.stages[k])
-        keys = _reads(alg, k)
         s, gidx, Oc, Dc = _concat(xp, buckets[k])
         while gidx.shape[0]:
             s = step(xp, s, Oc.T, Dc.T, ev)
@@ -236,8 +236,8 @@ def _run_stages(alg, xp, take, move, s, gidx, Oc, Dc, ev, out, k0, pools, pool):
                 for k2 in later:
                     sel = _nonzero(xp, on if len(later) == 1 else on & (s["phase"] == k2))
                     if sel.shape[0]:
-                        buckets[k2].append(_take(take, s, gidx, Oc, Dc, sel, _reads(alg, k2)))
-            s, gidx, Oc, Dc = _drop(xp, move, s, gidx, Oc, Dc, leave, n_leave, keys)
+                        buckets[k2].append(_take(take, s, gidx, Oc, Dc, sel, reads[k2]))
+            s, gidx, Oc, Dc = _drop(xp, move, s, gidx, Oc, Dc, leave, n_leave, reads[k])
             if pools is not None and 0 < gidx.shape[0] < pool:
                 pools[k].append((s, gidx, Oc, Dc))
                 break

@@ -89,15 +89,11 @@ def _typed(xp, new: dict, old: dict) -> dict:
     return {k: v if k not in old or v.dtype == old[k].dtype else xp.astype(v, old[k].dtype) for k, v in new.items()}
 
 
-def _finish(xp, s, t_new, f_new, conv, iters, max_steps):
-    """Common end of a step: NON_FINITE, CONVERGED, MAX_ITER, in this order of precedence."""
-    status = s["status"]
-    nonf = (status == IN) & ~xp.isfinite(f_new)
-    status = xp.where(nonf, NONF, status)
-    status = xp.where((status == IN) & conv, CONV, status)
-    status = xp.where((status == IN) & (iters >= max_steps), MAXI, status)
-    t_new = xp.where(nonf, math.nan, t_new)
-    return status, t_new
+def _init_status(xp, status, f, conv):
+    """Status after ``init``'s evaluation: of the rays IN_PROGRESS, NON_FINITE where φ is not
+    finite, else CONVERGED where ``conv``; the others (BAD_INPUT, MISS) keep theirs."""
+    live = status == IN
+    return xp.where(live & ~xp.isfinite(f), NONF, xp.where(live & conv, CONV, status))
 
 
 def _verdict(xp, nonf, conv, maxed, miss=None):
@@ -121,11 +117,19 @@ def _verdict(xp, nonf, conv, maxed, miss=None):
 
 
 def final_t(xp, t, status):
-    """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, ``t`` otherwise.  The marching
-    steps leave a finished ray's ``t`` at its last point and the drivers map only the rays that
+    """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, ``t`` otherwise.  The steps
+    leave a finished ray's ``t`` at its last point and the drivers map only the rays that
     finish (:func:`outputs`; the compacting driver on each step's leaving rows), which saves two
     full-size selects per step."""
     return xp.where(status == MISS, math.inf, xp.where(status == NONF, math.nan, t))
+
+
+class _Search:
+    """What both root finders start from: their fields ``t_min``, ``t_max`` and ``bounds``."""
+
+    def start(self, xp, o, d):
+        """``(t, hi, status)`` of every ray before any evaluation (:func:`_start`)."""
+        return _start(xp, o, d, self.t_min, self.t_max, self.bounds)
 
 
 def _start(xp, o, d, t_min, t_max, bounds):
@@ -143,7 +147,7 @@ def _start(xp, o, d, t_min, t_max, bounds):
 
 
 @dataclasses.dataclass(frozen=True)
-class SphereTrace:
+class SphereTrace(_Search):
     """Sphere tracing (Hart 1996; lecture 'Sphere Tracing') with optional over-relaxation.
 
     Step t ← t + ω|φ(x(t))|/L, L the scene's Lipschitz bound (``|φ|`` so a ray starting inside
@@ -168,18 +172,13 @@ class SphereTrace:
 
     stages = ("step",)
 
-    def start(self, xp, o, d):
-        """``(t, hi, status)`` of every ray before any evaluation (:func:`_start`)."""
-        return _start(xp, o, d, self.t_min, self.t_max, self.bounds)
-
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
         f, _, cost = ev(o, d, t, False)
         s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
              "evals": xp.astype(status == IN, xp.int32) * cost, "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
-        status, t = _finish(xp, s, t, f, xp.abs(f) <= self.tol, s["iterations"], self.max_steps + 1)
-        s.update(status=status, t=xp.where(status == MISS, math.inf, t))
+        s["status"] = _init_status(xp, status, f, xp.abs(f) <= self.tol)
         return s
 
     def step(self, xp, s, o, d, ev):
@@ -195,18 +194,18 @@ class SphereTrace:
         iters = s["iterations"] + 1
         # accept a point only if its unbounding sphere overlaps the previous one (Keinert et al.)
         ok = ~((om > 1) & (xp.abs(f_new) * self.inv_lip + r_prev < t_new - t_prev))
-        s2 = dict(s, status=xp.where(out, MISS, s["status"]))
-        status, t_new = _finish(xp, s2, t_new, xp.where(out, f, f_new), (xp.abs(f_new) <= self.tol) & ok,
-                                iters, self.max_steps)
-        return _typed(xp, dict(s, t=xp.where(out, math.inf, t_new), f=f_new, t_prev=t_prev, r_prev=r_prev, omega=om,
-                               status=status, iterations=iters, evals=s["evals"] + cost), s)
+        # (a ray that left re-evaluated its last, finite point: out rays are never NON_FINITE)
+        status = _verdict(xp, ~xp.isfinite(f_new) & ~out, (xp.abs(f_new) <= self.tol) & ok, iters >= self.max_steps,
+                          miss=out)
+        return _typed(xp, dict(s, t=t_new, f=f_new, t_prev=t_prev, r_prev=r_prev, omega=om, status=status,
+                               iterations=iters, evals=s["evals"] + cost), s)
 
 
 # -- marching to a sign change, then refinement ------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
-class MarchRefine:
+class MarchRefine(_Search):
     """March to the first sign change of φ along the ray (stage ``step_march``, then, for rays
     still marching after ``ladder_after`` steps, stage ``step_ladder``), then refine the bracket
     (stage ``step_refine``).
@@ -300,10 +299,6 @@ class MarchRefine:
             keys |= {"p", "fp"}
         return frozenset(keys)
 
-    def start(self, xp, o, d):
-        """``(t, hi, status)`` of every ray before any evaluation (:func:`_start`)."""
-        return _start(xp, o, d, self.t_min, self.t_max, self.bounds)
-
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
         f, df, cost = ev(o, d, t, self.deriv)
@@ -314,8 +309,7 @@ class MarchRefine:
             s["df"] = df
         if self._hybrid:
             s["dl"] = xp.full_like(t, self._cap)
-        status, t = _finish(xp, s, t, f, f == 0, s["iterations"], self.max_steps + 1)
-        s.update(status=status, t=t)
+        s["status"] = _init_status(xp, status, f, f == 0)
         return s
 
     # The stage steps assume every row they are given is IN_PROGRESS in their stage (the

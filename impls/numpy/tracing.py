@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.driver import run_compacted
+from ..core import methods_root
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -55,8 +56,15 @@ def run_loop(alg, o, d, ev, block=BLOCK, pool=POOL, workers=None):
     return run_compacted(alg, np, o, d, ev, soa=soa, block=block, pool=pool, guard=_quiet, workers=workers)
 
 
+# Ladder steps (impls.core.rootfind.MarchRefine.step_ladder) where the knob leaves the choice to
+# the driver: 16 samples.  Once few rays are left a compacting loop step costs its per-call
+# overhead whatever their number: torus ∪ box, 2^20 rays, the longest ray 1917 → 180 iterations
+# (see impls/jax/tracing.py for the masked driver's choice).
+LADDER = methods_root.LADDER
+
+
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
-    alg = make_root_finder(method, scene, t_min, t_max, knobs, theta)
+    alg = make_root_finder(method, scene, t_min, t_max, knobs, theta, ladder=LADDER)
     return run_loop(alg, o, d, ray_eval(backend, scene, theta))  # the outputs of rootfind.STATE_OUT
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from ..core.driver import run_compacted
+from ..core import methods_root
 from ..core.methods_root import make_root_finder, root_impls
 
 
@@ -51,8 +52,11 @@ def _move(v, holes, src):
     v.index_copy_(0, holes, torch.index_select(v, 0, src))
 
 
+LADDER = methods_root.LADDER  # see impls/numpy/tracing.py
+
+
 def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
-    alg = make_root_finder(method, scene, t_min, t_max, knobs, theta)
+    alg = make_root_finder(method, scene, t_min, t_max, knobs, theta, ladder=LADDER)
     return run_loop(backend, alg, o, d, ray_eval(backend, scene, theta))
 
 
