@@ -34,6 +34,9 @@ class Status(enum.IntEnum):
     NON_FINITE = -3  #: φ or t became NaN/inf; ``t`` is NaN
     BAD_INPUT = -5  #: the ray itself is invalid (non-finite origin, zero direction)
     ILL_CONDITIONED = -6  #: derivative along the ray ≈ 0 (grazing), e.g. for dt/dθ
+    #: a step observed |φ(t₁) − φ(t₀)| > L·|t₁ − t₀|: the scene's declared Lipschitz bound L is
+    #: false there, so no certified answer exists; ``t`` is NaN
+    LIPSCHITZ_VIOLATED = -7
 
 
 @dataclasses.dataclass
