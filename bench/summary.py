@@ -1,0 +1,162 @@
+"""What a reader needs first: the run at a glance and "which to pick".
+
+Pure functions of a results frame (``bench.results`` columns) and the run's environment, used
+by the report's first screen and by the CLI's closing summary, so both say the same thing.
+
+*Which to pick*: for each method family (root, gradient, param_grad, render), each case and each
+error target, the fastest configuration (method × backend × dtype × knob setting) whose max
+error over every ray of the case, on the family's primary quantity (depth, normal angle, dt/dθ,
+colour against the rendering integral), is at or below the target, with no false hit or miss.
+"Fastest" is the median time in units of the closed-form ray–sphere intersection of the same
+rays measured in the same run (``time_ratio_cf``), so that cases of different sizes read alike;
+in an accuracy-only run (no timing) the cheapest in field evaluations per ray is taken instead,
+and the table says so.  Comparisons are made within one case only: a method measured on another
+case is not its competitor there.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
+#: the error targets every "fastest to target" table uses
+TARGETS = (1e-4, 1e-8, 1e-12)
+
+
+def ok_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """The measured rows, their numeric columns as floats."""
+    ok = df[df["outcome"] == "ok"].copy()
+    for c in ("error_max", "time_median_s", "time_iqr_s", "time_ratio_cf", "compile_s", "evals_per_ray"):
+        ok[c] = pd.to_numeric(ok[c], errors="coerce") if c in ok else np.nan
+    return ok
+
+
+def knob_label(method: str, knob: str) -> str:
+    """``knob`` (a :func:`bench.results.knob_string`) without the settings that are the method's
+    defaults, so that a table shows what was chosen: ``xtol=1e-08`` rather than all eight knobs
+    of ``hybrid_secant``; ``defaults`` when every knob is at its default, ``""`` for a method
+    without knobs, and the whole string for a method the catalog does not know."""
+    from impls.methods import METHODS
+
+    from .results import knob_string
+
+    spec = METHODS.get(method)
+    if not knob or spec is None:
+        return knob
+    default = set(knob_string({k.name: k.default for k in spec.knobs}).split(","))
+    chosen = [kv for kv in knob.split(",") if kv not in default]
+    return ",".join(chosen) or "defaults"
+
+
+def config_counts(df: pd.DataFrame) -> dict[str, int]:
+    """Planned configurations by outcome: ``ran`` (a quantity measured), ``failed``, ``skipped``."""
+    if df is None or not len(df):
+        return {"ran": 0, "skipped": 0, "failed": 0}
+    rank = df["outcome"].map({"ok": 0, "failed": 1, "skipped": 2}).fillna(3)
+    first = df.assign(_rank=rank).sort_values("_rank").groupby(CONFIG_KEY, sort=False)["outcome"].first()
+    counts = first.value_counts()
+    return {"ran": int(counts.get("ok", 0)), "skipped": int(counts.get("skipped", 0)),
+            "failed": int(counts.get("failed", 0))}
+
+
+def failures(df: pd.DataFrame, limit: int = 10) -> list[str]:
+    """The first ``limit`` failed configurations as ``case backend dtype method: reason`` lines."""
+    if df is None or not len(df):
+        return []
+    bad = df[df["outcome"] == "failed"].drop_duplicates(CONFIG_KEY)
+    return [f"{r.case_id} {r.backend} {r.dtype} {r.method}: {str(r.reason)[:160]}"
+            for r in bad.head(limit).itertuples(index=False)]
+
+
+def overview(df: pd.DataFrame, env: dict) -> dict[str, str]:
+    """Run, suite, commit, machine and completeness, as label → text."""
+    c = config_counts(df)
+    return {
+        "run": str(env.get("run_id", "?")),
+        "suite": str(env.get("suite", "?")),
+        "commit": str(env.get("git_commit", env.get("commit", "?")))[:12],
+        "machine": " · ".join(str(env[k]) for k in ("cpu", "platform") if env.get(k)) or str(env.get("machine", "?")),
+        "configurations": f"{c['ran']} ran · {c['skipped']} skipped · {c['failed']} failed",
+        "complete": "yes" if str(env.get("complete", "true")) == "true" else
+                    f"NO — {env.get('incomplete_reason', 'the run stopped before its plan was done')}",
+    }
+
+
+def _primary(ok: pd.DataFrame) -> pd.DataFrame:
+    """Rows of each method's primary quantity (the family's main answer)."""
+    from impls.methods import METHODS
+
+    from .metrics import primary_quantity
+
+    want = {m: primary_quantity(s) for m, s in METHODS.items()}
+    keep = ok["quantity"] == ok["method"].map(want).fillna(ok["quantity"])
+    return ok[keep]
+
+
+def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
+    """Per family × case × target: the fastest configuration reaching the target (module doc).
+
+    Columns: family, case, target, pick (``method · backend · dtype``), knob, ``× closed form``,
+    ``time [ms]``, ``evals/ray``, ``by`` (``time`` or ``evals`` when the run was untimed),
+    ``candidates`` (configurations that reached the target).  A target no configuration reached
+    is a row with pick ``none reached`` and the best error seen."""
+    ok = ok_rows(df)
+    if ok.empty:
+        return pd.DataFrame(columns=["family", "case", "target", "pick", "knob", "× closed form", "time [ms]",
+                                     "evals/ray", "by", "candidates"])
+    ok = _primary(ok)
+    for c in ("n_false_hit", "n_false_miss"):
+        ok[c] = pd.to_numeric(ok.get(c, 0), errors="coerce").fillna(0)
+    clean = ok[(ok["n_false_hit"] == 0) & (ok["n_false_miss"] == 0)]
+    rows = []
+    for (fam, cid), g in ok.groupby(["family", "case_id"], sort=True):
+        gc = clean[(clean["family"] == fam) & (clean["case_id"] == cid)]
+        timed = bool(np.isfinite(gc["time_ratio_cf"]).any())
+        by = "time_ratio_cf" if timed else "evals_per_ray"
+        for tgt in targets:
+            hit = gc[gc["error_max"] <= tgt]
+            hit = hit[np.isfinite(hit[by])] if timed else hit
+            row = {"family": fam, "case": cid, "target": tgt, "by": "time" if timed else "evals",
+                   "candidates": int(len(hit))}
+            if hit.empty:
+                best = g["error_max"].min()
+                row.update({"pick": "none reached", "knob": f"best error {best:.2g}" if np.isfinite(best) else
+                            "every configuration had a false hit/miss or infinite error"})
+            else:
+                r = hit.sort_values([by, "evals_per_ray", "time_median_s"], na_position="last").iloc[0]
+                row.update({"pick": f"{r['method']} · {r['backend']} · {r['dtype']}",
+                            "knob": knob_label(r["method"], r["knob"]),
+                            "× closed form": r["time_ratio_cf"], "time [ms]": 1e3 * r["time_median_s"],
+                            "evals/ray": r["evals_per_ray"]})
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def headline(picks: pd.DataFrame, target: float = 1e-8) -> list[str]:
+    """One line per family at ``target``: the pick on each case, e.g.
+    ``root ≤ 1e-08: sphere.camera.64x64 → hybrid_secant · jax:cpu · float64 (×7.1, 3.6 evals/ray)``."""
+    if picks is None or picks.empty:
+        return []
+    lines = []
+    for fam, g in picks[picks["target"] == target].groupby("family", sort=True):
+        parts = []
+        for d in g.to_dict("records"):
+            if d["pick"] == "none reached":
+                parts.append(f"{d['case']} → none reached")
+                continue
+            cost = (f"×{d['× closed form']:.3g}, " if d["by"] == "time" else "untimed, ") + f"{d['evals/ray']:.3g} evals/ray"
+            parts.append(f"{d['case']} → {d['pick']} ({cost})")
+        lines.append(f"{fam} ≤ {target:.0e}: " + "; ".join(parts))
+    return lines
+
+
+def status_text(v) -> str:
+    """A status histogram (JSON) as ``CONVERGED 3096 · MISS 1000``."""
+    try:
+        d = json.loads(v) if isinstance(v, str) and v else {}
+    except ValueError:
+        return str(v)
+    return " · ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1]))

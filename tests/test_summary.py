@@ -1,0 +1,60 @@
+"""The first-screen summary: counts and "which to pick" on hand-made result frames."""
+
+import math
+
+import pandas as pd
+
+from bench import summary
+
+
+def _row(method="hybrid_secant", backend="numpy", err=1e-10, ratio=5.0, evals=4.0, case="sphere.camera.64x64",
+         knob="xtol=1e-12", fh=0, fm=0, outcome="ok", dtype="float64", family="root", quantity="depth"):
+    return {"case_id": case, "backend": backend, "dtype": dtype, "method": method, "knob": knob, "family": family,
+            "quantity": quantity, "outcome": outcome, "reason": "" if outcome == "ok" else "boom",
+            "error_max": err, "time_ratio_cf": ratio, "time_median_s": ratio * 1e-3, "time_iqr_s": 0.0,
+            "compile_s": 0.0, "evals_per_ray": evals, "n_false_hit": fh, "n_false_miss": fm}
+
+
+def test_pick_is_the_fastest_configuration_that_reaches_the_target():
+    df = pd.DataFrame([_row(backend="numpy", ratio=9.0), _row(backend="jax:cpu", ratio=3.0),
+                       _row(backend="torch:cpu", ratio=1.0, err=1e-5),  # fastest, but only reaches 1e-4
+                       _row(method="sphere_trace", backend="numpy", ratio=2.0, err=1e-9)])
+    p = summary.which_to_pick(df).set_index("target")
+    assert p.loc[1e-4, "pick"] == "hybrid_secant · torch:cpu · float64"
+    assert p.loc[1e-8, "pick"] == "sphere_trace · numpy · float64"
+    assert p.loc[1e-12, "pick"] == "none reached"
+    assert "1e-10" in p.loc[1e-12, "knob"]  # the best error seen is stated
+    assert p.loc[1e-8, "candidates"] == 3
+
+
+def test_a_false_hit_or_miss_disqualifies_whatever_its_error_and_time():
+    df = pd.DataFrame([_row(backend="numpy", ratio=0.5, fh=1), _row(backend="torch:cpu", ratio=0.6, fm=2),
+                       _row(backend="jax:cpu", ratio=7.0)])
+    p = summary.which_to_pick(df, targets=(1e-4, 1e-8))
+    assert set(p["pick"]) == {"hybrid_secant · jax:cpu · float64"}
+
+
+def test_untimed_runs_pick_by_evaluations_and_say_so():
+    df = pd.DataFrame([_row(backend="numpy", ratio=math.nan, evals=9.0),
+                       _row(method="sphere_trace", ratio=math.nan, evals=3.0)])
+    p = summary.which_to_pick(df, targets=(1e-8,))
+    assert set(p["by"]) == {"evals"}
+    assert set(p["pick"]) == {"sphere_trace · numpy · float64"}
+    assert "untimed" in summary.headline(p)[0]
+
+
+def test_cases_are_not_compared_with_each_other():
+    df = pd.DataFrame([_row(case="a.x", ratio=1.0), _row(case="b.y", backend="jax:cpu", ratio=5.0)])
+    p = summary.which_to_pick(df, targets=(1e-8,))
+    assert dict(zip(p["case"], p["pick"])) == {"a.x": "hybrid_secant · numpy · float64",
+                                                "b.y": "hybrid_secant · jax:cpu · float64"}
+
+
+def test_counts_and_failures_are_per_configuration():
+    df = pd.DataFrame([_row(), _row(quantity="other"), _row(backend="jax:cpu", outcome="failed"),
+                       _row(backend="torch:cpu", outcome="skipped")])
+    assert summary.config_counts(df) == {"ran": 1, "skipped": 1, "failed": 1}
+    assert summary.failures(df) == ["sphere.camera.64x64 jax:cpu float64 hybrid_secant: boom"]
+    ov = summary.overview(df, {"run_id": "r1", "suite": "quick", "complete": "false"})
+    assert ov["configurations"] == "1 ran · 1 skipped · 1 failed"
+    assert ov["complete"].startswith("NO")
