@@ -32,8 +32,8 @@ def _planted_ledger() -> Ledger:
     @led.claim("cond", statement="x² ≥ x", equation="planted", how_checked="evaluate on a grid")
     def _cond(ctx):
         xs = np.linspace(-2, 2, 9)
-        return Evidence([Trial("x ≤ 0 or x ≥ 1" if (v <= 0 or v >= 1) else f"x={v}", bool(v * v >= v), {"x": v})
-                         for v in xs])
+        return Evidence([Trial(f"x={v}", bool(v * v >= v), {"x": v},
+                               classes=("x ≤ 0 or x ≥ 1",) if (v <= 0 or v >= 1) else ()) for v in xs])
 
     @led.claim("rate_true", statement="bisection error halves per step (order 1, ratio 1/2)", equation="planted",
                how_checked="fitted ratio within 0.05 of 1/2")
@@ -69,9 +69,72 @@ def test_decide_rule():
     assert decide([t, t]).verdict is Verdict.HOLDS
     d = decide([f, f])
     assert d.verdict is Verdict.FAILS and "b" in d.counterexample and "x=1" in d.counterexample
-    d = decide([t, f])
-    assert d.verdict is Verdict.CONDITIONAL and d.conditions == "a" and d.counterexample.startswith("b")
+    # holding somewhere is no condition: without a named class that holds throughout, it fails
+    assert decide([t, f]).verdict is Verdict.FAILS
+    tc = Trial("a", True, classes=("class A",))
+    d = decide([tc, f])
+    assert d.verdict is Verdict.CONDITIONAL and d.conditions == "class A" and d.counterexample.startswith("b")
     assert decide([]).verdict is Verdict.ERROR
+    assert decide([Trial("o", False, in_scope=False)]).verdict is Verdict.ERROR
+
+
+def test_planted_bound_that_holds_only_where_vacuous_fails():
+    """(a) |sin x − x| ≤ B(x) with B(x) = |x|³/6 + 10·[|x| > 1]: true only where the bound is
+    no tighter than the trivial |sin x − x| ≤ |x| + 1."""
+    trials = []
+    for x in np.linspace(0.1, 3.0, 30):
+        err, bound = abs(np.sin(x) - x), (x ** 3 / 6 if x <= 1 else 0.0) + (10.0 if x > 1 else 0.0)
+        holds = err <= bound and x > 1  # planted: the informative part (x ≤ 1) is made false
+        trials.append(Trial(f"x={x:.2f}", bool(holds), {"err": err, "bound": bound}, vacuous=bound >= x + 1))
+    d = decide(trials)
+    assert d.verdict is Verdict.FAILS and "x=0.10" in d.counterexample
+    # and all-vacuous evidence is no evidence either
+    assert decide([t for t in trials if t.vacuous]).verdict is Verdict.FAILS
+
+
+def test_planted_half_true_compound_claim_fails_in_one_part(tmp_path):
+    """(b) "squaring is cheap and exact in float64": the two parts get their own ids."""
+    led = Ledger()
+    xs = [0.1, 1 / 3, 1e200]
+
+    @led.claim("sq.a", statement="x·x is finite", equation="planted", how_checked="isfinite", scope="x < 1e150")
+    def _a(ctx):
+        return Evidence([Trial(f"x={x:g}", bool(np.isfinite(x * x)), in_scope=x < 1e150) for x in xs])
+
+    @led.claim("sq.b", statement="x·x is exact", equation="planted", how_checked="x·x == fraction", scope="any x")
+    def _b(ctx):
+        from fractions import Fraction
+
+        return Evidence([Trial(f"x={x:g}", Fraction(x * x) == Fraction(x) ** 2) for x in xs])
+
+    df = run_claims(tmp_path, ledger=led).set_index("id")
+    assert df.loc["sq.a", "verdict"] == "holds" and "1e+200" in df.loc["sq.a", "out_of_scope"]
+    assert df.loc["sq.b", "verdict"] == "fails"
+    assert df.loc["sq.a", "scope"] == "x < 1e150"
+
+
+def test_planted_claim_true_on_a_named_subclass_holds_under_conditions():
+    """(c) "‖A‖₂ = max |λ(A)|": true for symmetric matrices, false for a shear."""
+    rng = np.random.default_rng(0)
+    trials = []
+    for k in range(6):
+        a = rng.normal(size=(4, 4))
+        sym = k % 2 == 0
+        a = a + a.T if sym else a
+        s, lam = np.linalg.norm(a, 2), np.max(np.abs(np.linalg.eigvals(a)))
+        trials.append(Trial(f"matrix {k}", bool(abs(s - lam) <= 1e-12 * s), classes=("symmetric",) if sym else ()))
+    trials.append(Trial("shear", bool(np.linalg.norm([[1.0, 1.0], [0.0, 1.0]], 2) == 1.0)))
+    d = decide(trials)
+    assert d.verdict is Verdict.CONDITIONAL and d.conditions == "symmetric"
+    assert "symmetric" not in d.counterexample
+
+
+def test_planted_true_claim_holds():
+    """(d) the triangle inequality, on random vectors."""
+    rng = np.random.default_rng(1)
+    trials = [Trial(f"pair {k}", bool(np.linalg.norm(a + b) <= np.linalg.norm(a) + np.linalg.norm(b) + 1e-15))
+              for k, (a, b) in enumerate(rng.normal(size=(20, 2, 3)))]
+    assert decide(trials).verdict is Verdict.HOLDS
 
 
 def test_planted_claims_get_the_right_verdicts(tmp_path):

@@ -39,8 +39,8 @@ CLAIM_MODULES = (
     "c12_marching_cubes",
 )
 
-COLUMNS = ["id", "statement", "equation", "how_checked", "verdict", "conditions", "counterexample", "key_numbers",
-           "plot", "n_trials", "n_hold", "seconds", "message"]
+COLUMNS = ["id", "statement", "equation", "scope", "how_checked", "verdict", "conditions", "counterexample",
+           "out_of_scope", "key_numbers", "plot", "n_trials", "n_hold", "seconds", "message"]
 
 _LOADED = False
 
@@ -68,8 +68,8 @@ def run_one(claim: Claim, out_dir: Path, ctx: CheckContext) -> dict:
     from .figures import message_png, save_png
 
     plot = f"claim_{claim.id}.png"
-    row = {"id": claim.id, "statement": claim.statement, "equation": claim.equation,
-           "how_checked": claim.how_checked, "plot": plot}
+    row = {"id": claim.id, "statement": claim.statement, "equation": claim.equation, "scope": claim.scope,
+           "how_checked": claim.how_checked, "plot": plot, "out_of_scope": ""}
     t0 = time.perf_counter()
     try:
         ev = claim.check(ctx)
@@ -77,6 +77,7 @@ def run_one(claim: Claim, out_dir: Path, ctx: CheckContext) -> dict:
             raise TypeError(f"check of claim {claim.id} returned {type(ev).__name__}, expected Evidence")
         d = decide(ev.trials)
         row.update(verdict=d.verdict.value, conditions=d.conditions, counterexample=d.counterexample,
+                   out_of_scope=d.out_of_scope,
                    key_numbers=numbers_json(ev.key_numbers), n_trials=d.n_trials, n_hold=d.n_hold,
                    message=ev.note if d.verdict is not Verdict.ERROR else d.counterexample)
         if ev.figure is not None:

@@ -1,18 +1,31 @@
 """The ledger: the record types of a claim check and the one rule that turns evidence into a verdict.
 
-A *claim* is a statement of the lecture with the place it is made (``equation``) and a ``check``
-function.  The check does not decide the verdict: it returns :class:`Evidence`, a list of
-:class:`Trial` s — one concrete instance of the statement (a scene, a matrix, a parameter
+A *claim* is a statement of the lecture with the place it is made (``equation``), its **scope**
+(the assumptions the lecture makes and the regime it uses the claim for, in words) and a
+``check`` function.  The check does not decide the verdict: it returns :class:`Evidence`, a list
+of :class:`Trial` s — one concrete instance of the statement (a scene, a matrix, a parameter
 point) with a yes/no outcome measured against a criterion written in ``how_checked`` — plus the
-key numbers and a figure.  :func:`decide` applies the same rule to every claim:
+key numbers and a figure.  Each trial also says
 
-* every trial holds                   → ``holds``
-* no trial holds                      → ``fails`` (the first failing trial is the counterexample)
-* some hold, some fail                → ``holds under conditions`` (the conditions of the trials
-  that hold are listed, and the first failing trial is the counterexample)
-* the check raised, or gave no trials → ``error`` (with the message)
+* ``in_scope``: whether it lies inside the claim's scope (a trial outside it is shown, never
+  counted against the claim);
+* ``classes``: the named narrower classes it belongs to (e.g. ``"exact SDFs"``,
+  ``"symmetric matrices"``), classes a reader would accept as the claim's true scope;
+* ``vacuous``: whether a bound it checks is no tighter than a trivial one (e.g. the largest
+  possible colour difference).  A vacuous "holds" says nothing, so it counts as *not holding*.
 
-So a verdict can only be changed by changing what is measured, never by the check picking it.
+:func:`decide` applies one rule to every claim, on the trials inside the scope, where a trial
+*holds* only if it holds and is not vacuous:
+
+* no trial inside the scope, or no trials at all → ``error``
+* every trial holds                              → ``holds``
+* some fail, and a named class holds throughout  → ``holds under conditions``: the largest such
+  class (most trials) is named, with the first failing trial outside it as the counterexample
+* otherwise                                      → ``fails``, the first failing trial the
+  counterexample (so a bound that holds only where it is vacuous fails)
+
+So a verdict can only be changed by changing what is measured, never by the check picking it,
+and "under conditions" needs a class the check named before it saw the outcome.
 """
 
 from __future__ import annotations
@@ -40,11 +53,20 @@ class Trial:
     condition: str
     holds: bool
     numbers: dict[str, Any] = dataclasses.field(default_factory=dict)
+    in_scope: bool = True
+    classes: tuple[str, ...] = ()
+    vacuous: bool = False
+
+    @property
+    def informative_hold(self) -> bool:
+        """Holds, and not only because the bound checked is trivial."""
+        return self.holds and not self.vacuous
 
     def describe(self) -> str:
+        text = self.condition + (" [vacuous: no tighter than the trivial bound]" if self.holds and self.vacuous else "")
         if not self.numbers:
-            return self.condition
-        return f"{self.condition} ({format_numbers(self.numbers)})"
+            return text
+        return f"{text} ({format_numbers(self.numbers)})"
 
 
 @dataclasses.dataclass
@@ -74,6 +96,8 @@ class Claim:
     equation:    where the lecture makes it (equation number or slide title).
     how_checked: the experiment and the criterion a trial must meet, with its tolerance.
     check:       ``CheckContext -> Evidence``.
+    scope:       the assumptions and regime the verdict is judged in (trials say whether they
+                 are inside it).
     """
 
     id: str
@@ -81,6 +105,7 @@ class Claim:
     equation: str
     how_checked: str
     check: Callable[[CheckContext], Evidence]
+    scope: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,25 +115,35 @@ class Decision:
     counterexample: str
     n_trials: int
     n_hold: int
+    out_of_scope: str = ""
 
 
 def decide(trials: list[Trial]) -> Decision:
-    """The verdict rule (see the module docstring); pure function of the trials."""
+    """The verdict rule (see the module docstring); pure function of the trials.
+
+    ``n_trials`` and ``n_hold`` count the trials inside the scope (``n_hold``: informative holds);
+    ``out_of_scope`` describes the first trial outside the scope that does not hold, if any."""
     if not trials:
         return Decision(Verdict.ERROR, "", "the check produced no trials", 0, 0)
-    good = [t for t in trials if t.holds]
-    bad = [t for t in trials if not t.holds]
-    counter = bad[0].describe() if bad else ""
+    inside = [t for t in trials if t.in_scope]
+    outside_bad = [t for t in trials if not t.in_scope and not t.informative_hold]
+    note = outside_bad[0].describe() if outside_bad else ""
+    if not inside:
+        return Decision(Verdict.ERROR, "", "no trial lies inside the claim's scope", len(trials), 0, note)
+    good = [t for t in inside if t.informative_hold]
+    bad = [t for t in inside if not t.informative_hold]
     if not bad:
-        verdict = Verdict.HOLDS
-        conditions = ""
-    elif not good:
-        verdict = Verdict.FAILS
-        conditions = ""
-    else:
-        verdict = Verdict.CONDITIONAL
-        conditions = "; ".join(dict.fromkeys(t.condition for t in good))
-    return Decision(verdict, conditions, counter, len(trials), len(good))
+        return Decision(Verdict.HOLDS, "", "", len(inside), len(good), note)
+    classes: dict[str, list[Trial]] = {}
+    for t in inside:
+        for c in t.classes:
+            classes.setdefault(c, []).append(t)
+    valid = [(c, ts) for c, ts in classes.items() if all(t.informative_hold for t in ts)]
+    if valid:
+        name, _ = max(valid, key=lambda cv: len(cv[1]))  # the largest class that holds throughout
+        counter = next(t for t in bad if name not in t.classes)
+        return Decision(Verdict.CONDITIONAL, name, counter.describe(), len(inside), len(good), note)
+    return Decision(Verdict.FAILS, "", bad[0].describe(), len(inside), len(good), note)
 
 
 class Ledger:
@@ -123,11 +158,12 @@ class Ledger:
         self._claims[claim.id] = claim
         return claim
 
-    def claim(self, id: str, *, statement: str, equation: str, how_checked: str):
-        """Decorator registering ``check(ctx) -> Evidence`` as claim ``id``."""
+    def claim(self, id: str, *, statement: str, equation: str, how_checked: str, scope: str = ""):
+        """Decorator registering ``check(ctx) -> Evidence`` as claim ``id``, judged in ``scope``."""
 
         def deco(fn: Callable[[CheckContext], Evidence]):
-            self.add(Claim(id=id, statement=statement, equation=equation, how_checked=how_checked, check=fn))
+            self.add(Claim(id=id, statement=statement, equation=equation, how_checked=how_checked, check=fn,
+                           scope=scope))
             return fn
 
         return deco
