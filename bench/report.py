@@ -363,7 +363,15 @@ def read_claims(run_dir: Path) -> pd.DataFrame | None:
     return pd.read_csv(p, keep_default_na=False)
 
 
-CLAIM_COLUMNS = ["id", "statement", "equation", "how_checked", "verdict", "key_numbers", "plot"]
+CLAIM_COLUMNS = ["id", "statement", "equation", "scope", "how_checked", "verdict", "key_numbers", "plot"]
+#: verdict order of the ledger tables: what a reader must see first comes first
+VERDICT_ORDER = {"fails": 0, "error": 1, "holds under conditions": 2, "holds": 3}
+
+
+def claims_in_reading_order(claims: pd.DataFrame) -> pd.DataFrame:
+    """Failures first, then errors, conditional holds and holds; catalogue order within each."""
+    rank = claims["verdict"].map(VERDICT_ORDER).fillna(1) if "verdict" in claims else 0
+    return claims.assign(_rank=rank).sort_values("_rank", kind="stable").drop(columns="_rank")
 
 
 def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
@@ -503,11 +511,14 @@ def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:
             text = f"<details><summary>{text[:120]}…</summary>{text}</details>"
         return f"<td{' class=warn' if c == 'verdict' and is_warn(verdict) else ''}>{text}</td>"
 
-    # A one-line-per-claim summary first, so a reader sees every verdict before the evidence.
-    short = [c for c in ("id", "statement", "verdict", "conditions", "counterexample") if c in claims.columns]
+    # A one-line-per-claim summary first (failures first), so a reader sees every verdict, and the scope
+    # it was judged in, before the evidence.
+    short = [c for c in ("id", "statement", "scope", "verdict", "conditions", "counterexample") if c in claims.columns]
     summary = "".join(
-        "<tr>" + "".join(cell(c, r[c], str(r.get("verdict", ""))) for c in short) + "</tr>" for _, r in claims.iterrows())
-    summary_html = (f"<table class='t'><tr>{''.join(f'<th>{c}</th>' for c in short)}</tr>{summary}</table>"
+        "<tr>" + "".join(cell(c, r[c], str(r.get("verdict", ""))) for c in short) + "</tr>"
+        for _, r in claims_in_reading_order(claims).iterrows())
+    names = {"conditions": "holds on (named class)", "counterexample": "counterexample (inside the scope)"}
+    summary_html = (f"<table class='t'><tr>{''.join(f'<th>{names.get(c, c)}</th>' for c in short)}</tr>{summary}</table>"
                     "<h3>Evidence, claim by claim</h3>")
     body = []
     for _, r in claims.iterrows():

@@ -15,7 +15,8 @@ from bench.claims import _load as load_claims
 from bench.claims import adapters
 from bench.claims.c01_boolean import exact_csg_sdf
 from bench.claims.c06_root_orders import newton, observed_order, secant
-from bench.claims.c07_implicit_dt import _truth, hit_to_tolerance
+from bench.claims.c07_implicit_dt import hit_to_tolerance
+from bench.claims.scenes import sphere_dt_truth
 from bench.claims.c09_volume_bound import lecture_bound
 from bench.claims.rendering import composite, window_samples
 from bench.claims.stats import central_laplacian, fit_power
@@ -144,7 +145,7 @@ def test_hit_to_tolerance_and_truth():
     d = np.tile([0.0, 0.0, -1.0], (3, 1))
     t = hit_to_tolerance(s.value, o, d, np.zeros(3), np.full(3, 3.0), 1e-13)
     assert np.all(np.abs(s.value(o + t[:, None] * d)) <= 1e-13)
-    truth, _ = _truth(b)
+    truth, _ = sphere_dt_truth(b)
     assert np.allclose(truth, s.hit_param_grad(o, d, s.first_hit(o, d)), rtol=1e-12, atol=1e-12)
 
 

@@ -172,6 +172,7 @@ def sdf_bracket(op: str, a, b, x):
     "membership from the nodes' exact ray intervals at random points of random rays; a trial (pair × operation) "
     "holds if every point farther than 1e-12 (spheres) / 1e-9 along the ray (torus/box) from the boundary has "
     "the right sign",
+    scope="any implicit functions with the convention φ < 0 inside (not only SDFs); points off the boundary",
 )
 def check_regions(ctx):
     x = _samples(ctx)
@@ -202,6 +203,9 @@ def check_regions(ctx):
     "from the children's exact SDFs and closest points; a trial (operation × side) fails if |φ_op| lies "
     "outside [lo, up] by > 1e-12 at some point, holds if the bracket decides every point and |φ_op| matches, "
     "and is not judged (undecided fraction in the key numbers) otherwise",
+    scope="exact SDF operands (the slide's premise), every point of space, inside and outside; named class: "
+    "the side on which min/max of distances is a distance (outside a union, inside an intersection or a "
+    "subtraction, both sides of a complement)",
 )
 def check_sdf(ctx):
     x = _samples(ctx)
@@ -212,7 +216,8 @@ def check_sdf(ctx):
             err = float(np.max(np.abs(phi[m] - sdf[m]))) if m.any() else 0.0
             bound = bool(np.all(np.abs(phi[m]) <= np.abs(sdf[m]) + 1e-12))
             short = op.split()[0]
-            trials.append(Trial(f"two spheres: {op} {side}", err <= 1e-12, {"max_abs_err": err, "is_distance_bound": bound}))
+            trials.append(Trial(f"two spheres: {op} {side}", err <= 1e-12, {"max_abs_err": err, "is_distance_bound": bound},
+                                classes=_exact_side(op, side)))
             key[f"{short}_{side}_max_err"] = err
             key[f"{short}_{side}_bound"] = bound
     rng = np.random.default_rng(ctx.seed + 101)
@@ -235,9 +240,23 @@ def check_sdf(ctx):
             key[f"torus/box {short}_{side}: certified mismatches, undecided fraction"] = [int(bad.sum()), undecided]
             if undecided > 0 and not bad.any() and wrong_sign == 0:
                 continue  # neither shown to hold nor to fail: reported in the key numbers, not judged
-            trials.append(Trial(f"torus & rotated box: {op} {side}", not bad.any() and wrong_sign == 0, nums))
+            trials.append(Trial(f"torus & rotated box: {op} {side}", not bad.any() and wrong_sign == 0, nums,
+                                classes=_exact_side(op, side)))
             key[f"torus/box {short}_{side}_bound"] = not above.any()
     return Evidence(trials, key, _slice_figure())
+
+
+#: the side on which each operation of exact SDFs is again exact: the distance to a union from outside is the
+#: smaller distance, to the outside of an intersection (or of A ∖ B = A ∩ Bᶜ) from inside the smaller one,
+#: and the complement only flips the sign; on the other sides min/max is only a bound (|φ_op| ≤ distance)
+EXACT_SIDE = "exact side (outside a union, inside an intersection or subtraction, a complement)"
+
+
+def _exact_side(op: str, side: str) -> tuple[str, ...]:
+    short = op.split()[0]
+    exact = {"union": ("outside",), "intersection": ("inside",), "complement": ("outside", "inside"),
+             "subtraction": ("inside",), "difference": ("inside",)}.get(short, ())
+    return (EXACT_SIDE,) if side in exact else ()
 
 
 def _slice_figure():

@@ -13,70 +13,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from reference import AlgebraicSphere, Box, CallableField, Ellipsoid, Scaled, Sphere, Torus
+from reference import AlgebraicSphere, Box, CallableField, Ellipsoid, Scaled, Sphere
 from reference.scene import unit
 
 from .adapters import label
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
+from .scenes import AXES, geometric_closest, geometric_normal, surface_points, torus
 from .stats import central_gradient
 
 H = 1e-6
 TOL = 1e-6
-
-
-TORUS = (1.0, 0.4)  # R, r of the torus used by claims 2, 3 and 12
-AXES = (1.0, 0.7, 0.5)  # semi-axes of the ellipsoid
-
-
-def torus():
-    return Torus(major=TORUS[0], minor=TORUS[1])
-
-
-def _surface_points(shape_name: str, n: int, rng):
-    """Points on the zero set of the named family, from a parametrisation (not from φ)."""
-    u = rng.uniform(0, 2 * np.pi, n)
-    v = rng.uniform(0.15, np.pi - 0.15, n)  # keep away from the poles of the parametrisation
-    if shape_name == "torus":
-        R, r = TORUS
-        return np.stack([(R + r * np.cos(v * 2)) * np.cos(u), (R + r * np.cos(v * 2)) * np.sin(u), r * np.sin(v * 2)], -1)
-    if shape_name == "ellipsoid":
-        a = AXES
-        return np.stack([a[0] * np.cos(u) * np.sin(v), a[1] * np.sin(u) * np.sin(v), a[2] * np.cos(v)], -1)
-    return np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1)  # unit sphere
-
-
-def _ring_point(x):
-    """The point of the torus's core circle (radius R in z = 0) nearest to x."""
-    rho = np.hypot(x[..., 0], x[..., 1])
-    return np.stack([TORUS[0] * x[..., 0] / rho, TORUS[0] * x[..., 1] / rho, np.zeros_like(rho)], -1)
-
-
-def geometric_normal(fam: str, x):
-    """Outward unit normal at surface points from the geometry alone: radial for the unit sphere, from the
-    core circle for the torus, ∂x/∂u × ∂x/∂v of x = (a cos u sin v, b sin u sin v, c cos v) for the ellipsoid."""
-    x = np.asarray(x, float)
-    if fam == "torus":
-        return unit(x - _ring_point(x))
-    if fam == "ellipsoid":
-        a = np.asarray(AXES)
-        u = np.arctan2(x[..., 1] / a[1], x[..., 0] / a[0])
-        v = np.arccos(np.clip(x[..., 2] / a[2], -1, 1))
-        xu = np.stack([-a[0] * np.sin(u) * np.sin(v), a[1] * np.cos(u) * np.sin(v), 0 * u], -1)
-        xv = np.stack([a[0] * np.cos(u) * np.cos(v), a[1] * np.sin(u) * np.cos(v), -a[2] * np.sin(v)], -1)
-        n = unit(np.cross(xu, xv))
-        return np.where(np.sum(n * x, -1, keepdims=True) < 0, -n, n)
-    return unit(x)
-
-
-def geometric_closest(fam: str, x):
-    """Exact closest surface point (off the medial axis): radial projection onto the unit sphere; for the
-    torus the core-circle point plus r times the unit vector towards x."""
-    x = np.asarray(x, float)
-    if fam == "torus":
-        c = _ring_point(x)
-        return c + TORUS[1] * unit(x - c)
-    return unit(x)
 
 
 def _normal_cases():
@@ -94,13 +41,15 @@ def _normal_cases():
     how_checked="surface points from each shape's parametrisation; ∇φ by central differences (h=1e-6); "
     "exact normal from the parametrisation (cross product of tangents / radial direction); a trial (shape) "
     "holds if the largest angle between them is ≤ 1e-6 rad",
+    scope="any implicit φ whose zero set is a regular level set (∇φ ≠ 0 on it, the premise of eq. (1)); "
+    "a trial is outside the scope when min |∇φ| on the surface is below 1e-6 (∇φ/|∇φ| is then 0/0)",
 )
 def check_normal(ctx):
     rng = np.random.default_rng(ctx.seed)
     n = 2000 if ctx.quick else 50_000
     trials, key, curves = [], {}, []
     for fam, name, shape in _normal_cases():
-        x = _surface_points(fam, n, rng)
+        x = surface_points(fam, n, rng)
         g = central_gradient(shape.value, x, H)
         gn = np.linalg.norm(g, axis=-1)
         ex = geometric_normal(fam, x)
@@ -108,7 +57,7 @@ def check_normal(ctx):
         ang = np.arctan2(np.linalg.norm(np.cross(g, ex), axis=-1), np.sum(g * ex, -1))
         worst = float(ang.max())
         cond = f"{name} (min |∇φ| on surface {gn.min():.2g})"
-        trials.append(Trial(cond, worst <= TOL, {"max_angle_rad": worst}))
+        trials.append(Trial(cond, worst <= TOL, {"max_angle_rad": worst}, in_scope=bool(gn.min() > 1e-6)))
         key[f"{name}: max angle"] = worst
         curves.append((name, np.sort(ang)))
     fig, (ax,) = figure(1, 1, 6.5, 4)
@@ -123,7 +72,7 @@ def check_normal(ctx):
 
 def _shell_points(fam: str, n: int, rng, width=0.3):
     """Points within ``width`` of the surface along the exact normal (away from the medial axis)."""
-    base = _surface_points(fam, n, rng)
+    base = surface_points(fam, n, rng)
     return base + rng.uniform(-width, width, n)[:, None] * geometric_normal(fam, base)
 
 
@@ -133,6 +82,8 @@ def _shell_points(fam: str, n: int, rng, width=0.3):
     equation="slide 'Properties - SDF'",
     how_checked="points within 0.3 of the surface (off the medial axis); N = ∇φ/|∇φ| by central differences; "
     "a trial (shape) holds if max |x_s − exact closest point| ≤ 1e-6",
+    scope="any implicit φ (the slide asks for which functions it holds), points near the surface off the "
+    "medial axis; named class: exact SDFs",
 )
 def check_closest(ctx):
     rng = np.random.default_rng(ctx.seed + 1)
@@ -148,7 +99,7 @@ def check_closest(ctx):
         err = float(np.max(np.linalg.norm(xs - geometric_closest(fam, x), axis=-1)))
         name = label(shape)
         trials.append(Trial(name + (" (exact SDF)" if shape.info.exact_sdf else " (not an SDF)"), err <= TOL,
-                            {"max_err": err}))
+                            {"max_err": err}, classes=("exact SDFs",) if shape.info.exact_sdf else ()))
         key[f"{name}: max |x_s − closest|"] = err
         bars.append((name, err))
     fig, (ax,) = figure(1, 1, 6.5, 4)
@@ -168,6 +119,7 @@ def check_closest(ctx):
     "with h and 2h, points where the two disagree by > 1e-6 are counted as on a kink (the medial axis, "
     "where φ is not differentiable) and excluded; a trial holds if max ||∇φ|−1| ≤ 1e-6 elsewhere and kinks "
     "are ≤ 1% of the points",
+    scope="exact SDFs, wherever φ is differentiable (off the medial axis, a set of measure zero)",
 )
 def check_unit_gradient(ctx):
     rng = np.random.default_rng(ctx.seed + 2)

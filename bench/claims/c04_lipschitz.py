@@ -45,6 +45,7 @@ def _empirical(net, rng, n, half=2.0):
     how_checked="the stored reference MLP 3-16-16-1 (σ(z)=z/√(1+z²)); bound Π‖W_i‖₂ by SVD; largest "
     "|f(x)−f(y)|/|x−y| over random far and close (|x−y|≈1e-3) pairs and largest |∇f| (backprop) at random "
     "points; a trial (sampling box [−2,2]³ or [−20,20]³) holds if both are ≤ the bound",
+    scope="any MLP whose activations have bounded derivatives, anywhere in input space",
 )
 def check_bound(ctx):
     rng = np.random.default_rng(ctx.seed + 4)
@@ -95,6 +96,8 @@ def _matrices(rng):
     how_checked="‖W‖₂ (largest singular value, SVD) against the largest eigenvalue read charitably as the "
     "spectral radius max|λ| (and also as the largest real eigenvalue); a trial (matrix) holds if "
     "|‖W‖₂ − max|λ|| ≤ 1e-12‖W‖₂; rectangular matrices have no eigenvalues and fail",
+    scope="the weight matrices W_i of an MLP, i.e. any real matrix (square or not); named class: symmetric "
+    "matrices, the eigenvalue read as the largest |λ|",
 )
 def check_spectral(ctx):
     rng = np.random.default_rng(ctx.seed + 5)
@@ -110,8 +113,10 @@ def check_spectral(ctx):
             continue
         ev = np.linalg.eigvals(W)
         rho, lmax = float(np.abs(ev).max()), float(ev.real.max())
+        sym = bool(np.array_equal(W, W.T))
         trials.append(Trial(name, abs(s - rho) <= 1e-12 * s, {"spectral_norm": s, "max_abs_eig": rho,
-                                                              "max_real_eig": lmax}))
+                                                              "max_real_eig": lmax},
+                            classes=("symmetric matrices (largest |λ|)",) if sym else ()))
         key[f"{name}: ‖W‖₂"] = s
         key[f"{name}: max|λ|"] = rho
         key[f"{name}: max λ"] = lmax
@@ -136,6 +141,7 @@ def check_spectral(ctx):
     "(reference.numerical: Lipschitz-certified bracketing + bisection); a trial (network × step) holds if no iterate goes beyond the "
     "reference first hit (+1e-9) and it never stops where there is no hit (rays that do not converge in "
     "20000 steps are counted, not failed); steps with L=1 and with the empirical max |∇f| are reported for contrast",
+    scope="the stored MLP (any MLP of the lecture's form), rays from outside, the bound used as the step divisor",
 )
 def check_trace(ctx):
     n_side = 8 if ctx.quick else 24

@@ -141,6 +141,7 @@ def observed_order(errs) -> float:
     "mpmath (300 digits) from a bracket of width 0.5 / a start 0.05 before the root / starts 0.1 and 0.05 "
     "before it; a trial (method × function) holds if the fitted order is within 0.1 of the claim "
     "(bisection: fitted ratio within 0.05 of 1/2)",
+    scope="simple roots (φ'(t*) ≠ 0), iterates in the asymptotic range, exact arithmetic (300 digits) so that rounding does not cut the sequence short",
 )
 def check_orders(ctx):
     trials, key, curves = [], {}, []
@@ -237,6 +238,7 @@ def secant64(g, t0, t1, n=100):
     "(sphere SDF, x²+y²+z²−1, torus SDF); outcome: first hit (|t−t*|≤1e-9), another root, or no "
     "convergence; trials: 'arbitrary guesses can fail' holds if some pairs miss the first hit; 'good "
     "guesses work' holds if every pair within 0.05 of the first hit (both before it) converges to it",
+    scope="the secant method from arbitrary starting pairs along a ray (both parts: no guarantee; good guesses work)"
 )
 def check_secant_guesses(ctx):
     m = 121 if ctx.quick else 601

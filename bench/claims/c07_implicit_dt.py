@@ -21,6 +21,7 @@ from reference import Sphere
 
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
+from .scenes import sphere_dt_truth
 from .stats import fit_power
 
 RTOL = 1e-6
@@ -32,11 +33,6 @@ def _rays(ks):
     o = np.stack([b, np.zeros_like(b), np.full_like(b, 3.0)], -1)
     d = np.tile([0.0, 0.0, -1.0], (b.size, 1))
     return o, d, b
-
-
-def _truth(b, r=1.0):
-    s = np.sqrt((r - b) * (r + b))
-    return np.stack([-b / s, np.zeros_like(b), -np.ones_like(b), -r / s], -1), s / r
 
 
 def hit_to_tolerance(f, o, d, lo, hi, tau):
@@ -81,12 +77,15 @@ def implicit_and_trick(scene, o, d, t):
     how_checked="unit sphere, θ=(c,r), rays at impact 0, 0.5 and 1−10^-k (k=1..12); hit by bisection to "
     "|φ|≤τ (τ = exact, 1e-12, 1e-8); relative error ‖dt/dθ − exact‖/‖exact‖; a trial (method × τ × "
     f"band of |⟨n,v⟩|) holds if every ray in it has relative error ≤ {RTOL:g}; fitted slope of error vs |⟨n,v⟩|",
+    scope="rays that hit transversally (⟨∇σ, v⟩ ≠ 0), at the exact hit or at a hit found to |φ| ≤ τ, as a "
+    "root finder returns it; named class: well-conditioned rays, τ ≤ tolerance·|⟨n,v⟩|² (the error of eq. 8 "
+    "at a τ-hit is about τ/|⟨n,v⟩|² relative), which includes every exact hit",
 )
 def check_implicit(ctx):
     ks = np.arange(1, 13) if ctx.quick else np.linspace(1, 13, 49)
     o, d, b = _rays(ks)
     scene = Sphere()
-    truth, cos = _truth(b)
+    truth, cos = sphere_dt_truth(b)
     t_exact = scene.first_hit(o, d)
     trials, key, curves = [], {}, []
     lo = np.zeros(b.size)
@@ -100,7 +99,9 @@ def check_implicit(ctx):
                 m = (cos >= lo_c) & (cos < hi_c)
                 if m.any():
                     worst = float(err[m].max())
-                    trials.append(Trial(f"{mname}, {tau_name}, {band}", worst <= RTOL, {"max_rel_err": worst}))
+                    conditioned = tau is None or tau <= RTOL * float(cos[m].min()) ** 2
+                    trials.append(Trial(f"{mname}, {tau_name}, {band}", worst <= RTOL, {"max_rel_err": worst},
+                                        classes=("well-conditioned: τ ≤ tol·|⟨n,v⟩|²",) if conditioned else ()))
             if mname.startswith("implicit"):
                 curves.append((tau_name, err))
                 sel = cos < 0.5

@@ -20,7 +20,7 @@ import numpy as np
 from reference import AlgebraicSphere, Sphere
 
 from .adapters import label
-from .c02_normals import _surface_points, torus
+from .scenes import surface_points, torus
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
 from .stats import fit_power
@@ -50,7 +50,7 @@ def mesh_distances(shape, sdf, fam, n, rng, n_surface=20_000):
     probes = np.concatenate([verts, tri.mean(1), 0.5 * (tri[:, 0] + tri[:, 1]), 0.5 * (tri[:, 1] + tri[:, 2]),
                              0.5 * (tri[:, 2] + tri[:, 0])])
     d_ms = np.abs(sdf(probes))
-    surf = _surface_points(fam, n_surface, rng)
+    surf = surface_points(fam, n_surface, rng)
     sq, _, _ = igl.point_mesh_squared_distance(surf, verts, faces.astype(np.int64))
     d_sm = np.sqrt(sq)
     return h, max(d_ms.max(), d_sm.max()), 0.5 * (d_ms.mean() + d_sm.mean()), len(faces)
@@ -63,6 +63,7 @@ def mesh_distances(shape, sdf, fam, n, rng, n_surface=20_000):
     how_checked="skimage marching cubes on n³ grids of [−1.5,1.5]³ (n = 16…64; full: …192) for the sphere SDF, "
     "a torus SDF and x²+y²+z²−1; Hausdorff and Chamfer distance to the exact surface; a trial (shape) holds "
     "if the Hausdorff distance decreases with every refinement and its fitted rate in h is > 0",
+    scope="smooth closed surfaces (SDFs and non-SDF implicits) sampled on uniform grids that refine",
 )
 def check_mc(ctx):
     ns = [16, 24, 32, 48, 64] + ([] if ctx.quick else [96, 128, 192])

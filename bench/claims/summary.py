@@ -17,15 +17,19 @@ def markdown_section(df, *, plot_prefix: str = "", title: str = "Claims of the l
     counterexample, plot link), then per claim its key numbers.  ``plot_prefix`` is prepended to the
     PNG names (the report's relative path to the claims folder)."""
     lines = [f"## {title}", "",
-             "Verdicts are computed by one rule from the trials of each check (bench/claims/ledger.py): "
-             "all trials hold → holds; none → fails; some → holds under conditions (listed).", "",
-             "| id | statement | where | verdict | holds for / counterexample | plot |",
+             "Verdicts are computed by one rule from the trials of each check, judged inside each claim's "
+             "scope (bench/claims/ledger.py): every trial in the scope holds → holds; some fail but a named "
+             "class holds throughout → holds under conditions (the class); otherwise → fails. A bound that "
+             "holds only where it is vacuous does not hold. Failures first.", "",
+             "| id | statement | scope | verdict | holds on / counterexample | plot |",
              "|---|---|---|---|---|---|"]
+    order = {"fails": 0, "error": 1, "holds under conditions": 2, "holds": 3}
+    df = df.assign(_rank=df["verdict"].map(order).fillna(1)).sort_values("_rank", kind="stable")
     for r in df.itertuples(index=False):
         detail = r.counterexample if r.verdict == "fails" else (
-            f"holds for: {r.conditions}. Fails: {r.counterexample}" if r.verdict == "holds under conditions"
+            f"holds for: {r.conditions}. Fails outside it: {r.counterexample}" if r.verdict == "holds under conditions"
             else r.message if r.verdict == "error" else "")
-        lines.append(f"| {r.id} | {_cell(r.statement, 160)} | {_cell(r.equation, 60)} | **{r.verdict}** | "
+        lines.append(f"| {r.id} | {_cell(r.statement, 160)} | {_cell(getattr(r, 'scope', ''), 200)} | **{r.verdict}** | "
                      f"{_cell(detail, 400)} | [png]({plot_prefix}{r.plot}) |")
     lines.append("")
     for r in df.itertuples(index=False):
