@@ -34,11 +34,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from . import summary  # noqa: E402
 from .results import write_text  # noqa: E402
 
 _MARKERS = "osD^v<>ph*"
 _LINESTYLES = ["-", "--", ":", "-."]
-TARGETS = (1e-4, 1e-8, 1e-12)
+TARGETS = summary.TARGETS
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 
 
@@ -81,11 +82,7 @@ def fit_rate(x: np.ndarray, err: np.ndarray) -> float:
     return float(-np.polyfit(x, le, 1)[0])
 
 
-def _ok(df: pd.DataFrame) -> pd.DataFrame:
-    ok = df[df["outcome"] == "ok"].copy()
-    for c in ("error_max", "time_median_s", "time_iqr_s", "time_ratio_cf", "compile_s", "evals_per_ray"):
-        ok[c] = pd.to_numeric(ok[c], errors="coerce")
-    return ok
+_ok = summary.ok_rows
 
 
 def _label_unit(g: pd.DataFrame) -> tuple[str, str]:
@@ -257,30 +254,10 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def knob_label(method: str, knob: str) -> str:
-    """``knob`` (a :func:`bench.results.knob_string`) without the settings that are the method's
-    defaults, so that a table shows what was chosen: ``xtol=1e-08`` rather than all eight knobs
-    of ``hybrid_secant``; ``defaults`` when every knob is at its default, ``""`` for a method
-    without knobs, and the whole string for a method the catalog does not know."""
-    from impls.methods import METHODS
-
-    from .results import knob_string
-
-    spec = METHODS.get(method)
-    if not knob or spec is None:
-        return knob
-    default = set(knob_string({k.name: k.default for k in spec.knobs}).split(","))
-    chosen = [kv for kv in knob.split(",") if kv not in default]
-    return ",".join(chosen) or "defaults"
+knob_label = summary.knob_label
 
 
-def _statuses(v) -> str:
-    """The status histogram as ``CONVERGED 3096 · MISS 1000``."""
-    try:
-        d = json.loads(v) if isinstance(v, str) and v else {}
-    except ValueError:
-        return str(v)
-    return " · ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1]))
+_statuses = summary.status_text
 
 
 def fastest_to_target(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
@@ -374,8 +351,45 @@ def claims_in_reading_order(claims: pd.DataFrame) -> pd.DataFrame:
     return claims.assign(_rank=rank).sort_values("_rank", kind="stable").drop(columns="_rank")
 
 
-def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
-    """Write ``report.md``, ``report.html`` and ``plots/*.png`` for results ``df`` into ``out_dir``."""
+def _first_screen_md(fs: dict, md_table) -> list[str]:
+    """The first screen (:func:`bench.summary.first_screen`) as Markdown lines."""
+    out = []
+    if fs["failures"]:
+        out += ["## Failed configurations", "", *[f"- {f}" for f in fs["failures"]], ""]
+    if fs["regressions"] is not None:
+        out += [f"## Regressions against the baseline: {len(fs['regressions'])}", "", md_table(fs["regressions"]), ""]
+    out += ["## Which to pick", "", summary.PICK_NOTE, "", md_table(fs["picks"]), ""]
+    if fs["scoreboard"]:
+        out += ["## Stability scoreboard", "", *[f"- {s}" for s in fs["scoreboard"]], ""]
+    if len(fs["claims"]):
+        out += ["## Claims of the lecture (failures first)", "", md_table(fs["claims"]), ""]
+    return out
+
+
+def _first_screen_html(fs: dict, table) -> str:
+    """The first screen as HTML: failures, regressions, which to pick, stability, claims."""
+    e = html.escape
+    out = ["<section id='first-screen'>"]
+    if fs["failures"]:
+        out += ["<h2 class='warn'>Failed configurations</h2><ul>", *[f"<li>{e(f)}</li>" for f in fs["failures"]], "</ul>"]
+    if fs["regressions"] is not None:
+        out += [f"<h2>Regressions against the baseline: {len(fs['regressions'])}</h2>", table(fs["regressions"])]
+    out += ["<h2>Which to pick</h2>", f"<p class='note'>{e(summary.PICK_NOTE)}</p>", table(fs["picks"])]
+    if fs["scoreboard"]:
+        out += ["<h2>Stability scoreboard</h2><ul>", *[f"<li>{e(s)}</li>" for s in fs["scoreboard"]], "</ul>"]
+    if len(fs["claims"]):
+        out += ["<h2>Claims of the lecture</h2><p class='note'>One line per claim, failures first; scope, evidence "
+                "and plots in the claims ledger at the end.</p>", table(fs["claims"])]
+    return "\n".join(out + ["</section>"])
+
+
+def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] | None = None,
+          regressions: pd.DataFrame | None = None) -> None:
+    """Write ``report.md``, ``report.html`` and ``plots/*.png`` for results ``df`` into ``out_dir``.
+
+    The first screen (:mod:`bench.summary`) comes first: failures, ``regressions`` against a
+    baseline when given, "which to pick", the stability ``scoreboard`` lines and the claims'
+    verdicts; then plots; the detail tables last."""
     out_dir = Path(out_dir)
     df = df.copy()
     if "quantity" not in df:
@@ -415,9 +429,11 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
     def md_table(d: pd.DataFrame) -> str:
         return d.to_markdown(index=False, floatfmt=".3g") if len(d) else "_none_"
 
+    fs = summary.first_screen(df, env, claims=claims, scoreboard=scoreboard, regressions=regressions)
     md = [f"# isobench report — run {env.get('run_id', '?')}", "",
           f"Suite `{env.get('suite', '?')}`, commit `{env.get('commit', '?')}`, {env.get('cpu', '?')} "
           f"({env.get('cpu_count', '?')} logical CPUs, {env.get('threads', '?')} thread(s) per library). {status_line}.", "",
+          *_first_screen_md(fs, md_table),
           "## Best accuracy per backend", "", md_table(summ), "",
           "## Fastest configuration reaching an error target", "", md_table(targets), "",
           "## Time versus error", "", *md_img("time"), "",
@@ -460,7 +476,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path) -> None:
              f"<code>{e(env.get('suite', '?'))}</code>, commit <code>{e(env.get('commit', '?'))}</code>, "
              f"{e(env.get('cpu', '?'))} ({e(env.get('cpu_count', '?'))} logical CPUs, "
              f"{e(env.get('threads', '?'))} thread(s) per library). {e(status_line).replace('**', '')}.</p>",
-             ]
+             _first_screen_html(fs, table)]
     if len(df):  # a claims-only directory has no results: no empty bench sections
         parts += [
             "<h2>Best accuracy per backend</h2>",

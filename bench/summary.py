@@ -22,6 +22,10 @@ import numpy as np
 import pandas as pd
 
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
+PICK_NOTE = ("Per method family and case, for each error target: the fastest configuration (method · backend · "
+             "dtype @ knobs) whose max error over every ray is at or below the target, with no false hit or miss; "
+             "its time as a multiple of the closed-form ray–sphere intersection of the same rays (× closed form) "
+             "and its field evaluations per ray. 'untimed': an accuracy-only run, ranked by evaluations.")
 #: the error targets every "fastest to target" table uses
 TARGETS = (1e-4, 1e-8, 1e-12)
 
@@ -160,3 +164,79 @@ def status_text(v) -> str:
     except ValueError:
         return str(v)
     return " · ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1]))
+
+
+def pick_grid(picks: pd.DataFrame) -> pd.DataFrame:
+    """``which_to_pick`` as one row per family × case and one column per target, each cell
+    ``method · backend · dtype (×ratio, evals/ray)`` or ``none reached``."""
+    if picks is None or picks.empty:
+        return pd.DataFrame(columns=["family", "case"])
+    rows: dict[tuple, dict] = {}
+    for d in picks.to_dict("records"):
+        row = rows.setdefault((d["family"], d["case"]), {"family": d["family"], "case": d["case"]})
+        if d["pick"] == "none reached":
+            cell = f"none reached ({d['knob']})"
+        else:
+            cost = f"×{d['× closed form']:.3g}" if d["by"] == "time" else "untimed"
+            knob = f" @ {d['knob']}" if d["knob"] and d["knob"] != "defaults" else ""
+            cell = f"{d['pick']}{knob} ({cost}, {d['evals/ray']:.3g} evals/ray)"
+        row[f"≤ {d['target']:.0e}"] = cell
+    return pd.DataFrame(list(rows.values()))
+
+
+def claims_lines(claims: pd.DataFrame | None) -> pd.DataFrame:
+    """One line per claim, failures first: id, verdict, statement (short), scope (short)."""
+    if claims is None or not len(claims):
+        return pd.DataFrame(columns=["id", "verdict", "statement"])
+    order = {"fails": 0, "error": 1, "holds under conditions": 2, "holds": 3}
+    c = claims.assign(_r=claims["verdict"].map(order).fillna(1)).sort_values("_r", kind="stable")
+    out = pd.DataFrame({"id": c["id"], "verdict": c["verdict"],
+                        "statement": c["statement"].astype(str).str.slice(0, 110)})
+    if "conditions" in c:
+        out["holds on / counterexample"] = [
+            (f"holds on: {r['conditions']}" if r["verdict"] == "holds under conditions" else
+             str(r.get("counterexample", "")) if r["verdict"] == "fails" else "")[:160]
+            for _, r in c.iterrows()]
+    return out
+
+
+def first_screen(df: pd.DataFrame, env: dict, *, claims: pd.DataFrame | None = None,
+                 scoreboard: list[str] | None = None, regressions: pd.DataFrame | None = None) -> dict:
+    """What the report shows first, in this order: the run (:func:`overview`), failures, the
+    regressions against a baseline (when given), "which to pick" (:func:`pick_grid`), the
+    stability scoreboard (one line per backend) and the claims' verdicts (failures first).
+    Returned as named parts (``overview`` dict, ``failures`` list, ``regressions`` frame or None,
+    ``picks`` frame, ``scoreboard`` list, ``claims`` frame) for the Markdown, HTML and terminal
+    renderings."""
+    picks = which_to_pick(df) if df is not None and len(df) else pd.DataFrame()
+    return {"overview": overview(df, env), "failures": failures(df), "regressions": regressions,
+            "picks": pick_grid(picks), "headline": headline(picks), "scoreboard": list(scoreboard or []),
+            "claims": claims_lines(claims)}
+
+
+def terminal_text(fs: dict, report_path: str = "") -> str:
+    """The closing summary of ``bench run``: one screen (about 25 lines)."""
+    ov = fs["overview"]
+    lines = [f"run {ov['run']} · suite {ov['suite']} · commit {ov['commit']} · {ov['configurations']}"
+             + ("" if ov["complete"] == "yes" else f" · INCOMPLETE: {ov['complete'][5:]}")]
+    if fs["failures"]:
+        lines += ["failed:"] + [f"  {f}" for f in fs["failures"][:5]]
+        if len(fs["failures"]) > 5:
+            lines.append(f"  … {len(fs['failures']) - 5} more in the report")
+    reg = fs.get("regressions")
+    if reg is not None:
+        lines.append(f"regressions against the baseline: {len(reg)}")
+        lines += [f"  {r}" for r in reg.head(5).astype(str).agg(" ".join, axis=1)]
+    if fs["headline"]:
+        lines += ["which to pick:"] + [f"  {h[:200]}" for h in fs["headline"]]
+    if fs["scoreboard"]:
+        lines += ["stability:"] + [f"  {s}" for s in fs["scoreboard"]]
+    cl = fs["claims"]
+    if len(cl):
+        counts = cl["verdict"].value_counts()
+        lines.append("claims: " + " · ".join(f"{v} {counts[v]}" for v in counts.index)
+                     + ("; failing: " + ", ".join(cl[cl["verdict"] == "fails"]["id"].astype(str)) if
+                        (cl["verdict"] == "fails").any() else ""))
+    if report_path:
+        lines.append(f"report: {report_path}")
+    return "\n".join(lines)
