@@ -1,0 +1,75 @@
+"""A user's own case, added from outside the repository, joins the catalog and runs in `bench run`."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from reference import Case, Sphere, catalog, get_case
+from reference import user_cases
+
+MODULE = textwrap.dedent('''
+    import numpy as np
+    from reference import Case, CallableField
+    from reference import rays
+
+    def blob(x, xp):
+        return xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0 + 0.1 * xp.sin(4.0 * x[..., 0])
+
+    def make():
+        o, d = rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=8, height=8)
+        return [Case(id="{prefix}.blob.camera", scene=CallableField(blob, lipschitz=1.4, name="{mod}.blob"),
+                     origins=o, directions=d, t_min=0.0, t_max=6.0)]
+
+    CASES = make()
+''')
+
+
+def _write(tmp_path, mod: str, prefix: str):
+    (tmp_path / f"{mod}.py").write_text(MODULE.format(prefix=prefix, mod=mod))
+    sys.path.insert(0, str(tmp_path))
+
+
+def test_a_module_attribute_joins_the_catalog(tmp_path):
+    _write(tmp_path, "isobench_user_mod1", "user1")
+    try:
+        ids = user_cases.load("isobench_user_mod1:CASES")
+        assert ids == ["user1.blob.camera"]
+        case = get_case("user1.blob.camera")
+        assert "user" in case.tags and "numerical" in case.tags
+        assert [c.id for c in catalog("user1.*")] == ids
+        assert np.isfinite(case.exact_t).sum() > 0  # answers from the certified numerical reference
+        with pytest.raises(ValueError, match="reuses case ids"):
+            user_cases.load("isobench_user_mod1:make")  # the same ids again
+    finally:
+        sys.path.remove(str(tmp_path))
+
+
+@pytest.mark.parametrize("spec, match", [
+    ("no_colon", "package.module:attribute"),
+    ("no_such_module_xyz:CASES", "cannot import"),
+    ("reference.cases:NOPE", "no attribute"),
+    ("reference.cases:CONFIG_NOT_THERE", "no attribute"),
+])
+def test_bad_specs_name_the_argument(spec, match):
+    with pytest.raises(ValueError, match=match) as e:
+        user_cases.load(spec)
+    assert "--cases" in str(e.value)
+
+
+def test_invalid_cases_are_refused_with_the_reason():
+    o = np.array([[0.0, 0.0, 3.0]])
+    good = dict(id="user.x.one", scene=Sphere(), origins=o, directions=np.array([[0.0, 0.0, -1.0]]))
+    user_cases.validate(Case(**good), "t")
+    for change, match in [({"id": "nodots"}, "dotted"), ({"directions": np.array([[0.0, 0.0, -2.0]])}, "unit"),
+                          ({"origins": np.array([[np.nan, 0, 0]])}, "non-finite"),
+                          ({"origins": np.zeros((2, 3))}, "2 origins but 1"), ({"t_min": 5.0, "t_max": 1.0}, "t_min"),
+                          ({"origins": np.zeros((1, 2)), "directions": np.zeros((1, 2))}, r"\(n, 3\)")]:
+        with pytest.raises(ValueError, match=match):
+            user_cases.validate(Case(**{**good, **change}), "t")
+    with pytest.raises(TypeError, match="Case objects"):
+        user_cases.validate(object(), "t")
