@@ -2,14 +2,21 @@
 
     python -m bench run --suite quick [--backend numpy,jax:cpu] [--method sphere_trace] [--case 'sphere.*']
                         [--dtype float64] [--out DIR] [--resume] [--threads 1] [--allocator tuned|default]
-                        [--accuracy-only] [--no-claims]
+                        [--accuracy-only] [--no-claims] [--budget S] [--timeout S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default]
-    python -m bench compare BASE NEW [--timing] [--factor 1.1]
+    python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
     python -m bench claims [--out DIR] [--full]
     python -m bench cases [--tag grazing]
     python -m bench backends
     python -m bench report RUN_DIR
+
+Exit codes: 0 success; 1 the command ran but its answer is "no": a regression or an incomplete
+comparison (``compare``), a run that is incomplete (its ``--budget`` ran out) or in which no
+configuration ran (``run``), a claims check that failed (``claims``); 2 a usage error (a bad
+argument, an unknown backend, an ``--out`` that already holds results), reported as one line
+``error: …`` on stderr naming the argument and the fix.  Progress and summaries go to stdout,
+as lines when it is not a terminal (a live bar when it is).
 """
 
 from __future__ import annotations
@@ -158,8 +165,12 @@ def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list
 
     configs = report.config_outcomes(df)
     n = {o: int((configs["outcome"] == o).sum()) for o in ("ok", "skipped", "failed")}
-    said = [f"{n['ok']} configurations ran, {n['skipped']} skipped, {n['failed']} failed "
-            f"in {env.get('elapsed_s', '?')} s"]
+    from .results import OVER_BUDGET
+
+    n_over = int(configs["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET).sum())
+    said = [f"{n['ok']} configurations ran, {n['skipped']} skipped"
+            + (f" ({n_over} of them over the time budget)" if n_over else "")
+            + f", {n['failed']} failed in {env.get('elapsed_s', '?')} s"]
     failed = configs[configs["outcome"] == "failed"]
     if len(failed):
         by_reason = failed.groupby(failed["reason"].fillna("").astype(str).str.slice(0, 120), sort=False)
