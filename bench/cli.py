@@ -2,14 +2,21 @@
 
     python -m bench run --suite quick [--backend numpy,jax:cpu] [--method sphere_trace] [--case 'sphere.*']
                         [--dtype float64] [--out DIR] [--resume] [--threads 1] [--allocator tuned|default]
-                        [--accuracy-only] [--no-claims]
+                        [--accuracy-only] [--no-claims] [--budget S] [--timeout S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default]
-    python -m bench compare BASE NEW [--timing] [--factor 1.1]
+    python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
     python -m bench claims [--out DIR] [--full]
     python -m bench cases [--tag grazing]
     python -m bench backends
     python -m bench report RUN_DIR
+
+Exit codes: 0 success; 1 the command ran but its answer is "no": a regression or an incomplete
+comparison (``compare``), a run that is incomplete (its ``--budget`` ran out) or in which no
+configuration ran (``run``), a claims check that failed (``claims``); 2 a usage error (a bad
+argument, an unknown backend, an ``--out`` that already holds results), reported as one line
+``error: …`` on stderr naming the argument and the fix.  Progress and summaries go to stdout,
+as lines when it is not a terminal (a live bar when it is).
 """
 
 from __future__ import annotations
@@ -22,6 +29,67 @@ from pathlib import Path
 from .environment import ROOT
 
 DEFAULT_REPORTS = ROOT / "reports"
+
+#: files whose presence makes a directory a finished (or interrupted) run's: ``--out`` refuses it
+#: unless ``--resume`` (results are never overwritten; ``bench baseline`` rewrites its own folder)
+RUN_FILES = ("results.parquet", "results.csv", "environment.json", "claims.csv", "claims.md")
+
+
+def _error(message: str, code: int = 2) -> int:
+    """One line on stderr, ``error: …`` (argparse's style and exit code 2 for usage errors)."""
+    print(f"error: {message}", file=sys.stderr, flush=True)
+    return code
+
+
+def _int_at_least(low: int):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if v < low:
+            raise argparse.ArgumentTypeError(f"must be ≥ {low}, got {v}")
+        return v
+
+    return parse
+
+
+def _seconds(text: str) -> float:
+    """A finite number of seconds ≥ 0."""
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds ≥ 0, got {text}")
+    return v
+
+
+def _json_dict(text: str) -> dict:
+    try:
+        v = json.loads(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not valid JSON ({exc}); write e.g. '{{\"xtol\": 1e-8}}'") from None
+    if not isinstance(v, dict):
+        raise argparse.ArgumentTypeError(f"must be a JSON object of knob → value, got {type(v).__name__}")
+    return v
+
+
+def _existing_run_files(out: Path) -> list[str]:
+    return [name for name in RUN_FILES if (out / name).exists()]
+
+
+def _resolve_backends(ids: list[str], flag: str = "--backend"):
+    """{id: backend or Unavailable}, or an error message when an id names nothing (a typo)."""
+    from impls import registry
+
+    backends = {bid: registry.resolve(bid) for bid in ids}
+    unknown = [b for b in backends.values() if isinstance(b, registry.Unavailable) and b.unknown]
+    if unknown:
+        return None, f"{flag}: " + "; ".join(b.reason for b in unknown)
+    return backends, ""
 
 
 def _split(values: list[str] | None) -> list[str] | None:
@@ -54,6 +122,77 @@ def run_claims_into(out: Path, *, quick: bool, console) -> str:
         return note
 
 
+class _ProgressLines:
+    """Progress as plain lines, whatever stdout is (piped, CI, a terminal): one per stage, and
+    during the configurations one every ``step`` of them (10 % of the plan or 20, the smaller) and
+    at least every ``every_s`` seconds, each with done/total, ok/skipped/failed and the elapsed
+    time.  ``periodic=False``: stage lines only (the live bar shows the rest, or --no-progress)."""
+
+    def __init__(self, periodic: bool = True, every_s: float = 30.0):
+        import time
+
+        self._clock = time.monotonic
+        self.t0 = self._clock()
+        self.periodic, self.every_s = periodic, every_s
+        self._next, self._last, self.planned = 0, self.t0, False
+
+    def line(self, text: str) -> None:
+        print(f"[{self._clock() - self.t0:7.1f} s] {text}", flush=True)
+
+    def __call__(self, i: int, n: int, what: str, counts: dict) -> None:
+        if not self.planned:
+            self.planned = True
+            self.line(f"plan: {n} configurations" + (f", {i} kept from the interrupted run" if i else ""))
+            step = max(1, min(20, -(-n // 10)))
+            self._next = (i // step + 1) * step
+            self._step = step
+            return
+        now = self._clock()
+        if not self.periodic or (i < self._next and now - self._last < self.every_s and i < n):
+            return
+        while self._next <= i:
+            self._next += self._step
+        self._last = now
+        pct = 100 * i // max(n, 1)
+        self.line(f"configurations {i}/{n} ({pct}%): {counts.get('ok', 0)} ok, {counts.get('skipped', 0)} skipped, "
+                  f"{counts.get('failed', 0)} failed" + ("" if what == "done" else f"; next: {what[:80]}"))
+
+
+def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list[str]]:
+    """The closing lines (counts, failures, incompleteness, report path) and the exit code:
+    0, or 1 when the run is incomplete (its --budget ran out) or no configuration ran."""
+    from . import report
+
+    configs = report.config_outcomes(df)
+    n = {o: int((configs["outcome"] == o).sum()) for o in ("ok", "skipped", "failed")}
+    from .results import OVER_BUDGET
+
+    n_over = int(configs["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET).sum())
+    said = [f"{n['ok']} configurations ran, {n['skipped']} skipped"
+            + (f" ({n_over} of them over the time budget)" if n_over else "")
+            + f", {n['failed']} failed in {env.get('elapsed_s', '?')} s"]
+    failed = configs[configs["outcome"] == "failed"]
+    if len(failed):
+        by_reason = failed.groupby(failed["reason"].fillna("").astype(str).str.slice(0, 120), sort=False)
+        for reason, g in list(by_reason)[:5]:
+            first = g.iloc[0]
+            said.append(f"  failed ×{len(g)}: {first['backend']} {first['method']} on {first['case_id']}"
+                        f"{' and others' if len(g) > 1 else ''}: {reason}")
+        if by_reason.ngroups > 5:
+            said.append(f"  … {by_reason.ngroups - 5} more kinds of failure: see the report")
+    said.append(f"report: {out / 'report.html'}")
+    for text in said:
+        print(text, flush=True)
+    errors = []
+    if env.get("complete") != "true":
+        errors.append(f"the run is INCOMPLETE: {env.get('incomplete_reason', 'unknown reason')} "
+                      f"(python -m bench run --resume --out {out})")
+    if n["ok"] == 0:
+        errors.append(f"no configuration ran ({n['failed']} failed, {n['skipped']} skipped): nothing was measured; "
+                      "see the reasons above and in the report")
+    return (1 if errors else 0), errors
+
+
 def cmd_run(args) -> int:
     from .environment import configure_threads
 
@@ -64,9 +203,6 @@ def cmd_run(args) -> int:
         tune_allocator()
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
-    from rich.table import Table
-
-    from impls import registry
 
     from . import report, runner
     from .results import write_json
@@ -77,76 +213,103 @@ def cmd_run(args) -> int:
     try:
         suite = get_suite(args.suite)
     except ValueError as exc:
-        console.print(f"[red]error:[/] {exc}")
-        return 2
-    if not runner.select_cases(suite, args.case):  # fail fast, before importing any backend
-        console.print(f"[red]error:[/] nothing to run: no case matches {args.case or suite.case_pattern!r}; "
-                      "`python -m bench cases` lists the cases")
-        return 2
+        return _error(f"--suite: {exc}")
     if args.resume and not args.out:
-        console.print("[red]--resume needs --out DIR: the run directory to finish[/]")
-        return 2
+        return _error("--resume needs --out DIR: the run directory to finish")
+    try:
+        cases = runner.select_cases(suite, args.case)
+    except ValueError as exc:
+        return _error(f"--case: {exc}")
+    if not cases:  # fail fast, before importing any backend
+        return _error(f"--case: nothing to run: no case matches {args.case or suite.case_pattern!r}; "
+                      "`python -m bench cases` lists the cases")
+    run_id = runner.new_run_id()
+    out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
+    if out.exists() and not out.is_dir():
+        return _error(f"--out: {out} is a file; pass a directory for the run's files")
+    held = _existing_run_files(out) if out.is_dir() else []
+    if held and not args.resume:
+        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. "
+                      "Pass another --out, or --resume to finish an interrupted run there.")
+    from impls import registry
+
     ids = _split(args.backend) or registry.default_ids()
-    backends = {bid: registry.resolve(bid) for bid in ids}
+    backends, msg = _resolve_backends(ids)
+    if msg:
+        return _error(msg + "; `python -m bench backends` lists the backends")
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(args.threads)
     for bid, b in backends.items():
         if isinstance(b, registry.Unavailable):
-            console.print(f"[yellow]backend {bid} unavailable, its rows are skipped:[/] {b.reason}")
-    run_id = runner.new_run_id()
-    out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
-    if (out / "results.parquet").exists() and not args.resume:
-        console.print(f"[red]{out} already holds results; results are never overwritten. "
-                      "Pass another --out, or --resume to finish an interrupted run.[/]")
-        return 2
+            print(f"backend {bid} unavailable, its rows are skipped: {b.reason}", flush=True)
     try:
         min_time = suite.min_time_s if args.min_time is None else args.min_time
         min_repeats = suite.min_repeats if args.min_repeats is None else args.min_repeats
         policy = TimingPolicy(min_repeats=min_repeats, min_time_s=min_time, timeout_s=args.timeout,
                               accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, min_time))
     except ValueError as exc:
-        console.print(f"[red]error:[/] {exc}")
-        return 2
+        return _error(str(exc))
+    budget = suite.budget_s if args.budget is None else (args.budget or None)
+    live = console.is_terminal and not args.no_progress
+    lines = _ProgressLines(periodic=not live and not args.no_progress)
+    lines.line(f"run {'(resumed) ' if args.resume else ''}suite {suite.name}: {len(cases)} cases, backends "
+               f"{', '.join(backends)}; budget {'none' if budget is None else f'{budget:g} s'}; out {out}")
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), console=console, disable=args.no_progress or not console.is_terminal) as prog:
+                  TimeRemainingColumn(), console=console, disable=not live) as prog:
         task = prog.add_task("planning", total=None)
 
-        def progress(i, n, what):
+        def progress(i, n, what, counts):
+            lines(i, n, what, counts)
             prog.update(task, total=n, completed=i, description=what[:70])
 
         try:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
-                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=suite.budget_s if args.budget is None else (args.budget or None),
+                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=budget,
                             rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
                             else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout)
         except ValueError as exc:
-            console.print(f"[red]error:[/] {exc}")
-            return 2
+            return _error(str(exc))
     env = json.loads((out / "environment.json").read_text())
     if not args.no_claims:
+        lines.line("claims: checking the lecture's claims")
         note = run_claims_into(out, quick=suite.name == "quick", console=console)
         env["claims"] = note or "ran"
         write_json(out / "environment.json", env)
+    lines.line("report: writing report.md and report.html")
     report.build(df, env, out)
-    summ = report.summary_table(df)
-    table = Table(title=f"isobench {suite.name} — run {env['run_id']}")
-    from rich.markup import escape
-
-    for c in summ.columns:
-        table.add_column(escape(c), justify="left" if c in ("case", "method", "quantity", "dtype", "backend", "at knob") else "right")
-    for _, r in summ.iterrows():
-        table.add_row(*[f"{v:.3g}" if isinstance(v, float) else str(v) for v in r])
-    console.print(table)
-    configs = report.config_outcomes(df)
-    n_ok, n_skip, n_fail = ((configs["outcome"] == o).sum() for o in ("ok", "skipped", "failed"))
-    console.print(f"{n_ok} configurations ran, {n_skip} skipped, {n_fail} failed in {env.get('elapsed_s', '?')} s. "
-                  f"Report: {out / 'report.html'}")
+    code, errors = _summary(df, env, out, lines)
     nominal = {"quick": 120.0, "full": 900.0}.get(suite.name)
     if nominal and float(env.get("elapsed_s", 0)) > nominal:
-        console.print(f"[yellow]the {suite.name} suite took longer than its budget of {nominal:g} s; "
-                      "select less with --case/--method, or lower --min-time[/]")
-    return 0
+        print(f"note: the {suite.name} suite took {env.get('elapsed_s')} s, more than its nominal {nominal:g} s "
+              "(a loaded machine, or select less with --case/--method)", flush=True)
+    for e in errors:
+        _error(e)
+    return code
+
+
+def _run_env(path: str) -> dict | None:
+    """The environment.json of the run a results path belongs to (a run directory, or the folder
+    of a results file), or None when there is none or it cannot be read."""
+    p = Path(path)
+    p = p if p.is_dir() else p.parent
+    try:
+        env = json.loads((p / "environment.json").read_text())
+        return env if isinstance(env, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def _incomplete(name: str, df, env: dict | None) -> str:
+    """Why a side of a comparison is not a whole run ('' when it is)."""
+    from .results import OVER_BUDGET
+
+    over = int(df["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET).sum()) if "reason" in df else 0
+    if env is not None and str(env.get("complete", "true")) != "true":
+        return f"{name} is an incomplete run: {env.get('incomplete_reason', 'complete=false in environment.json')}"
+    if over:
+        return f"{name} has {over} rows not measured ({OVER_BUDGET})"
+    return ""
 
 
 def cmd_compare(args) -> int:
@@ -155,24 +318,21 @@ def cmd_compare(args) -> int:
 
     try:
         base, new = read_results(args.base), read_results(args.new)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}")
-        return 2
+    except FileNotFoundError as exc:
+        return _error(f"BASE/NEW: {exc}")
+    except ValueError as exc:
+        return _error(f"BASE/NEW: {exc}; pass two run directories (or their results.parquet/.csv)")
+    eb, en = _run_env(args.base), _run_env(args.new)
     same_machine = True
-    try:
+    if eb is not None and en is not None:
         from .environment import machine_key
 
-        eb = json.loads((Path(args.base) / "environment.json").read_text())
-        en = json.loads((Path(args.new) / "environment.json").read_text())
         same_machine = machine_key(eb) == machine_key(en)
-    except (OSError, ValueError):
-        pass
     try:
         res = cmp.compare(base, new, factor=args.factor, alpha=args.alpha, rtol=args.rtol, atol_eps=args.atol_eps,
                           same_machine=same_machine)
     except ValueError as exc:
-        print(f"error: {exc}")
-        return 2
+        return _error(str(exc))
     console = _console()
     counts = {col: res[col].value_counts().to_dict() for col in ("accuracy", "timing")}
     worse = res[(res["accuracy"] == "worse") | ((res["timing"] == "worse") & args.timing)]
@@ -186,8 +346,20 @@ def cmd_compare(args) -> int:
         console.print(escape(worse[cols].to_string(index=False)))
     console.print(f"accuracy: {counts['accuracy']}")
     console.print(f"timing:   {counts['timing']}" + ("" if same_machine else " (different machines: timing not compared)"))
+    # a comparison gates only what it compares: a NEW side that lost rows or did not finish, or
+    # a BASE that did not, is a failure, never a pass on fewer rows
+    problems = [p for p in (_incomplete("NEW", new, en), _incomplete("BASE", base, eb)) if p]
+    missing = res[res["accuracy"] == "missing"]
+    if len(missing) and not args.allow_missing:
+        ex = missing.iloc[0]
+        problems.append(f"{len(missing)} rows of BASE are missing in NEW (e.g. {ex['case_id']} {ex['backend']} "
+                        f"{ex['method']} {ex['knob']}): a truncated or partial run? Compare whole runs, or pass "
+                        "--allow-missing to compare only the rows NEW has")
     if len(worse):
         console.print(f"[red]{len(worse)} regression(s)[/]")
+    for p in problems:
+        _error(p, 1)
+    if len(worse) or problems:
         return 1
     console.print("no regression")
     return 0
@@ -199,6 +371,11 @@ def cmd_claims(args) -> int:
     from .environment import collect
 
     out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
+    if out.exists() and not out.is_dir():
+        return _error(f"--out: {out} is a file; pass a directory")
+    held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
+    if held:
+        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     console = _console()
     note = run_claims_into(out, quick=not args.full, console=console)
     if not (out / "environment.json").exists():
@@ -245,7 +422,17 @@ def cmd_baseline(args) -> int:
 def cmd_cases(args) -> int:
     from reference import catalog
 
-    for c in catalog(args.case, set(_split(args.tag) or [])):
+    tags = set(_split(args.tag) or [])
+    try:
+        found = catalog(args.case, tags)
+    except ValueError as exc:
+        return _error(f"--case/--tag: {exc}")
+    if not found:
+        known = sorted({t for c in catalog() for t in c.tags})
+        what = " and ".join(x for x in (f"--case {args.case!r}" if args.case else "",
+                                         f"--tag {','.join(sorted(tags))}" if tags else "") if x) or "the catalog"
+        return _error(f"{what}: no case matches; known tags: {', '.join(known)} (`python -m bench cases` lists all)")
+    for c in found:
         print(f"{c.id:40s} v{c.version}  rays={c.n_rays:<6d} tags={','.join(c.tags)}  {c.description}")
     return 0
 
@@ -266,22 +453,38 @@ def cmd_backends(args) -> int:
 def cmd_report(args) -> int:
     from .report import build_from_dir
 
-    build_from_dir(Path(args.run_dir))
-    print(Path(args.run_dir) / "report.html")
+    run_dir = Path(args.run_dir)
+    if not run_dir.is_dir():
+        return _error(f"RUN_DIR: {run_dir} is not a directory; pass the --out directory of a `bench run`")
+    if not (run_dir / "environment.json").exists():
+        return _error(f"RUN_DIR: {run_dir} holds no environment.json, so it is not a run directory; pass the --out "
+                      "directory of a `bench run` or `bench claims`")
+    try:
+        build_from_dir(run_dir)
+    except ValueError as exc:  # a corrupt results file or environment.json (read_results names the file)
+        return _error(f"RUN_DIR: {exc}")
+    print(run_dir / "report.html")
     return 0
 
 
 def cmd_speed(args) -> int:
-    import json
-
     from . import environment, speed
-    from impls import registry
+    from impls import METHODS, registry
 
+    if args.method not in METHODS or METHODS[args.method].family != "root":
+        roots = sorted(m for m, s in METHODS.items() if s.family == "root")
+        return _error(f"--method: {args.method!r} is not a root finder; choose one of {roots}")
+    try:
+        METHODS[args.method].validate(dict(args.knobs or {}))
+    except (ValueError, TypeError) as exc:
+        return _error(f"--knobs: {exc}")
     environment.configure_threads(args.threads)
     allocator = environment.tune_allocator() if args.allocator == "tuned" else "default"
     ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
-    knobs = json.loads(args.knobs) if args.knobs else {}
-    rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=knobs)
+    bad = [(bid, b) for bid, b in ((bid, registry.resolve(bid)) for bid in ids) if isinstance(b, registry.Unavailable)]
+    if bad:
+        return _error("--backend: " + "; ".join(f"{bid}: {b.reason}" for bid, b in bad))
+    rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {})
     for row in rows:
         row["threads"] = args.threads
         row["allocator"] = allocator
@@ -310,30 +513,34 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's)")
     r.add_argument("--dtype", action="append", help="float64 and/or float32 (default: the suite's)")
     r.add_argument("--out", help="output directory (default: reports/<run-id>/)")
-    r.add_argument("--min-time", type=float, default=None, help="seconds of timed calls per configuration "
+    r.add_argument("--min-time", type=_seconds, default=None, help="seconds of timed calls per configuration "
                    "(default: the suite's, 0.05 quick, 0.1 full)")
-    r.add_argument("--max-time", type=float, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
-    r.add_argument("--min-repeats", type=int, default=None, help="timing samples per configuration at least "
+    r.add_argument("--max-time", type=_seconds, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
+    r.add_argument("--min-repeats", type=_int_at_least(1), default=None, help="timing samples per configuration at least "
                    "(default: the suite's, 3 quick, 5 full)")
-    r.add_argument("--timeout", type=float, default=120.0, help="hard limit per configuration in seconds; past it the "
+    r.add_argument("--timeout", type=_seconds, default=120.0, help="hard limit per configuration in seconds; past it the "
                    "configuration is a failed 'timeout' row and the run goes on (default 120, 0: none)")
-    r.add_argument("--threads", type=int, default=1, help="threads per library (BLAS/OpenMP, torch, XLA), fixed and "
+    r.add_argument("--threads", type=_int_at_least(1), default=1, help="threads per library (BLAS/OpenMP, torch, XLA), fixed and "
                    "recorded (default 1)")
     r.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     r.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
                    "(deterministic, for baselines)")
     r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR")
-    r.add_argument("--rounds", type=int, default=1, help="time the whole plan this many times, round after round, "
+    r.add_argument("--rounds", type=_int_at_least(1), default=1, help="time the whole plan this many times, round after round, "
                    "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
-    r.add_argument("--budget", type=float, default=None, help="wall-clock seconds for the run; configurations left "
-                   "when it is spent become skipped rows saying so (default: the suite's, 100 quick, 840 full; 0: none)")
+    r.add_argument("--budget", type=_seconds, default=None, help="wall-clock guard against a hang, in seconds "
+                   "(default none: the whole plan runs whatever the machine's speed; 0: none). A run that spends it "
+                   "bounds the configuration in flight, records what is left as skipped 'over budget' rows, is marked "
+                   "incomplete and exits 1; --resume finishes it")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
-    r.add_argument("--reference-timeout", type=float, default=30.0, help="seconds for one costly reference answer (a "
+    r.add_argument("--reference-timeout", type=_seconds, default=30.0, help="seconds for one costly reference answer (a "
                    "rendering integral for one case and density); past it that quantity is skipped with the reason, "
                    "and that density is not retried in this run (default 30, 0: none)")
     r.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
                    "rendering integral) instead of reusing reports/.refcache/")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--no-progress", action="store_true", help="no live progress bar and no periodic progress lines "
+                   "(stage lines and the summary still print; without it, progress is a live bar on a terminal and "
+                   "plain lines when piped)")
     r.set_defaults(fn=cmd_run)
 
     c = sub.add_parser("compare", help="compare two runs; exit 1 on regression")
@@ -346,6 +553,8 @@ def main(argv: list[str] | None = None) -> int:
                    "dtype eps (default 1000)")
     c.add_argument("--timing", action="store_true", help="also fail on significant timing regressions")
     c.add_argument("--out", help="write the comparison table as csv")
+    c.add_argument("--allow-missing", action="store_true", help="pass although rows of BASE are missing in NEW "
+                   "(comparing a partial selection on purpose); by default missing rows fail the comparison")
     c.set_defaults(fn=cmd_compare)
 
     cl = sub.add_parser("claims", help="check the lecture's claims; writes claims.csv, plots and a report")
@@ -375,10 +584,10 @@ def main(argv: list[str] | None = None) -> int:
                         "closed-form sphere intersection (the backends issue's speed targets)")
     sp.add_argument("--backend", action="append", help="backend ids (default: all available)")
     sp.add_argument("--method", default="hybrid_secant")
-    sp.add_argument("--knobs", help='JSON knob dict, e.g. \'{"xtol": 1e-8}\' (default: the method\'s defaults)')
-    sp.add_argument("--side", type=int, default=1024, help="rays per image side (default 1024: 2^20 rays)")
-    sp.add_argument("--repeats", type=int, default=3)
-    sp.add_argument("--threads", type=int, default=1, help="threads per library and worker threads of the numpy/torch "
+    sp.add_argument("--knobs", type=_json_dict, help='JSON knob dict, e.g. \'{"xtol": 1e-8}\' (default: the method\'s defaults)')
+    sp.add_argument("--side", type=_int_at_least(1), default=1024, help="rays per image side (default 1024: 2^20 rays)")
+    sp.add_argument("--repeats", type=_int_at_least(1), default=3)
+    sp.add_argument("--threads", type=_int_at_least(1), default=1, help="threads per library and worker threads of the numpy/torch "
                     "root-finder drivers (default 1)")
     sp.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     sp.add_argument("--out", help="write the rows as JSON")

@@ -5,7 +5,7 @@ Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantit
 * ``not comparable``: the case versions differ (the case changed), or either side was not
   measured because its run's time budget ran out; for timing also when the
   machines differ (``environment.machine_key``) or either side has no samples.  A row on one
-  side only is ``missing`` (in BASE only) or ``new`` (in NEW only); neither fails a comparison.
+  side only is ``missing`` (in BASE only) or ``new`` (in NEW only).
 * accuracy (deterministic, no statistics): ``worse`` when the new max error exceeds
   ``base·(1 + rtol) + atol`` with ``atol = atol_eps · eps(dtype)`` (so float32 rows get a
   float32-sized slack), when false hits or false misses increase, when a finite error becomes
@@ -19,7 +19,11 @@ Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantit
   ``not significant``.
 
 ``python -m bench compare`` exits 1 when any row is accuracy-``worse`` (and timing-``worse`` with
-``--timing``; CI compares accuracy only, against a baseline made on another machine).
+``--timing``; CI compares accuracy only, against a baseline made on another machine), and also
+when it would gate fewer rows than BASE holds: rows of BASE ``missing`` in NEW (a truncated or
+partial run; ``--allow-missing`` accepts a partial selection on purpose), or either side
+incomplete (``complete: "false"`` in its environment.json, or rows not measured because a run's
+time budget ran out).  ``new`` rows never fail.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 import pandas as pd
@@ -51,16 +51,42 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
     return df[COLUMNS + extra]
 
 
+#: what a temporary file of the atomic writers looks like: ``.<name>.<random>.tmp`` (here) and
+#: ``.<stem>.<random><suffix>.tmp`` (``bench.claims.atomic``); never a result, removed on resume
+TEMP_GLOB = ".*.tmp"
+
+
 def _atomic_write(path: Path, write) -> None:
+    """``write(tmp)`` into a fresh temporary file next to ``path``, then ``os.replace`` it onto
+    ``path``: a reader sees the old file or the new one, never half of one.  The temporary file
+    is created with mode 0666 less the process umask (0644 under umask 022), as ``open`` would
+    create ``path`` itself (``mkstemp``'s 0600 would make shared results unreadable)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    while True:
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            break
+        except FileExistsError:  # pragma: no cover - 2^-32
+            continue
     try:
-        write(tmp)
+        write(str(tmp))
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def remove_temporaries(out_dir: Path) -> list[Path]:
+    """Delete what killed writers left in ``out_dir`` (temporary files matching
+    :data:`TEMP_GLOB`, often 0 bytes); returns them.  Only for a directory no other process is
+    writing to (``--resume``)."""
+    gone = []
+    for p in Path(out_dir).glob(TEMP_GLOB):
+        if p.is_file():
+            p.unlink()
+            gone.append(p)
+    return gone
 
 
 def write_text(path: Path, text: str) -> None:
@@ -79,17 +105,31 @@ def write_json(path: Path, obj) -> None:
 
 
 def read_results(path: str | Path) -> pd.DataFrame:
-    """Read a results table from a run directory or a .parquet/.csv file."""
+    """Read a results table from a run directory or a .parquet/.csv file.  FileNotFoundError when
+    there is none; ValueError naming the file when it cannot be read or is not a results table
+    (lacks the key columns)."""
     p = Path(path)
     if p.is_dir():
         p = p / "results.parquet" if (p / "results.parquet").exists() else p / "results.csv"
     if not p.exists():
         raise FileNotFoundError(f"no results at {path}: expected a run directory or a results.parquet/.csv file")
-    df = pd.read_parquet(p) if p.suffix == ".parquet" else pd.read_csv(p, keep_default_na=False, na_values=[""])
+    try:
+        df = pd.read_parquet(p) if p.suffix == ".parquet" else pd.read_csv(p, keep_default_na=False, na_values=[""])
+    except Exception as exc:  # pyarrow, pandas and the OS raise many kinds; the file is what is wrong
+        raise ValueError(f"cannot read {p}: {type(exc).__name__}: {str(exc)[:200]}; is it an isobench results "
+                         f"file, complete?") from None
     if "quantity" not in df.columns:  # schema 1: every row was a depth row
         df["quantity"] = "depth"
+    lacking = [c for c in KEY + ["outcome"] if c not in df.columns]
+    if lacking:
+        raise ValueError(f"{p} is not an isobench results table: it lacks the columns {lacking}")
     for c in KEY:
         df[c] = df[c].fillna("").astype(str)
-    if "schema_version" in df.columns and len(df) and int(df["schema_version"].iloc[0]) > SCHEMA_VERSION:
-        raise ValueError(f"{p} has schema version {df['schema_version'].iloc[0]}, newer than this isobench ({SCHEMA_VERSION})")
+    if "schema_version" in df.columns and len(df):
+        try:
+            version = int(df["schema_version"].iloc[0])
+        except (TypeError, ValueError):
+            raise ValueError(f"{p}: schema_version {df['schema_version'].iloc[0]!r} is not a number") from None
+        if version > SCHEMA_VERSION:
+            raise ValueError(f"{p} has schema version {version}, newer than this isobench ({SCHEMA_VERSION})")
     return df

@@ -31,9 +31,10 @@ from reference.quadric import ray_sphere_roots
 from . import environment, references
 from .metrics import family_skip_reason, finite_rows, measure_accuracy, primary_quantity
 from .references import ReferenceOptions
-from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, to_frame, write_json, write_results
+from .results import (OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, remove_temporaries, to_frame, write_json,
+                      write_results)
 from .suites import Suite
-from .timing import TimingPolicy, measure, time_limit
+from .timing import Timeout, TimingPolicy, measure, time_limit
 
 #: columns that identify a configuration (a row is a configuration × quantity)
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
@@ -66,98 +67,234 @@ def closed_form_time(case: Case, policy: TimingPolicy) -> float:
     return timing.median_s
 
 
+class BackendFault(ValueError):
+    """A backend broke the :class:`impls.protocol.Backend` contract (a wrong type, shape, dtype or
+    status code, a missing attribute, a method that raised): its configuration is a failed row
+    with this message, and the run goes on."""
+
+
+def _backend_call(backend: Any, what: str, fn: Callable[[], Any]) -> Any:
+    """``fn()`` (a call into user code), any exception turned into a :class:`BackendFault` that
+    names ``what`` was called."""
+    try:
+        return fn()
+    except Timeout:
+        raise
+    except (Exception, SystemExit) as exc:  # user code: whatever it raises is its fault, not the run's
+        raise BackendFault(f"{what} raised {type(exc).__name__}: {exc}") from exc
+
+
+def _device(cfg: Config, backend: Any) -> str:
+    try:
+        return str(getattr(backend, "device", None) or cfg.backend_id.partition(":")[2] or "cpu")
+    except Exception:  # a property that raises: the id's device part stands in
+        return cfg.backend_id.partition(":")[2] or "cpu"
+
+
 def _base_row(run_id: str, cfg: Config, backend: Any) -> dict:
-    device = getattr(backend, "device", cfg.backend_id.partition(":")[2] or "cpu")
     spec = METHODS.get(cfg.method)
     return {
         "schema_version": SCHEMA_VERSION, "run_id": run_id, "case_id": cfg.case.id, "case_version": cfg.case.version,
-        "backend": cfg.backend_id, "device": device, "dtype": cfg.dtype, "method": cfg.method,
+        "backend": cfg.backend_id, "device": _device(cfg, backend), "dtype": cfg.dtype, "method": cfg.method,
         "family": spec.family if spec else "", "knob": knob_string(cfg.knobs),
         "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "n_rays": cfg.case.n_rays,
         "quantity": primary_quantity(spec) if spec else "",
     }
 
 
+def backend_methods(backend: Any) -> tuple[str, ...]:
+    """``backend.methods()`` checked: an iterable of method names (else :class:`BackendFault`)."""
+    got = _backend_call(backend, "backend.methods()", backend.methods)
+    if isinstance(got, str) or not all(isinstance(m, str) for m in _backend_call(backend, "iterating methods()",
+                                                                               lambda: list(got))):
+        raise BackendFault(f"backend.methods() must return method names (strings), got {got!r:.200}")
+    return tuple(got)
+
+
+def backend_dtypes(backend: Any) -> tuple[str, ...]:
+    """``backend.capabilities.dtypes`` checked (else :class:`BackendFault`)."""
+    caps = _backend_call(backend, "backend.capabilities", lambda: backend.capabilities)
+    dts = _backend_call(backend, "backend.capabilities.dtypes", lambda: caps.dtypes)
+    if isinstance(dts, str) or not all(isinstance(d, str) for d in _backend_call(
+            backend, "iterating capabilities.dtypes", lambda: list(dts))):
+        raise BackendFault(f"backend.capabilities.dtypes must be dtype names (strings), got {dts!r:.200}")
+    return tuple(dts)
+
+
 def skip_reason(cfg: Config, backend: Any) -> str | None:
-    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it."""
+    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it.  A backend
+    whose ``methods()`` or ``capabilities`` break raises :class:`BackendFault`."""
     if isinstance(backend, Unavailable):
         return f"backend unavailable: {backend.reason}"
-    if cfg.method not in backend.methods():
+    if cfg.method not in backend_methods(backend):
         return f"{cfg.backend_id} does not implement {cfg.method}"
-    if cfg.dtype not in backend.capabilities.dtypes:
+    if cfg.dtype not in backend_dtypes(backend):
         return f"{cfg.backend_id} does not support {cfg.dtype}"
     return applies(get_method(cfg.method), cfg.case)
 
 
-def check_result(res: RayResult, n: int, outputs: tuple[str, ...]) -> None:
-    """The per-ray contract: shapes (n, …) and no silent NaN (a non-finite value on a ray whose
-    status is CONVERGED).  Raises ValueError naming the offending array."""
-    for name in ("t", "status", "iterations", "evals"):
-        a = getattr(res, name)
-        if np.shape(a) != (n,):
-            raise ValueError(f"wrong shape: result {name} has shape {np.shape(a)}, expected ({n},)")
-    conv = res.status == Status.CONVERGED
-    bad = int(np.sum(conv & ~np.isfinite(res.t)))
+#: the codes a result may hold (IN_PROGRESS is internal to the drivers, never returned)
+_STATUS_CODES = frozenset(int(s) for s in Status if s != Status.IN_PROGRESS)
+
+
+def _array(res: Any, name: str, n: int) -> np.ndarray:
+    """``res.<name>`` as a numpy array of shape (n,) with a real numeric dtype (else BackendFault)."""
+    if not hasattr(res, name):
+        raise BackendFault(f"the result has no {name!r} (a RayResult has t, status, iterations, evals, outputs); "
+                           f"got {type(res).__name__}")
+    try:
+        a = np.asarray(getattr(res, name))
+    except Exception as exc:
+        raise BackendFault(f"result {name} is not an array: {type(exc).__name__}: {exc}") from exc
+    if a.shape != (n,):
+        raise BackendFault(f"wrong shape: result {name} has shape {a.shape}, expected ({n},)")
+    if a.dtype.kind not in "biuf":
+        raise BackendFault(f"result {name} has dtype {a.dtype}, expected a real number dtype")
+    return a
+
+
+def check_result(res: Any, n: int, outputs: tuple[str, ...]) -> RayResult:
+    """The per-ray contract, checked on what a backend's ``Prepared.result`` returned, which is
+    user code: ``t``, ``status``, ``iterations``, ``evals`` arrays of shape (n,) and real dtype;
+    ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` finite
+    and ≥ 0; ``outputs`` a dict holding every declared output with leading dimension n; no silent
+    NaN (a non-finite ``t`` or output row on a ray whose status is CONVERGED).  Returns a clean
+    :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises
+    :class:`BackendFault` (a ValueError) naming the offending array."""
+    t = _array(res, "t", n).astype(np.float64)
+    status = _array(res, "status", n)
+    if status.dtype.kind == "f":
+        if not np.all(np.isfinite(status)) or np.any(status != np.round(status)):
+            raise BackendFault(f"result status holds non-integer values (dtype {status.dtype}); status codes are "
+                               f"the integers of impls.protocol.Status")
+    status = status.astype(np.int64)
+    bad = sorted(set(np.unique(status).tolist()) - _STATUS_CODES)
     if bad:
-        raise ValueError(f"silent NaN: {bad} rays have non-finite t with status CONVERGED")
+        raise BackendFault(f"result status holds code(s) {bad[:5]} that are not impls.protocol.Status values "
+                           f"(IN_PROGRESS is internal); valid: "
+                           f"{ {s.name: int(s) for s in Status if s != Status.IN_PROGRESS} }")
+    counts = {}
+    for name in ("iterations", "evals"):
+        a = _array(res, name, n)
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise BackendFault(f"result {name} must be finite counts ≥ 0; got min {np.min(a)}, max {np.max(a)}")
+        counts[name] = a.astype(np.int64) if a.dtype.kind != "f" else a.astype(np.float64)
+    outs = getattr(res, "outputs", None)
+    if outs is None:
+        outs = {}
+    if not isinstance(outs, dict):
+        raise BackendFault(f"result outputs must be a dict of arrays, got {type(outs).__name__}")
+    conv = status == Status.CONVERGED
+    nbad = int(np.sum(conv & ~np.isfinite(t)))
+    if nbad:
+        raise BackendFault(f"silent NaN: {nbad} rays have non-finite t with status CONVERGED")
+    clean = {}
+    for name, a in outs.items():
+        try:
+            clean[name] = np.asarray(a)
+        except Exception as exc:
+            raise BackendFault(f"output {name} is not an array: {type(exc).__name__}: {exc}") from exc
     for name in outputs:
-        a = res.outputs.get(name)
-        if a is None:
-            raise ValueError(f"missing output {name!r}; returned {sorted(res.outputs)}")
-        a = np.asarray(a)
+        if name not in clean:
+            raise BackendFault(f"missing output {name!r}; returned {sorted(map(str, clean))}")
+        a = clean[name]
         if a.shape[:1] != (n,):
-            raise ValueError(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
-        bad = int(np.sum(conv & ~finite_rows(a)))
-        if bad:
-            raise ValueError(f"silent NaN: {bad} rays have non-finite {name} with status CONVERGED")
+            raise BackendFault(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
+        if a.dtype.kind not in "biufc":
+            raise BackendFault(f"output {name} has dtype {a.dtype}, expected numbers")
+        nbad = int(np.sum(conv & ~finite_rows(a)))
+        if nbad:
+            raise BackendFault(f"silent NaN: {nbad} rays have non-finite {name} with status CONVERGED")
+    return RayResult(t=t, status=status, iterations=counts["iterations"], evals=counts["evals"], outputs=clean)
+
+
+def status_counts(status: np.ndarray) -> dict[str, int]:
+    """{status name: rays}, computed here from checked codes (a backend's own RayResult subclass
+    need not have ``status_counts``, and its answer would be unchecked)."""
+    vals, counts = np.unique(status, return_counts=True)
+    return {Status(int(v)).name: int(c) for v, c in zip(vals, counts)}
 
 
 def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
-    depths, isolating their error from root finding) and time it: (prepared, timing, output)."""
+    depths, isolating their error from root finding) and time it: (prepared, timing, output).
+    What ``prepare`` returns must have callables ``run`` and ``result`` (else BackendFault)."""
     case, spec = cfg.case, get_method(cfg.method)
     extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
     if getattr(spec, "needs_color", False):
         # the renderer shades with the very colour field the reference integrates
         extra["color"] = references.color_field(case)
-    prep = backend.prepare(cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype,
-                           t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs)
-    timing, out = measure(prep.run, backend.synchronize, policy)
+    prep = _backend_call(backend, f"backend.prepare({cfg.method!r}, …)", lambda: backend.prepare(
+        cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype, t_min=case.t_min,
+        t_max=case.t_max, **extra, **cfg.knobs))
+    for name in ("run", "result"):
+        if not callable(getattr(prep, name, None)):
+            raise BackendFault(f"backend.prepare returned {type(prep).__name__}, which has no callable {name!r} "
+                               "(return impls.protocol.Prepared(run=…, result=…))")
+    sync = getattr(backend, "synchronize", None)
+    if not callable(sync):
+        raise BackendFault("the backend has no callable synchronize(out)")
+    timing, out = measure(lambda: _backend_call(backend, "Prepared.run()", prep.run),
+                          lambda o: _backend_call(backend, "backend.synchronize(out)", lambda: sync(o)), policy)
     return prep, timing, out
 
 
+def _compile_s(prep: Any) -> float | None:
+    """``Prepared.compile_s``: a finite number ≥ 0 or None (a missing attribute is None)."""
+    v = getattr(prep, "compile_s", None)
+    if v is None:
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise BackendFault(f"Prepared.compile_s must be seconds (a number) or None, got {v!r:.100}") from None
+    if not (np.isfinite(f) and f >= 0):
+        raise BackendFault(f"Prepared.compile_s must be finite and ≥ 0, got {f}")
+    return f
+
+
 def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
-            cache: dict | None = None) -> list[dict]:
-    """Rows for one configuration (one per quantity; one row when skipped or failed)."""
+            cache: dict | None = None, limit: tuple[float, str] | None = None) -> list[dict]:
+    """Rows for one configuration (one per quantity; one row when skipped or failed).  Never
+    raises for what the backend does (exceptions, contract breaches, hangs past the limit):
+    those are failed rows with the reason.  ``limit``: (seconds, what) bounding the configuration
+    instead of ``policy.timeout_s`` (the runner passes the smaller of the timeout and the run's
+    budget left)."""
     cache = {} if cache is None else cache
     row = _base_row(run_id, cfg, backend)
+    seconds, what = limit if limit is not None else (policy.timeout_s, "--timeout")
     try:
         reason = skip_reason(cfg, backend)
-    except Exception as exc:  # e.g. the reference cannot answer for this case
+    except Exception as exc:  # e.g. the reference cannot answer for this case, or methods() broke
         return [{**row, "outcome": "failed", "reason": f"planning: {type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]
     if reason:
         return [{**row, "outcome": "skipped", "reason": reason}]
     case, spec = cfg.case, get_method(cfg.method)
     try:
-        with time_limit(policy.timeout_s):
+        with time_limit(seconds, what):
             prep, timing, out = _prepare_and_time(cfg, backend, policy)
-            res = prep.result(out)
-        check_result(res, case.n_rays, tuple(spec.outputs))
+            raw = _backend_call(backend, "Prepared.result(out)", lambda: prep.result(out))
+            compile_s = _compile_s(prep)
+        res = check_result(raw, case.n_rays, tuple(spec.outputs))
+        counts = status_counts(res.status)
         quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
-    except Exception as exc:  # a failing configuration becomes a row; the run goes on
+    except Timeout as exc:
+        return [{**row, "outcome": "failed", "reason": f"Timeout: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    except (Exception, SystemExit) as exc:  # a failing configuration becomes a row; the run goes on
         return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]
     timed = {
-        "status_counts": json.dumps(res.status_counts(), sort_keys=True),
+        "status_counts": json.dumps(counts, sort_keys=True),
         "first_call_s": timing.first_call_s,
-        "compile_s": prep.compile_s if prep.compile_s is not None else max(timing.first_call_s - timing.median_s, 0.0),
+        "compile_s": compile_s if compile_s is not None else max(timing.first_call_s - timing.median_s, 0.0),
         "time_median_s": timing.median_s, "time_iqr_s": timing.iqr_s,
         "time_samples_s": json.dumps(timing.samples_s), "time_ratio_cf": timing.median_s / cf_time,
         "n_samples": len(timing.samples_s), "loops": timing.loops,
     }
     if policy.accuracy_only:  # one untimed-quality call: no timing claims, no timing comparison
-        timed.update({"compile_s": prep.compile_s, "time_median_s": float("nan"), "time_iqr_s": float("nan"),
+        timed.update({"compile_s": compile_s, "time_median_s": float("nan"), "time_iqr_s": float("nan"),
                       "time_samples_s": "", "time_ratio_cf": float("nan"), "n_samples": 0})
     rows = []
     for q in quantities:
@@ -175,7 +312,7 @@ def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str
         with time_limit(policy.timeout_s):
             _, timing, _ = _prepare_and_time(cfg, backend, policy)
         return timing.samples_s
-    except Exception as exc:
+    except (Exception, SystemExit, Timeout) as exc:
         return f"{type(exc).__name__}: {exc}"
 
 
@@ -298,49 +435,100 @@ def _done_keys(df) -> set[tuple]:
     return set(map(tuple, df[CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
 
 
+def outcome_of(rows: list[dict]) -> str:
+    """A configuration's outcome from its rows: ``ok`` if any quantity was measured, else
+    ``failed`` if any failed, else ``skipped`` (as ``bench.report.config_outcomes``)."""
+    outs = {r.get("outcome") for r in rows}
+    return "ok" if "ok" in outs else "failed" if "failed" in outs else "skipped"
+
+
+def _versions(bid: str, backend: Any) -> dict[str, str]:
+    """``backend.versions()`` as recorded in environment.json; a versions() that raises or
+    returns something else is recorded as such (the run goes on)."""
+    try:
+        got = backend.versions()
+        if not isinstance(got, dict):
+            raise TypeError(f"returned {type(got).__name__}, expected a dict of library → version")
+        return {f"backend.{bid}.{k}": str(v) for k, v in got.items()}
+    except (Exception, SystemExit) as exc:
+        return {f"backend.{bid}.versions_error": f"{type(exc).__name__}: {exc}"[:300]}
+
+
+def _elapsed(env: dict, session_s: float) -> None:
+    """Record this session's seconds: ``elapsed_sessions_s`` (a JSON list, one entry per session
+    of the run: the first and every ``--resume``) and ``elapsed_s``, their sum."""
+    sessions = json.loads(env.get("elapsed_sessions_s") or "[]")
+    sessions[-1] = round(session_s, 1)
+    env["elapsed_sessions_s"] = json.dumps(sessions)
+    env["elapsed_s"] = f"{sum(sessions):.1f}"
+
+
 def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: str | None = None,
         methods: list[str] | None = None, dtypes: list[str] | None = None, policy: TimingPolicy = TimingPolicy(),
-        run_id: str | None = None, progress: Callable[[int, int, str], None] | None = None,
+        run_id: str | None = None, progress: Callable[..., None] | None = None,
         resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
         budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None,
         reference_timeout_s: float = 30.0) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
-    the configurations it lacks are run.  ``budget_s``: wall-clock budget; once spent, the
-    remaining configurations become ``skipped`` rows saying so (``--resume`` with a larger budget
-    finishes them, since resume re-runs only configurations without a measured row).
+    the configurations it lacks are run (temporary files that killed writers left are removed
+    first).  ``budget_s`` (None: none): a wall-clock guard against a hang, not a plan: each
+    configuration is limited to the smaller of ``policy.timeout_s`` and the budget left, and
+    once it is spent the configuration in flight and those left become ``skipped`` rows whose
+    reason starts with :data:`OVER_BUDGET`; environment.json then says ``complete: "false"`` with
+    ``incomplete_reason``, and ``bench compare`` refuses to gate on it (``--resume``, with a larger
+    budget or none, finishes them: resume re-runs configurations without a measured row).
     ``rounds``: the whole plan is timed ``rounds`` times, round after round, and each
     configuration's samples pooled (:func:`retime`), so slow drift of a shared machine's load
     shows up as spread within a configuration instead of as a difference between runs.
     ``reference_cache_dir``: where costly reference answers are kept across runs (None: not kept);
     ``reference_timeout_s``: limit on one costly reference computation (a rendering integral).
+    ``progress(done, total, what, counts)``: called before each configuration and at the end,
+    ``counts`` the configurations so far by outcome (``ok``, ``skipped``, ``failed``; those kept
+    from a resumed session included in ``done``).
+    ``elapsed_s`` in environment.json is the sum over the run's sessions (``elapsed_sessions_s``),
+    kept up to date at every flush so a killed session's time is not lost.
     """
     if rounds < 1:
         raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
+    if budget_s is not None and not (budget_s >= 0 and np.isfinite(budget_s)):
+        raise ValueError(f"--budget must be a finite number of seconds ≥ 0, got {budget_s}")
     out_dir = Path(out_dir)
+    started = time.monotonic()
     previous = None
     if resume:
         if not (out_dir / "environment.json").exists():
             raise ValueError(f"--resume: {out_dir} holds no run to resume (no environment.json); drop --resume")
-        env = json.loads((out_dir / "environment.json").read_text())
-        run_id = env["run_id"]
+        remove_temporaries(out_dir)
+        try:
+            env = json.loads((out_dir / "environment.json").read_text())
+            run_id = env["run_id"]
+        except (ValueError, KeyError) as exc:
+            raise ValueError(f"--resume: {out_dir / 'environment.json'} is not a run's environment "
+                             f"({type(exc).__name__}: {exc}); start a new run with another --out") from None
         try:
             previous = read_results(out_dir)
         except FileNotFoundError:
             previous = None
         env["resumed"] = str(int(env.get("resumed", "0")) + 1)
+        if "elapsed_sessions_s" not in env:  # a run recorded before sessions were
+            env["elapsed_sessions_s"] = json.dumps([float(env["elapsed_s"])] if env.get("elapsed_s") else [])
     else:
         run_id = run_id or new_run_id()
         env = environment.collect()
         env["run_id"] = run_id
+        env["elapsed_sessions_s"] = "[]"
+    env["elapsed_sessions_s"] = json.dumps(json.loads(env["elapsed_sessions_s"]) + [0.0])
     env["suite"] = suite.name
     env["complete"] = "false"
+    env["incomplete_reason"] = "running (or killed): finish it with --resume"
+    env["budget_s"] = "none" if budget_s is None else f"{budget_s:g}"
     env["timing_policy"] = json.dumps(dataclasses.asdict(policy), sort_keys=True)
     env.update(env_extra or {})
     for bid, b in backends.items():
         if not isinstance(b, Unavailable):
-            env.update({f"backend.{bid}.{k}": v for k, v in b.versions().items()})
+            env.update(_versions(bid, b))
     write_json(out_dir / "environment.json", env)
     cfgs = plan(suite, list(backends), case_pattern, methods, dtypes)
     if not cfgs:
@@ -354,31 +542,58 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         rows = [r for r, o in zip(rows, over) if not o]
         done = _done_keys(previous[~over])
     todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
-    started = time.monotonic()
+    counts = {"ok": 0, "skipped": 0, "failed": 0}
+    if rows:
+        kept: dict[tuple, list[dict]] = {}
+        for r in rows:
+            kept.setdefault(tuple(str(r[k]) for k in CONFIG_KEY), []).append(r)
+        for g in kept.values():
+            counts[outcome_of(g)] += 1
+    n_total, n_before = len(todo) + sum(counts.values()), sum(counts.values())
     cf_cache: dict[str, float] = {}
     ref_cache: dict = {"_options": ReferenceOptions(expensive=suite.expensive_references, timeout_s=reference_timeout_s,
                                                     disk=reference_cache_dir)}
+
+    def flush():
+        write_results(to_frame(rows), out_dir)
+        _elapsed(env, time.monotonic() - started)
+        write_json(out_dir / "environment.json", env)
+        return time.monotonic()
+
     last_write = time.monotonic()
     current_case = None
+    over_msg = f"{OVER_BUDGET} ({budget_s or 0:g} s); finish with --resume and a larger --budget (or none)"
+    n_over = 0
     for i, cfg in enumerate(todo):
         if cfg.case.id != current_case:
             current_case = cfg.case.id
             if rows:
-                write_results(to_frame(rows), out_dir)
-                last_write = time.monotonic()
+                last_write = flush()
+        if progress:
+            progress(n_before + i, n_total, f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}",
+                     dict(counts))
+        left = None if budget_s is None else budget_s - (time.monotonic() - started)
+        if left is not None and left <= 0:
+            rows.append({**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped", "reason": over_msg})
+            counts["skipped"] += 1
+            n_over += 1
+            continue
         if cfg.case.id not in cf_cache and not policy.accuracy_only:
             cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
-        if progress:
-            progress(i, len(todo), f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}")
-        if budget_s is not None and time.monotonic() - started > budget_s:
-            rows.append({**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
-                         "reason": f"{OVER_BUDGET} ({budget_s:g} s); finish with --resume and a larger --budget"})
-            continue
-        rows.extend(run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache.get(cfg.case.id, float("nan")),
-                            ref_cache))
+        limit = (policy.timeout_s, "--timeout")
+        if left is not None and (not policy.timeout_s or left < policy.timeout_s):
+            limit = (max(left, 1e-3), f"the run's --budget of {budget_s:g} s")
+        got = run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache.get(cfg.case.id, float("nan")),
+                      ref_cache, limit=limit)
+        if limit[1] != "--timeout" and any(str(r.get("reason", "")).startswith("Timeout:") for r in got):
+            # interrupted by the budget, not by its own limit: not measured, like those after it
+            got = [{**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
+                    "reason": over_msg + " (interrupted in flight)"}]
+            n_over += 1
+        rows.extend(got)
+        counts[outcome_of(got)] += 1
         if time.monotonic() - last_write > flush_s:
-            write_results(to_frame(rows), out_dir)
-            last_write = time.monotonic()
+            last_write = flush()
     cf_samples = {cid: [t] for cid, t in cf_cache.items()}
     if rounds > 1 and not policy.accuracy_only:
         index: dict[tuple, list[int]] = {}
@@ -391,19 +606,26 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
                 if cfg.case.id not in cf_samples or len(cf_samples[cfg.case.id]) < rnd:
                     cf_samples.setdefault(cfg.case.id, []).append(closed_form_time(cfg.case, policy))
                 if progress:
-                    progress(i, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}")
+                    progress(i, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}",
+                             dict(counts))
                 extra = retime(cfg, backends[cfg.backend_id], policy)
                 for j in index[tuple(map(str, cfg.key))]:
                     _pool(rows[j], extra, float(np.median(cf_samples[cfg.case.id])))
             write_results(to_frame(rows), out_dir)
     if progress:
-        progress(len(todo), len(todo), "done")
+        progress(n_total, n_total, "done", dict(counts))
     for cid, ts in cf_samples.items():
         env[f"closed_form_s.{cid}"] = repr(float(np.median(ts)))
     env["rounds"] = str(rounds)
-    env["complete"] = "true"
-    env["elapsed_s"] = f"{time.monotonic() - started:.1f}"
-    write_json(out_dir / "environment.json", env)
+    if n_over:
+        env["complete"] = "false"
+        env["incomplete_reason"] = (f"{n_over} of {n_total} configurations not measured: {OVER_BUDGET} "
+                                    f"({budget_s or 0:g} s); finish with --resume and a larger --budget (or none)")
+    else:
+        env["complete"] = "true"
+        env.pop("incomplete_reason", None)
     df = to_frame(rows)
     write_results(df, out_dir)
+    _elapsed(env, time.monotonic() - started)
+    write_json(out_dir / "environment.json", env)
     return df

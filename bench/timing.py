@@ -104,26 +104,60 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
     return Timing(first_call_s=first, samples_s=samples, loops=loops), out
 
 
-class Timeout(Exception):
-    """A configuration ran past its time limit."""
+class Timeout(BaseException):
+    """A configuration ran past its time limit.
+
+    A ``BaseException`` (like ``KeyboardInterrupt``), so that a user backend's ``except
+    Exception`` cannot swallow it; whoever sets a limit catches it by name."""
+
+
+_limits: list[tuple[float, str]] = []  # (monotonic deadline, message) of the active limits, outermost first
+
+
+def _arm() -> None:
+    """Set the interval timer to the nearest active deadline (re-firing every second after it, so
+    a limit whose exception was swallowed by user code fires again)."""
+    if not _limits:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        return
+    left = min(d for d, _ in _limits) - time.monotonic()
+    signal.setitimer(signal.ITIMER_REAL, max(left, 1e-4), 1.0)
+
+
+def _on_alarm(signum, frame):
+    if _limits:
+        deadline, message = min(_limits)
+        if time.monotonic() >= deadline - 1e-3:
+            raise Timeout(message)
+        _arm()  # woken early (e.g. a limit left in between): wait for the nearest deadline
 
 
 @contextlib.contextmanager
-def time_limit(seconds: float):
-    """Raise :class:`Timeout` in the main thread after ``seconds`` (0 or off the main thread: no
-    limit).  POSIX ``SIGALRM``: it interrupts Python code between bytecodes, so a long call
-    inside a compiled kernel is stopped when it returns to Python."""
+def time_limit(seconds: float | None, what: str = "--timeout"):
+    """Raise :class:`Timeout` in the main thread once ``seconds`` have passed (0 or None, or off
+    the main thread: no limit).  ``what`` names the limit in the message (``--timeout``, the
+    run's ``--budget``).
+
+    POSIX ``SIGALRM`` (``setitimer``): the handler raises between two bytecodes of the main
+    thread, so Python code, ``time.sleep`` and lock or ``join`` waits are interrupted at once; a
+    long call inside a compiled kernel is interrupted when it returns to Python.  The timer keeps
+    firing every second past the deadline, so user code that catches the exception and goes on
+    is interrupted again.  Limits nest: the timer is set to the nearest deadline, and the
+    exception raised is that of the limit that passed (an outer one may pass inside an inner
+    block; it is raised again on leaving the inner block if the inner block swallowed it)."""
     if not seconds or threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
         yield
         return
-
-    def handler(signum, frame):
-        raise Timeout(f"ran past the time limit of {seconds:g} s (--timeout)")
-
-    old = signal.signal(signal.SIGALRM, handler)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
+    entry = (time.monotonic() + seconds, f"ran past the time limit of {seconds:g} s ({what})")
+    outermost = not _limits
+    old = signal.signal(signal.SIGALRM, _on_alarm) if outermost else None
+    _limits.append(entry)
+    _arm()
     try:
         yield
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
+        _limits.remove(entry)
+        if outermost:
+            signal.signal(signal.SIGALRM, signal.SIG_DFL if old is None else old)
+        _arm()

@@ -4,10 +4,13 @@
   library is located with ``importlib.util.find_spec`` (no import) so listing is cheap, in the
   spirit of einops' ``_backends.py``; it is imported only when a backend is made.
 * Plug-ins: entry points in the group ``isobench.backends`` (``name = "pkg.mod:factory"``), or
-  a spec ``pkg.mod:attr`` passed as ``--backend``.  ``attr`` is a backend object, a class, or a
-  factory taking ``device`` (or nothing) and returning a backend.
+  a spec ``module:attr`` passed as ``--backend`` (``module`` dotted or not: any id with a colon
+  whose head is neither a built-in library nor an entry point).  ``attr`` is a backend object, a
+  class, or a factory taking ``device`` (or nothing) and returning a backend.
 * An unavailable backend is never an error in a run: :func:`resolve` returns a
-  :class:`Unavailable` with the reason, which the report lists as skipped.
+  :class:`Unavailable` with the reason, which the report lists as skipped.  An id that names
+  nothing (a typo: no such built-in or entry point, a spec whose module or attribute does not
+  exist) is an :class:`Unavailable` with ``unknown=True``, which the CLI refuses as a usage error.
 """
 
 from __future__ import annotations
@@ -32,16 +35,35 @@ _DEFAULT_DEVICE = {"numpy": "cpu", "torch": "cpu", "jax": "cpu"}
 
 @dataclasses.dataclass(frozen=True)
 class Unavailable:
+    """A backend that cannot run here, and why.  ``unknown``: the id names no backend at all (no
+    such built-in or entry point; a plug-in spec whose module or attribute does not exist), as
+    opposed to one that exists but cannot load (a library not installed, a factory that raises)."""
+
     id: str
     reason: str
+    unknown: bool = False
+
+
+class _NotFound(LookupError):
+    """A plug-in spec names a module or attribute that does not exist."""
 
 
 def _load_attr(spec: str) -> Any:
-    if ":" not in spec:
-        raise ValueError(f"backend spec {spec!r} must look like 'package.module:attr'")
-    mod, attr = spec.split(":", 1)
-    obj = importlib.import_module(mod)
+    """The object ``module:attr`` names; :class:`_NotFound` when the module or an attribute on the
+    way does not exist (errors raised *inside* an existing module propagate as they are)."""
+    mod, _, attr = spec.partition(":")
+    if not mod or not attr or not all(p.isidentifier() for p in mod.split(".") + attr.split(".")):
+        raise _NotFound(f"backend spec {spec!r} must look like 'module:attr' (e.g. 'mypkg.backend:MyBackend')")
+    try:
+        obj = importlib.import_module(mod)
+    except ModuleNotFoundError as exc:
+        if exc.name and (mod == exc.name or mod.startswith(exc.name + ".")):
+            raise _NotFound(f"no module named {exc.name!r} (from backend spec {spec!r}); is it installed or on "
+                            "PYTHONPATH?") from None
+        raise
     for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise _NotFound(f"{mod}:{attr}: {getattr(obj, '__name__', mod)!r} has no attribute {part!r}")
         obj = getattr(obj, part)
     return obj
 
@@ -59,18 +81,25 @@ def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:
     return {ep.name: ep for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
 
 
-def _is_plugin_spec(backend_id: str) -> bool:
-    # "pkg.mod:attr" has a dot before the colon; "torch:cuda" does not.
+def _is_plugin_spec(backend_id: str, entry_points=None) -> bool:
+    # "pkg.mod:attr" or "mod:attr"; "torch:cuda" (a built-in) and "<entry point>:device" are not
     head = backend_id.split(":", 1)[0]
-    return ":" in backend_id and "." in head
+    if ":" not in backend_id or head in _BUILTIN:
+        return False
+    return "." in head or head not in (_entry_points() if entry_points is None else entry_points)
 
 
 def resolve(backend_id: str) -> Any:
     """A backend object for ``backend_id``, or :class:`Unavailable` with the reason."""
+    if not isinstance(backend_id, str) or not backend_id.strip():
+        return Unavailable(str(backend_id), "empty backend id; use e.g. 'numpy', 'torch:cpu' or 'package.module:attr'",
+                           unknown=True)
     if _is_plugin_spec(backend_id):
         try:
             return _instantiate(_load_attr(backend_id), None)
-        except Exception as exc:  # a broken plug-in is reported, never fatal
+        except _NotFound as exc:
+            return Unavailable(backend_id, f"could not load {backend_id}: {exc}", unknown=True)
+        except (Exception, SystemExit) as exc:  # a broken plug-in is reported, never fatal
             return Unavailable(backend_id, f"could not load {backend_id}: {type(exc).__name__}: {exc}")
     lib, _, device = backend_id.partition(":")
     if lib in _BUILTIN:
@@ -86,10 +115,11 @@ def resolve(backend_id: str) -> Any:
     if lib in eps:
         try:
             return _instantiate(eps[lib].load(), device or None)
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:
             return Unavailable(backend_id, f"entry point {lib!r} failed: {type(exc).__name__}: {exc}")
     known = sorted(set(_BUILTIN) | set(eps))
-    return Unavailable(backend_id, f"unknown backend {backend_id!r}; known: {known} or 'package.module:attr'")
+    return Unavailable(backend_id, f"unknown backend {backend_id!r}; known: {known} or 'package.module:attr'",
+                       unknown=True)
 
 
 def default_ids() -> list[str]:

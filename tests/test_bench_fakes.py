@@ -171,3 +171,167 @@ FAKE_METHODS.update({
     for m in ("nerf", "unisurf")
 })
 _IMPL.update({f"volume_{m}_uniform": fake_volume for m in ("nerf", "unisurf")})
+
+
+# --- faulty plug-ins: user backends that break the protocol in one way each -------------------------------
+# (wrapping the numpy backend; each is loadable as ``--backend tests.test_bench_fakes:<Class>``)
+
+import types  # noqa: E402
+
+
+class _WrapsNumpy:
+    """A user backend wrapping numpy, with one fault planted by a subclass."""
+
+    lib = "faulty"
+    device = "cpu"
+
+    def __init__(self):
+        from impls.numpy.backend import NumpyBackend
+
+        self._inner = NumpyBackend("cpu")
+        self.id = type(self).__name__
+
+    @property
+    def capabilities(self):
+        return self._inner.capabilities
+
+    def methods(self):
+        return ("sphere_trace", "hybrid_secant")
+
+    def prepare(self, method, scene, origins, directions, **kw):
+        return self._inner.prepare(method, scene, origins, directions, **kw)
+
+    def synchronize(self, out=None):
+        return None
+
+    def versions(self):
+        return {"faulty": "0.1"}
+
+
+class BadStatusBackend(_WrapsNumpy):
+    """Returns status code 7 (not an ``impls.protocol.Status``) on the first ray."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def result(out):
+            r = p.result(out)
+            r.status = r.status.copy()
+            r.status[0] = 7
+            return r
+
+        return Prepared(run=p.run, result=result, compile_s=p.compile_s)
+
+
+class NoCompileSBackend(_WrapsNumpy):
+    """``prepare`` returns an object with ``run`` and ``result`` but no ``compile_s``."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+        return types.SimpleNamespace(run=p.run, result=p.result)
+
+
+class NoStatusCountsBackend(_WrapsNumpy):
+    """``result`` returns a plain namespace (no ``status_counts`` method), statuses as int8."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def result(out):
+            r = p.result(out)
+            return types.SimpleNamespace(t=r.t, status=r.status.astype(np.int8), iterations=r.iterations,
+                                         evals=r.evals, outputs=r.outputs)
+
+        return Prepared(run=p.run, result=result)
+
+
+class StatusCountsLiesBackend(_WrapsNumpy):
+    """A RayResult whose ``status_counts`` raises: the runner must not call it."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        class Lying(RayResult):
+            def status_counts(self):
+                raise RuntimeError("the user's status_counts was called")
+
+        def result(out):
+            r = p.result(out)
+            return Lying(t=r.t, status=r.status, iterations=r.iterations, evals=r.evals, outputs=r.outputs)
+
+        return Prepared(run=p.run, result=result)
+
+
+class VersionsRaiseBackend(_WrapsNumpy):
+    def versions(self):
+        raise RuntimeError("planted: versions() is broken")
+
+
+class MethodsRaiseBackend(_WrapsNumpy):
+    def methods(self):
+        raise RuntimeError("planted: methods() is broken")
+
+
+class CapabilitiesRaiseBackend(_WrapsNumpy):
+    @property
+    def capabilities(self):
+        raise RuntimeError("planted: capabilities is broken")
+
+
+class WrongResultBackend(_WrapsNumpy):
+    """Returns a tuple instead of a RayResult."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+        return Prepared(run=p.run, result=lambda out: (p.result(out).t,))
+
+
+class FloatStatusBackend(_WrapsNumpy):
+    """Statuses as float with a fractional value."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def result(out):
+            r = p.result(out)
+            r.status = r.status.astype(np.float64) + 0.5
+            return r
+
+        return Prepared(run=p.run, result=result)
+
+
+class ExitsBackend(_WrapsNumpy):
+    """``run`` calls ``sys.exit`` (a user library that exits instead of raising)."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def run():
+            raise SystemExit(3)
+
+        return Prepared(run=run, result=p.result)
+
+
+class SleepyBackend(_WrapsNumpy):
+    """Every call sleeps ``SLEEP_S`` seconds (a hang in a user backend), swallowing Exceptions."""
+
+    SLEEP_S = 30.0
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def run():
+            try:
+                time.sleep(self.SLEEP_S)
+            except Exception:  # a careless user backend: must not swallow the time limit
+                pass
+            return p.run()
+
+        return Prepared(run=run, result=p.result)
+
+
+class BrokenFactoryBackend(_WrapsNumpy):
+    """Exists, but cannot be made (its library is broken): unavailable, not unknown."""
+
+    def __init__(self):
+        raise ImportError("planted: the user's library failed to load")

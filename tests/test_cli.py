@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -23,13 +24,42 @@ def bench(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "bench", *args], cwd=cwd or ROOT, capture_output=True, text=True, timeout=900)
 
 
+QUICK_STDOUT = {}
+
+
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "quick"
-    p = bench("run", "--suite", "quick", "--out", str(out), "--min-time", "0.02", "--min-repeats", "3", "--no-progress",
+    # stdout piped, as in CI: progress comes as lines
+    p = bench("run", "--suite", "quick", "--out", str(out), "--min-time", "0.02", "--min-repeats", "3",
               "--no-claims")
     assert p.returncode == 0, p.stdout + p.stderr
+    QUICK_STDOUT["out"] = p.stdout
     return out
+
+
+def test_the_quick_run_covers_its_whole_plan_and_shows_progress_when_piped(quick_run):
+    """No wall-clock budget cuts the plan, whatever the machine's load; progress lines come with
+    counts and elapsed time although stdout is a pipe; the closing output is short."""
+    from bench import runner
+    from bench.suites import get_suite
+
+    env = json.loads((quick_run / "environment.json").read_text())
+    assert env["complete"] == "true" and env["budget_s"] == "none"
+    df = read_results(quick_run)
+    assert not df["reason"].fillna("").str.startswith("over the run's time budget").any()
+    ids = [b for b in registry.default_ids()]
+    plan = runner.plan(get_suite("quick"), ids, None, None, None)
+    assert {tuple(map(str, c.key)) for c in plan} == set(map(tuple, df[runner.CONFIG_KEY].astype(str).itertuples(
+        index=False, name=None)))
+    out = QUICK_STDOUT["out"]
+    lines = out.splitlines()
+    assert any(re.search(r"\[ *\d+\.\d s\] plan: \d+ configurations", ln) for ln in lines), out[:2000]
+    progress = [ln for ln in lines if re.search(r"configurations \d+/\d+ \(\d+%\): \d+ ok, \d+ skipped, \d+ failed", ln)]
+    assert len(progress) >= 5, out[:3000]
+    assert any("report: writing" in ln for ln in lines)
+    assert f"report: {quick_run / 'report.html'}" in out
+    assert max(map(len, lines)) < 250 and len(lines) < 60, "the closing output is a summary, not the table"
 
 
 def test_run_writes_every_file(quick_run):
@@ -67,9 +97,24 @@ def test_every_available_backend_appears(quick_run):
     assert "<script" not in html and "http://" not in html and "https://" not in html  # offline
 
 
-def test_results_are_never_overwritten(quick_run):
+def test_results_are_never_overwritten(quick_run, tmp_path):
     p = bench("run", "--suite", "quick", "--out", str(quick_run), "--no-progress", "--backend", "numpy")
-    assert p.returncode == 2 and "never overwritten" in p.stdout
+    assert p.returncode == 2 and "never overwritten" in p.stderr and "--out" in p.stderr
+    # a folder with results.csv and environment.json but no parquet (the committed baseline's shape)
+    base = tmp_path / "baseline"
+    shutil.copytree(ROOT / "reports" / "baseline", base)
+    before = {f.name: f.read_bytes() for f in base.iterdir()}
+    p = bench("run", "--suite", "quick", "--out", str(base), "--no-progress", "--backend", "numpy",
+              "--case", "sphere.camera.64x64", "--method", "sphere_trace")
+    assert p.returncode == 2 and "never overwritten" in p.stderr, p.stdout + p.stderr
+    assert {f.name: f.read_bytes() for f in base.iterdir()} == before
+    claims_only = tmp_path / "claims"
+    claims_only.mkdir()
+    (claims_only / "claims.csv").write_text("id\n")
+    p = bench("run", "--out", str(claims_only), "--no-progress", "--backend", "numpy")
+    assert p.returncode == 2 and "claims.csv" in p.stderr
+    p = bench("run", "--out", str(base / "results.csv"), "--no-progress", "--backend", "numpy")
+    assert p.returncode == 2 and "--out" in p.stderr
 
 
 def test_compare_same_run_passes_and_planted_regression_fails(quick_run, tmp_path):
@@ -89,9 +134,9 @@ def test_compare_same_run_passes_and_planted_regression_fails(quick_run, tmp_pat
 
 def test_bad_arguments_get_clear_errors(tmp_path):
     p = bench("run", "--suite", "nosuch", "--out", str(tmp_path / "x"))
-    assert p.returncode != 0 and "unknown suite" in (p.stdout + p.stderr)
+    assert p.returncode == 2 and "unknown suite" in p.stderr
     p = bench("run", "--case", "nosuch.*", "--out", str(tmp_path / "y"), "--no-progress")
-    assert p.returncode == 2 and "no case matches" in p.stdout
+    assert p.returncode == 2 and "no case matches" in p.stderr
 
 
 def test_committed_baseline_has_no_accuracy_regression(quick_run):
@@ -110,13 +155,25 @@ def test_committed_baseline_has_no_accuracy_regression(quick_run):
 
 def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
     out = tmp_path / "plug"
+    broken = "tests.test_bench_fakes:BrokenFactoryBackend"
+    bad_status = "tests.test_bench_fakes:BadStatusBackend"
     p = bench("run", "--suite", "quick", "--accuracy-only", "--no-claims", "--no-progress", "--out", str(out),
-              "--backend", "numpy,tests.test_bench_fakes:FakeBackend,nosuch.module:Backend")
+              "--backend", f"numpy,tests.test_bench_fakes:FakeBackend,{broken},{bad_status}")
     assert p.returncode == 0, p.stdout + p.stderr
+    assert "Traceback" not in p.stdout + p.stderr
     df = read_results(out)
     reasons = df.groupby("backend")["reason"].first().to_dict()
     assert "does not implement sphere_trace" in reasons["tests.test_bench_fakes:FakeBackend"]
-    assert "backend unavailable" in reasons["nosuch.module:Backend"] and "nosuch" in reasons["nosuch.module:Backend"]
+    assert "backend unavailable" in reasons[broken] and "planted" in reasons[broken]
+    bad = df[(df["backend"] == bad_status) & (df["outcome"] == "failed")]
+    assert len(bad) and bad["reason"].str.contains("[7]", regex=False).all()
+    from bench import runner
+    from bench.suites import get_suite
+
+    plan = runner.plan(get_suite("quick"), ["numpy"], None, None, None)
+    np_keys = set(map(tuple, df.loc[df["backend"] == "numpy", runner.CONFIG_KEY].astype(str).itertuples(
+        index=False, name=None)))
+    assert np_keys == {tuple(map(str, c.key)) for c in plan}  # no numpy row lost
     numpy_rows = df[df["backend"] == "numpy"]
     assert "failed" not in set(numpy_rows["outcome"]) and (numpy_rows["outcome"] == "ok").any()
     assert numpy_rows.loc[numpy_rows["outcome"] == "skipped", "reason"].str.len().gt(0).all()
@@ -125,7 +182,7 @@ def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
 
 def test_compare_missing_run_is_a_clear_error(tmp_path):
     p = bench("compare", str(tmp_path / "nope"), str(tmp_path / "nope2"))
-    assert p.returncode == 2 and "no results at" in p.stdout
+    assert p.returncode == 2 and "no results at" in p.stderr
 
 
 def test_cases_lists_the_catalog():
@@ -166,3 +223,91 @@ def test_speed_unit_is_the_exact_sphere_hit_with_or_without_buffers():
         assert np.array_equal(np.isinf(t), np.isinf(exact))
         np.testing.assert_allclose(t[np.isfinite(t)], exact[np.isfinite(exact)], rtol=0, atol=1e-12)
     unit_timer(o, d)()  # runs on its own buffers
+
+
+def _truncated_baseline(tmp_path):
+    d = tmp_path / "half"
+    d.mkdir()
+    lines = (ROOT / "reports" / "baseline" / "results.csv").read_text().splitlines(keepends=True)
+    (d / "results.csv").write_text("".join(lines[: len(lines) // 2]))
+    shutil.copyfile(ROOT / "reports" / "baseline" / "environment.json", d / "environment.json")
+    return d
+
+
+def _incomplete_copy(tmp_path):
+    d = tmp_path / "incomplete"
+    shutil.copytree(ROOT / "reports" / "baseline", d)
+    env = json.loads((d / "environment.json").read_text())
+    env.update(complete="false", incomplete_reason="over the run's time budget (planted)")
+    (d / "environment.json").write_text(json.dumps(env))
+    return d
+
+
+def _corrupt_run(tmp_path):
+    d = tmp_path / "corrupt"
+    d.mkdir()
+    (d / "environment.json").write_text("{}")
+    (d / "results.parquet").write_bytes(b"PAR1 this is not a parquet file")
+    return d
+
+
+def _garbage_csv(tmp_path):
+    (tmp_path / "garbage.csv").write_text("x,y\n1,2\n")
+    return tmp_path / "garbage.csv"
+
+
+def _baseline_copy(tmp_path):
+    shutil.copytree(ROOT / "reports" / "baseline", tmp_path / "b")
+    return tmp_path / "b"
+
+
+BASELINE = str(ROOT / "reports" / "baseline")
+ONE = ["--case", "sphere.camera.64x64", "--method", "sphere_trace", "--no-claims", "--accuracy-only"]
+
+# (argv from tmp_path, exit code, what stderr must name)
+USER_ERRORS = {
+    "run --threads 0": (lambda t: ["run", "--threads", "0"], 2, "--threads"),
+    "run --budget -1": (lambda t: ["run", "--budget", "-1"], 2, "--budget"),
+    "run --timeout nan": (lambda t: ["run", "--timeout", "nan"], 2, "--timeout"),
+    "run --backend nosuch": (lambda t: ["run", "--backend", "nosuch", "--out", str(t / "o")], 2, "--backend"),
+    "run plug-in spec, undotted module": (lambda t: ["run", "--backend", "nosuchmodule:Backend", "--out", str(t / "o")],
+                                          2, "--backend"),
+    "run plug-in spec, no such attribute": (lambda t: ["run", "--backend", "tests.test_bench_fakes:Nope", "--out",
+                                                       str(t / "o")], 2, "--backend"),
+    "run --out a baseline": (lambda t: ["run", "--out", str(_baseline_copy(t)), "--backend", "numpy"], 2, "--out"),
+    "run where every configuration failed": (
+        lambda t: ["run", "--backend", "tests.test_bench_fakes:BadStatusBackend", "--out", str(t / "o"), *ONE], 1,
+        "no configuration ran"),
+    "run that spends its --budget": (
+        lambda t: ["run", "--backend", "numpy,tests.test_bench_fakes:SleepyBackend", "--budget", "2", "--out",
+                   str(t / "o"), *ONE], 1, "INCOMPLETE"),
+    "report on a missing directory": (lambda t: ["report", str(t / "nope")], 2, "RUN_DIR"),
+    "report on a corrupt parquet": (lambda t: ["report", str(_corrupt_run(t))], 2, "RUN_DIR"),
+    "compare with a garbage results.csv": (lambda t: ["compare", BASELINE, str(_garbage_csv(t))], 2, "BASE/NEW"),
+    "compare against a truncated results file": (lambda t: ["compare", BASELINE, str(_truncated_baseline(t))], 1,
+                                                 "missing in NEW"),
+    "compare against an incomplete run": (lambda t: ["compare", BASELINE, str(_incomplete_copy(t))], 1,
+                                          "NEW is an incomplete run"),
+    "speed --side 0": (lambda t: ["speed", "--side", "0"], 2, "--side"),
+    "speed --knobs '{bad json'": (lambda t: ["speed", "--knobs", "{bad json"], 2, "--knobs"),
+    "speed --backend nosuch": (lambda t: ["speed", "--backend", "nosuch", "--side", "4"], 2, "--backend"),
+    "speed --method nosuch": (lambda t: ["speed", "--method", "nosuch", "--side", "4"], 2, "--method"),
+    "cases --tag nosuch": (lambda t: ["cases", "--tag", "nosuch"], 2, "--tag"),
+}
+
+
+@pytest.mark.parametrize("name", list(USER_ERRORS))
+def test_user_errors_end_in_one_clear_line_and_a_nonzero_exit(name, tmp_path):
+    argv, code, names = USER_ERRORS[name]
+    t0 = __import__("time").monotonic()
+    p = bench(*argv(tmp_path))
+    assert p.returncode == code, (p.returncode, p.stdout[-2000:], p.stderr[-2000:])
+    assert "Traceback" not in p.stderr + p.stdout, p.stderr
+    assert names in p.stderr, p.stderr
+    assert re.search(r"(^|: )error: ", p.stderr, re.M), p.stderr
+    assert __import__("time").monotonic() - t0 < 120  # the budget bounds a backend that sleeps 30 s a call
+
+
+def test_compare_may_allow_a_partial_selection_on_purpose(tmp_path):
+    p = bench("compare", BASELINE, str(_truncated_baseline(tmp_path)), "--allow-missing")
+    assert p.returncode == 0, p.stdout + p.stderr

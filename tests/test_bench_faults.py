@@ -1,0 +1,161 @@
+"""Faulty plugged backends, hangs, budgets, atomic files and resume (issue 15, findings 1, 6, 11).
+
+A user backend is user code: whatever it returns or raises, the run goes on, its configuration is a
+failed row naming the fault, and no other backend loses a row.  A time budget is a guard against a
+hang, never a plan: it bounds the configuration in flight, and a run that spends it says so."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import time
+
+import pytest
+
+from bench import runner
+from bench.results import OVER_BUDGET, read_results, remove_temporaries, write_results, to_frame
+from bench.suites import Suite
+from bench.timing import Timeout, TimingPolicy, time_limit
+from impls import registry
+from tests import test_bench_fakes as fakes
+
+CASE = "sphere.camera.64x64"
+FAST = TimingPolicy(min_repeats=1, min_time_s=0.0, min_sample_s=0.0, warmup=0, timeout_s=20.0, accuracy_only=True)
+SUITE = Suite(name="t", case_pattern=CASE, dtypes=("float64",), sweeps={"sphere_trace": [{}],
+              "hybrid_secant": [{}]}, methods=("sphere_trace", "hybrid_secant"))
+
+
+def _run(tmp_path, bad, **kw):
+    backends = {"numpy": registry.resolve("numpy"), "bad": bad}
+    df = runner.run(SUITE, backends, tmp_path, policy=kw.pop("policy", FAST), **kw)
+    env = json.loads((tmp_path / "environment.json").read_text())
+    return df, env
+
+
+def _numpy_rows_all_there(df):
+    plan = runner.plan(SUITE, ["numpy"], None, None, None)
+    np_rows = df[df["backend"] == "numpy"]
+    keys = set(map(tuple, np_rows[runner.CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
+    assert keys == {tuple(map(str, c.key)) for c in plan}
+    assert set(np_rows["outcome"]) == {"ok"}, np_rows[["outcome", "reason"]]
+
+
+@pytest.mark.parametrize("cls, outcome, words", [
+    (fakes.BadStatusBackend, "failed", ["[7]", "Status"]),
+    (fakes.FloatStatusBackend, "failed", ["status", "non-integer"]),
+    (fakes.WrongResultBackend, "failed", ["no 't'", "tuple"]),
+    (fakes.MethodsRaiseBackend, "failed", ["methods() raised", "planted"]),
+    (fakes.CapabilitiesRaiseBackend, "failed", ["capabilities raised", "planted"]),
+    (fakes.ExitsBackend, "failed", ["Prepared.run() raised SystemExit"]),
+    (fakes.NoCompileSBackend, "ok", []),
+    (fakes.NoStatusCountsBackend, "ok", []),
+    (fakes.StatusCountsLiesBackend, "ok", []),
+    (fakes.VersionsRaiseBackend, "ok", []),
+])
+def test_a_faulty_backend_costs_only_its_own_rows(tmp_path, cls, outcome, words):
+    df, env = _run(tmp_path, cls())
+    _numpy_rows_all_there(df)
+    bad = df[df["backend"] == "bad"]
+    assert len(bad) and set(bad["outcome"]) == {outcome}, bad[["outcome", "reason"]].to_string()
+    for w in words:
+        assert bad["reason"].str.contains(w, regex=False).all(), (w, bad["reason"].iloc[0])
+    if outcome == "ok":  # counted by the runner from the checked statuses, never by the user's method
+        counts = json.loads(bad["status_counts"].iloc[0])
+        assert sum(counts.values()) == bad["n_rays"].iloc[0] and "CONVERGED" in counts
+    assert env["complete"] == "true"
+    if cls is fakes.VersionsRaiseBackend:
+        assert "planted: versions() is broken" in env["backend.bad.versions_error"]
+
+
+def test_a_hang_is_bounded_by_the_budget_left_and_the_run_says_it_is_incomplete(tmp_path, monkeypatch):
+    monkeypatch.setattr(fakes.SleepyBackend, "SLEEP_S", 30.0)
+    t0 = time.monotonic()
+    df, env = _run(tmp_path, fakes.SleepyBackend(), budget_s=1.5)
+    took = time.monotonic() - t0
+    assert took < 8, f"a 1.5 s budget took {took:.1f} s: the configuration in flight was not bounded"
+    over = df["reason"].fillna("").str.startswith(OVER_BUDGET)
+    assert over.any() and set(df.loc[over, "outcome"]) == {"skipped"}
+    assert df.loc[over & (df["backend"] == "bad"), "reason"].str.contains("interrupted in flight").any()
+    assert env["complete"] == "false" and OVER_BUDGET in env["incomplete_reason"]
+    # nothing lost: every planned configuration has rows
+    plan = runner.plan(SUITE, ["numpy", "bad"], None, None, None)
+    keys = set(map(tuple, df[runner.CONFIG_KEY].astype(str).itertuples(index=False, name=None)))
+    assert keys == {tuple(map(str, c.key)) for c in plan}
+
+
+def test_a_hang_past_the_timeout_is_a_failed_row_and_the_run_goes_on(tmp_path, monkeypatch):
+    import dataclasses
+
+    df, env = _run(tmp_path, fakes.SleepyBackend(), policy=dataclasses.replace(FAST, timeout_s=0.3))
+    _numpy_rows_all_there(df)
+    bad = df[df["backend"] == "bad"]
+    assert set(bad["outcome"]) == {"failed"} and bad["reason"].str.contains("time limit of 0.3 s").all()
+    assert env["complete"] == "true"
+
+
+def test_time_limit_interrupts_sleeps_swallowing_code_and_nests():
+    t0 = time.monotonic()
+    with pytest.raises(Timeout, match="0.2 s"):
+        with time_limit(0.2):
+            time.sleep(10)
+    with pytest.raises(Timeout):
+        with time_limit(0.2):
+            while True:
+                try:
+                    time.sleep(10)
+                except Exception:  # noqa: BLE001 - what a careless backend does
+                    pass
+    # an outer limit passing inside an inner one is raised (again) when the inner block swallows it
+    with pytest.raises(Timeout, match="outer"):
+        with time_limit(0.2, "outer"):
+            try:
+                with time_limit(10, "inner"):
+                    time.sleep(5)
+            except Timeout:
+                pass
+            time.sleep(5)
+    assert time.monotonic() - t0 < 3
+    with time_limit(0.5):  # a limit left in time does not fire later
+        pass
+    time.sleep(0.7)
+
+
+@pytest.mark.parametrize("mask, mode", [(0o022, 0o644), (0o027, 0o640)])
+def test_result_files_follow_the_umask(tmp_path, mask, mode):
+    old = os.umask(mask)
+    try:
+        write_results(to_frame([{"case_id": "c", "outcome": "ok"}]), tmp_path)
+    finally:
+        os.umask(old)
+    for name in ("results.csv", "results.parquet"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == mode, name
+
+
+def test_resume_ignores_and_removes_temporaries_and_adds_up_sessions(tmp_path):
+    df, env = _run(tmp_path, fakes.NoCompileSBackend(), budget_s=0.0)
+    assert env["complete"] == "false"
+    first = json.loads(env["elapsed_sessions_s"])
+    assert len(first) == 1
+    # what a SIGKILL during a write leaves: 0-byte temporaries of both atomic writers
+    for name in (".results.csv.1a2b3c4d.tmp", ".results.parquet.deadbeef.tmp", ".claims.x1y2z3.csv.tmp"):
+        (tmp_path / name).write_bytes(b"")
+    assert len(read_results(tmp_path)) == len(df)  # a temporary is never read as results
+    df2, env2 = _run(tmp_path, fakes.NoCompileSBackend(), resume=True)
+    assert not list(tmp_path.glob(".*.tmp"))
+    assert env2["complete"] == "true" and "incomplete_reason" not in env2
+    sessions = json.loads(env2["elapsed_sessions_s"])
+    assert len(sessions) == 2 and sessions[0] == first[0]
+    assert float(env2["elapsed_s"]) == pytest.approx(sum(sessions), abs=0.11)
+    assert set(df2["outcome"]) == {"ok"}
+    assert remove_temporaries(tmp_path) == []
+
+
+def test_registry_tells_unknown_ids_from_broken_backends():
+    for bid in ("nosuch", "nosuch.module:Backend", "nosuchmodule:Backend", "tests.test_bench_fakes:NoSuchAttr",
+                ":Backend", "tests.test_bench_fakes:"):
+        b = registry.resolve(bid)
+        assert isinstance(b, registry.Unavailable) and b.unknown, (bid, b)
+    b = registry.resolve("tests.test_bench_fakes:BrokenFactoryBackend")
+    assert isinstance(b, registry.Unavailable) and not b.unknown and "planted" in b.reason
+    assert not isinstance(registry.resolve("tests.test_bench_fakes:BadStatusBackend"), registry.Unavailable)
