@@ -11,6 +11,11 @@ one:
    tangency closer than the float64 resolution of φ; the ray's bound is NaN to say so).
 3. The first sign change is bisected to adjacent floats of the float64 φ.
 
+4. The bound is checked, not trusted: every pair of samples (and of subdivision points) with
+   |φ(b) − φ(a)| > L (b − a) (beyond rounding, :func:`lipschitz_violated`) shows that the
+   declared L is false on that ray; the ray is then *flagged*: t = NaN with an infinite error
+   bound, since no certification that used L can stand there.
+
 Error bound per ray: the final bracket width (the float64 φ changes sign inside it; ≤ 2 ulp of
 t), i.e. the depth is exact for the field *as evaluated in float64*; how far that root is from
 the root of the real-number φ is |δφ|/|∂φ/∂t|, δφ the evaluation rounding.  Without a
@@ -49,7 +54,18 @@ def _bisect(scene, o, d, rows, lo, hi, f_lo):
     return lo, hi
 
 
+def lipschitz_violated(f0, f1, t0, t1, L: float):
+    """Pairs whose slope |f1 − f0|/|t1 − t0| exceeds ``L`` beyond rounding: the allowance is
+    16ε(|f0| + |f1|)/L + 16ε(|t0| + |t1|) on top of |t1 − t0| (φ's rounding and that of the
+    point o + t d; the root finders use the same rule, :func:`impls.core.rootfind.lipschitz_violated`)."""
+    eps = 16.0 * np.finfo(np.float64).eps
+    a0, a1 = np.abs(f0), np.abs(f1)
+    return np.abs(f1 - f0) / L > np.abs(t1 - t0) + eps * ((a0 + a1) / L + np.abs(t0) + np.abs(t1))
+
+
 def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossings):
+    """Brackets of sign changes per ray, the rays with an unresolved possible tangency, and the
+    rays on which the Lipschitz bound was seen to be false (step 4 of the module doc)."""
     n = o.shape[0]
     ts = np.linspace(t_min, t_max, n_samples)
     f = np.asarray(scene.value(o[:, None, :] + ts[None, :, None] * d[:, None, :]), np.float64)
@@ -60,8 +76,10 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
     for i, j in zip(*np.nonzero(change)):
         brackets[i].append((ts[j], ts[j + 1], f[i, j]))
     unresolved = np.zeros(n, bool)
+    violated = np.zeros(n, bool)
     if lipschitz is not None:
         L = float(lipschitz)
+        violated |= np.any(lipschitz_violated(f[:, :-1], f[:, 1:], ts[:-1], ts[1:], L), axis=1)
         unc = (~change) & (np.abs(f[:, 1:]) + np.abs(f[:, :-1]) <= L * (ts[1] - ts[0]))
         rows, cols = np.nonzero(unc)
         pend = (rows, ts[cols], ts[cols + 1], f[rows, cols], f[rows, cols + 1])
@@ -74,6 +92,7 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
                 break
             m = a + (b - a) / 2
             fm = _phi_along(scene, o, d, r, m)
+            violated[r[lipschitz_violated(fa, fm, a, m, L) | lipschitz_violated(fm, fb, m, b, L)]] = True
             nxt = []
             for lo, hi, flo, fhi in ((a, m, fa, fm), (m, b, fm, fb)):
                 sc = (flo > 0) != (fhi > 0)
@@ -85,7 +104,7 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
                 s = still & ~narrow
                 nxt.append((r[s], lo[s], hi[s], flo[s], fhi[s]))
             pend = tuple(np.concatenate([x[i] for x in nxt]) for i in range(5))
-    return brackets, unresolved
+    return brackets, unresolved, violated
 
 
 def _check(scene, o, d, t_min, t_max, n_samples):
@@ -103,11 +122,13 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
                       n_samples: int = 1024, min_width: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """First sign change of φ along each ray in (t_min, t_max]: ``(t, err_bound)``, ``inf`` for
     a miss (bound 0: certified when a Lipschitz bound is used), NaN bound where a possible
-    tangency could not be resolved.  ``lipschitz="scene"`` takes ``scene.info.lipschitz``."""
+    tangency could not be resolved, and t = NaN with an infinite bound on a ray where the
+    Lipschitz bound was seen to be false (no certified answer).  ``lipschitz="scene"`` takes
+    ``scene.info.lipschitz``."""
     o, d = _check(scene, o, d, t_min, t_max, n_samples)
     L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
     min_width = 1e-12 * max(1.0, abs(t_max)) if min_width is None else float(min_width)
-    brackets, unresolved = _scan(scene, o, d, t_min, t_max, int(n_samples), L, min_width, False)
+    brackets, unresolved, violated = _scan(scene, o, d, t_min, t_max, int(n_samples), L, min_width, False)
     n = o.shape[0]
     t = np.full(n, np.inf)
     err = np.zeros(n)
@@ -119,6 +140,7 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
         t[rows] = lo + (hi - lo) / 2
         err[rows] = hi - lo
     err[unresolved] = np.nan
+    t[violated], err[violated] = np.nan, np.inf
     return t, err
 
 
@@ -128,7 +150,7 @@ def crossings_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
     width; the same certification as :func:`first_hit_numeric`."""
     o, d = _check(scene, o, d, t_min, t_max, n_samples)
     L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
-    brackets, _ = _scan(scene, o, d, t_min, t_max, int(n_samples), L, 1e-12 * max(1.0, abs(t_max)), True)
+    brackets, _, violated = _scan(scene, o, d, t_min, t_max, int(n_samples), L, 1e-12 * max(1.0, abs(t_max)), True)
     rows = np.array([k for k in range(o.shape[0]) for _ in brackets[k]], dtype=int)
     flat = [b for k in range(o.shape[0]) for b in brackets[k]]
     out = [np.zeros(0) for _ in range(o.shape[0])]
@@ -142,6 +164,7 @@ def crossings_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
             out[k] = np.sort(mid[sel])
             if sel.any():
                 err[k] = np.max(hi[sel] - lo[sel])
+    err[violated] = np.inf  # the bound is false on these rays: crossings between samples may be missing
     return out, err
 
 

@@ -32,8 +32,9 @@ import numpy as np
 
 from ..protocol import Status
 
-IN, CONV, MISS, MAXI, NONF, BAD = (int(s) for s in (Status.IN_PROGRESS, Status.CONVERGED, Status.MISS,
-                                                     Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT))
+IN, CONV, MISS, MAXI, NONF, BAD, LIPV = (int(s) for s in (
+    Status.IN_PROGRESS, Status.CONVERGED, Status.MISS, Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT,
+    Status.LIPSCHITZ_VIOLATED))
 
 
 def bad_rays(xp, o, d):
@@ -96,14 +97,18 @@ def _init_status(xp, status, f, conv):
     return xp.where(live & ~xp.isfinite(f), NONF, xp.where(live & conv, CONV, status))
 
 
-def _verdict(xp, nonf, conv, maxed, miss=None):
-    """Status of a stepped ray that was IN_PROGRESS: NON_FINITE (``nonf``), MISS (``miss``),
-    CONVERGED (``conv``), MAX_ITER (``maxed``), in this order of precedence, else IN_PROGRESS.
+def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None):
+    """Status of a stepped ray that was IN_PROGRESS: NON_FINITE (``nonf``), LIPSCHITZ_VIOLATED
+    (``lipv``), MISS (``miss``), CONVERGED (``conv``), MAX_ITER (``maxed``), in this order of
+    precedence, else IN_PROGRESS.
 
     Computed as IN + Σ (code − IN)·[indicator] over indicators made exclusive, not as nested
     selects: numpy's int32 ``where`` costs 2–8× an int32 add (4 nested ones were 2.6 of the
     15 ns per ray of a torus ∪ box march step besides φ)."""
     ok = ~nonf
+    if lipv is not None:
+        lipv = lipv & ok
+        ok = ok & ~lipv
     if miss is not None:
         miss = miss & ok
         ok = ok & ~miss
@@ -113,15 +118,32 @@ def _verdict(xp, nonf, conv, maxed, miss=None):
     status = xp.astype(conv, i32) * (CONV - IN) + xp.astype(maxi, i32) * (MAXI - IN) + xp.astype(nonf, i32) * (NONF - IN)
     if miss is not None:
         status = status + xp.astype(miss, i32) * (MISS - IN)
+    if lipv is not None:
+        status = status + xp.astype(lipv, i32) * (LIPV - IN)
     return status + IN
 
 
+def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip):
+    """Rays whose step from (t0, f0) to (t1, f1) shows |f1 − f0| > L·|t1 − t0|: the declared
+    Lipschitz bound L = 1/``inv_lip`` is false on that ray, so no step computed from it is safe.
+
+    Rounding slack: φ is computed at x = o + t d, whose rounding moves x by about ε(|o| + |t|)
+    and φ by L times that, and φ's own rounding is a few ε|φ| for the fields here; so the test
+    allows 16ε(|f0| + |f1|)/L + 16ε(|t0| + |t1|) on top of |t1 − t0| (ε of the dtype; |o| ≲
+    |φ|/L + |t| for fields whose value grows with distance, as every bounded-slope field that is
+    worth a bound does).  A NaN anywhere compares false (left to NON_FINITE)."""
+    eps = 16.0 * float(np.finfo(np.dtype(str(t0.dtype).rpartition(".")[2])).eps)
+    a0, a1 = xp.abs(f0), xp.abs(f1)
+    return xp.abs(f1 - f0) * inv_lip > xp.abs(t1 - t0) + eps * ((a0 + a1) * inv_lip + xp.abs(t0) + xp.abs(t1))
+
+
 def final_t(xp, t, status):
-    """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, ``t`` otherwise.  The steps
+    """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, BAD_INPUT and
+    LIPSCHITZ_VIOLATED (no depth was found), ``t`` otherwise.  The steps
     leave a finished ray's ``t`` at its last point and the drivers map only the rays that
     finish (:func:`outputs`; the compacting driver on each step's leaving rows), which saves two
     full-size selects per step."""
-    return xp.where(status == MISS, math.inf, xp.where(status == NONF, math.nan, t))
+    return xp.where(status == MISS, math.inf, xp.where((status == NONF) | (status == BAD) | (status == LIPV), math.nan, t))
 
 
 class _Search:
@@ -157,7 +179,9 @@ class SphereTrace(_Search):
     back to the safe point t_{k−1} + r_{k−1} and continues with ω = 1; a point is accepted only
     when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
     when the next t exceeds t_max (or leaves the scene's ray bounds, see :func:`clip_to_bounds`);
-    MAX_ITER after ``max_steps`` steps.  One φ evaluation at t_min (the start of the ray
+    MAX_ITER after ``max_steps`` steps; LIPSCHITZ_VIOLATED when a step's ends differ by more
+    than L times its length (the declared bound is false on that ray: :func:`lipschitz_violated`;
+    a leaving step is evaluated where it ends, within t_max, for that check).  One φ evaluation at t_min (the start of the ray
     bounds, when that is later) plus one per step (a step that leaves the range re-evaluates
     the last point: one evaluation per iteration keeps the loop shape fixed).
     """
@@ -189,14 +213,21 @@ class SphereTrace(_Search):
         t_prev = xp.where(fail, s["t_prev"], t)
         r_prev = xp.where(fail, s["r_prev"], r)
         om = xp.where(fail, xp.ones_like(om), om)
-        out = t_new > s["hi"]
-        f_new, _, cost = ev(o, d, xp.where(out, t, t_new), False)
+        # beyond hi, or past every finite depth (t_max = inf and no ray bound): the ray left
+        out = (t_new > s["hi"]) | ~xp.isfinite(t_new)
+        # a leaving ray is evaluated where its step ends (within t_max; past the ray bound φ is still
+        # defined), so that a step which jumped over thin surface under a false L shows its slope
+        t_far = xp.minimum(t_new, self.t_max)
+        t_eval = xp.where(out, xp.where(xp.isfinite(t_far), t_far, t), t_new)
+        f_new, _, cost = ev(o, d, t_eval, False)
         iters = s["iterations"] + 1
         # accept a point only if its unbounding sphere overlaps the previous one (Keinert et al.)
         ok = ~((om > 1) & (xp.abs(f_new) * self.inv_lip + r_prev < t_new - t_prev))
-        # (a ray that left re-evaluated its last, finite point: out rays are never NON_FINITE)
+        # the step's two ends are evaluated: a slope above L shows the declared bound is false
+        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip)
+        # (a ray that left has no depth to lose to a non-finite φ: it is a MISS, or flagged)
         status = _verdict(xp, ~xp.isfinite(f_new) & ~out, (xp.abs(f_new) <= self.tol) & ok, iters >= self.max_steps,
-                          miss=out)
+                          miss=out, lipv=lipv)
         return _typed(xp, dict(s, t=t_new, f=f_new, t_prev=t_prev, r_prev=r_prev, omega=om, status=status,
                                iterations=iters, evals=s["evals"] + cost), s)
 
@@ -247,14 +278,21 @@ class MarchRefine(_Search):
 
     Refinement of the bracket [a, b] (φ(a)φ(b) < 0), one evaluation per iteration:
     ``bisect`` (midpoint; linear, ratio 1/2); ``secant`` on the last two iterates (order
-    (1+√5)/2 near a simple root); ``newton`` t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2).  Secant
-    and Newton iterates that leave the bracket are replaced by the midpoint (safeguard), so
-    every variant converges.  Converged when φ = 0 exactly, the bracket is narrower than
-    ``xtol``, or (secant/Newton) the last step or the next one is shorter than ``xtol``: the
-    next step, f_c·(c − t)/(f_c − f) (Newton: f_c/φ'(c)), estimates the error of the iterate c
-    just evaluated, so stopping on it saves the evaluation that would only confirm it; ``t`` is
-    then that step's end (clipped to the bracket; the secant's error there is of the
-    order of the step squared over the previous one), otherwise the last iterate.
+    (1+√5)/2 near a simple root); ``newton`` t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2).
+    Safeguards (Brent; rtsafe, Numerical Recipes §9.4): an iterate outside the bracket, or one
+    proposed when the bracket did not halve over the last three steps, is replaced by the
+    midpoint, so every variant converges at worst at a third of bisection's rate; a step shorter
+    than xtol/2 is lengthened to xtol/4 beyond the predicted root, so that secant and Newton,
+    which close in from one side, also close the bracket.  **Converged only when certified**:
+    φ = 0 exactly at an iterate, a sign-change bracket no wider than ``xtol``, or a bracket
+    whose ends are adjacent floats (far from the origin ``xtol`` can be below the float
+    spacing).  The reported ``t`` lies in that bracket: the last iterate (bisection), or the
+    zero of the chord through the last two iterates (secant, Newton), which after a lengthened
+    step are the bracket's ends.  A marching step whose sign change spans ≤ ``xtol`` is
+    converged at once.  Every step of the hybrid march also checks the declared bound: a step
+    whose ends differ by more than L·h (beyond rounding, :func:`lipschitz_violated`) ends the
+    ray with LIPSCHITZ_VIOLATED, and a step leaving the ray bounds is evaluated where it ends
+    (within ``t_max``) so that a step over thin surface under a false L is seen.
     ``max_steps`` bounds marching plus refinement steps.
     """
 
@@ -293,7 +331,7 @@ class MarchRefine(_Search):
         step writes them afresh."""
         keys = {"t", "f", "iterations", "evals"} | ({"df"} if self.deriv else set())
         if stage == "step_refine":
-            return frozenset(keys | {"p", "fp", "a", "b", "fa"})
+            return frozenset(keys | {"p", "fp", "a", "b", "fa"} | ({"wq"} if self.refine != "bisect" else set()))
         keys |= {"hi"} | ({"dl"} if self._hybrid else set())
         if stage == "step_march" and self._hybrid and self.extrapolate:
             keys |= {"p", "fp"}
@@ -309,6 +347,8 @@ class MarchRefine(_Search):
             s["df"] = df
         if self._hybrid:
             s["dl"] = xp.full_like(t, self._cap)
+        if self.refine != "bisect":
+            s["wq"] = xp.full_like(t, math.inf)  # bracket width at the last check (set on a crossing)
         s["status"] = _init_status(xp, status, f, f == 0)
         return s
 
@@ -336,25 +376,35 @@ class MarchRefine(_Search):
         else:
             h = self.min_step
         t_n = xp.minimum(t + h, hi)
+        if self._hybrid:
+            # a leaving step is evaluated where it ends (within t_max: φ is defined past the ray bound),
+            # so that its slope is checked against L like any other step's
+            t_n = xp.where(t + h > hi, xp.minimum(t + h, self.t_max), t_n)
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
         zero = f_n == 0
-        cross = zero | ((f_n > 0) != (f > 0))
-        miss = ~cross & (t_n >= hi)
+        fin = xp.isfinite(f_n)
+        cross = fin & (zero | ((f_n > 0) != (f > 0)))
+        # at hi, or past every finite depth (t_max = inf and no ray bound): the ray left
+        gone = (t_n >= hi) | ~xp.isfinite(t_n)
+        miss = ~cross & gone
         conv = cross & (zero | (t_n - t <= self.xtol))
-        nonf = ~xp.isfinite(f_n)
+        nonf = ~fin & xp.isfinite(t_n)
+        lipv = None
         new = {}
         if self._hybrid:
             # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
             # passes; h ≥ t_n − t, so a step clamped at t_max is judged conservatively), a crossing,
             # or a step no longer than min_step.  A rejected step stays where it was.
-            ok = cross | (r + self._radius(xp, f_n) >= h) | (h <= self.min_step)
+            # (a step past every finite depth needs no certificate: nothing lies beyond it)
+            ok = cross | (r + self._radius(xp, f_n) >= h) | (h <= self.min_step) | ~xp.isfinite(t_n)
+            lipv = lipschitz_violated(xp, f, f_n, t, t_n, self.inv_lip)
             new["dl"] = xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self._cap)
             miss = miss & ok
             t_n, f_n = xp.where(ok, t_n, t), xp.where(ok, f_n, f)
             if self.deriv:
                 df_n = xp.where(ok, df_n, s["df"])
         iters = s["iterations"] + 1
-        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss)
+        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
@@ -364,6 +414,8 @@ class MarchRefine(_Search):
         # two); for other rows a, b are overwritten before they are used
         new.update(t=t_n, f=f_n, p=t, fp=f, a=t, fa=f, b=t_n, phase=phase, status=status, iterations=iters,
                    evals=s["evals"] + cost)
+        if self.refine != "bisect":
+            new["wq"] = 4.0 * (t_n - t)  # refinement's "width at the last check": no forced bisection at first
         if self.deriv:
             new["df"] = df_n
         return _typed(xp, dict(s, **new), s)
@@ -415,7 +467,8 @@ class MarchRefine(_Search):
             R = self._radius(xp, F)
             spacing = xp.where(T >= hi[:, None], T - Tp, h[:, None])
             certified = (xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None]
-            event = event | ~certified
+            violated = lipschitz_violated(xp, Fp, F, Tp, T, self.inv_lip)
+            event = event | ~certified | violated
         stopped = xp.any(event, axis=1)
         first = xp.argmax(xp.astype(event, xp.int8), axis=1)
         e = xp.where(stopped, first, k - 1)[:, None]  # the first event's pair, or the last pair
@@ -425,18 +478,21 @@ class MarchRefine(_Search):
 
         Te, Fe, Tpe, Fpe = at(T), at(F), at(Tp), at(Fp)
         cross_e = stopped & at(cross)
-        nonf = stopped & ~at(finite)
+        nonf = stopped & ~at(finite) & xp.isfinite(Te)
+        lipv = stopped & at(violated) if self._hybrid else None
         onto = cross_e | ~stopped  # the ray moves onto sample e; otherwise it stays at e's start
-        miss = ~stopped & (Te >= hi)
+        miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te)
         conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
         iters = s["iterations"] + 1
-        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss)
+        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
         t_new = xp.where(onto, Te, Tpe)
         f_new = xp.where(onto, Fe, Fpe)
         # the ladder is stage 1, refinement stage 2
         new = dict(t=t_new, f=f_new, p=Tpe, fp=Fpe, a=Tpe, fa=Fpe, b=t_new,  # b = Te where crossed
                    phase=xp.astype(cross_e, xp.int32) + 1, status=status, iterations=iters,
                    evals=s["evals"] + cost * k)
+        if self.refine != "bisect":
+            new["wq"] = 4.0 * (Te - Tpe)
         if self._hybrid:
             e0 = e[:, 0]
             grow = xp.where(~stopped, 2 * s["dl"], xp.where(~cross_e & (e0 < k // 2), 0.5 * s["dl"], s["dl"]))
@@ -449,34 +505,50 @@ class MarchRefine(_Search):
     def step_refine(self, xp, s, o, d, ev):
         t, f, a, b = s["t"], s["f"], s["a"], s["b"]
         mid = 0.5 * (a + b)
+        i2 = s["iterations"] % 3 == 0  # a check of the bracket's progress (see the safeguards)
         if self.refine == "bisect":
             c = mid
         else:
             with _quiet(xp):  # f = fp or φ' = 0 give inf/NaN: replaced by the midpoint below
                 c = t - f / s["df"] if self.refine == "newton" else t - f * (t - s["p"]) / (f - s["fp"])
-            # safeguard: outside the closed bracket (or NaN) → bisect.  (Closed: near convergence the
-            # secant step can round to the bracket end itself; that is then a converged step.)
-            c = xp.where((c >= a) & (c <= b), c, mid)
+            # t is an end of the bracket.  Near a root secant and Newton close in from one side and the
+            # far end stays put, so no bracket would ever certify them: a step shorter than xtol/2 is
+            # lengthened by xtol/4 beyond the predicted root, whose evaluation then closes the bracket
+            # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise)
+            h = 0.5 * self.xtol
+            step = xp.abs(c - t)
+            toward = xp.where(t - a <= b - t, 1.0, -1.0)
+            c = xp.where(step < h, t + toward * (step + 0.5 * h), c)
+            # safeguards (rtsafe, Numerical Recipes §9.4; Brent): bisect where the iterate leaves the
+            # closed bracket (or is NaN), and where the bracket did not halve over the last three steps
+            # (checked every third iteration), so a multiple root or a poor derivative costs at most
+            # three times bisection's steps (every second iteration forced bisections on healthy
+            # one-sided Newton runs: sphere, 128² rays, 14.4 → 35.5 evaluations per ray; every third: 16.2)
+            slow = i2 & (b - a > 0.5 * s["wq"])
+            c = xp.where((c >= a) & (c <= b) & ~slow, c, mid)
         f_c, df_c, cost = ev(o, d, c, self.deriv)
         # fa is φ at the bracket's first end when it was formed: a moves only to points of φ's sign
         # there, so that sign (all that is used) never changes and fa, fb need no updates
         same_a = (f_c > 0) == (s["fa"] > 0)
         na = xp.where(same_a, c, a)
         nb = xp.where(same_a, b, c)
-        conv = (f_c == 0) | (nb - na <= self.xtol)
+        # certified: a root found exactly, a sign-change bracket no wider than xtol, or one whose ends
+        # are adjacent floats (the midpoint rounds to an end: no float lies between them)
+        nmid = 0.5 * (na + nb)
+        conv = (f_c == 0) | (nb - na <= self.xtol) | (nmid <= na) | (nmid >= nb)
+        t_out = c
         if self.refine != "bisect":
-            step = c - t
-            with _quiet(xp):  # the next iterate is c − nxt (NaN/inf when f_c = f or φ' = 0: no verdict)
-                nxt = f_c / df_c if self.refine == "newton" else f_c * step / (f_c - f)
-            conv = conv | (xp.abs(step) <= self.xtol)  # the last step was short
-            predicted = (xp.abs(nxt) <= self.xtol) & ~conv
-            conv = conv | predicted
-            # stopped on the predicted step: report the step's end (kept in the bracket), which is
-            # far more accurate than c and costs no evaluation
-            c = xp.where(predicted, xp.minimum(xp.maximum(c - nxt, na), nb), c)
+            # report the zero of the chord through the last two iterates, kept in the certified bracket:
+            # after the lengthened step they are the bracket's ends, and it is far more accurate than c
+            with _quiet(xp):
+                z = c - f_c * (c - t) / (f_c - f)
+            z = xp.minimum(xp.maximum(z, na), nb)
+            t_out = xp.where(conv & (f_c != 0) & (z == z), z, c)
         iters = s["iterations"] + 1
         status = _verdict(xp, ~xp.isfinite(f_c), conv, iters >= self.max_steps)
-        new = dict(t=c, f=f_c, p=t, fp=f, a=na, b=nb, status=status, iterations=iters, evals=s["evals"] + cost)
+        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, status=status, iterations=iters, evals=s["evals"] + cost)
+        if self.refine != "bisect":
+            new["wq"] = xp.where(i2, b - a, s["wq"])
         if self.deriv:
             new["df"] = df_c
         return _typed(xp, dict(s, **new), s)

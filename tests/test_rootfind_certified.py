@@ -1,0 +1,162 @@
+"""CONVERGED means certified, and a declared Lipschitz bound is checked, on every backend.
+
+Reproductions of issue 15's findings 3, 4, 5 and 10 (root finders): a shell whose true slope is
+10 declared with L = 1; secant refinement stopping on a small predicted step far from any root;
+bisection that cannot stop far from the origin; numpy's finite-difference Newton stalling on a
+triple root; BAD_INPUT and unbounded rays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from impls import Status
+from reference import CallableField, Plane, Sphere, catalog, rays
+from tests.conftest import resolve_or_skip
+
+ROOT = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton")
+
+
+def solve(backend, method, scene, o, d, t_min=0.0, t_max=10.0, **knobs):
+    prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, **knobs)
+    out = prep.run()
+    backend.synchronize(out)
+    return prep.result(out)
+
+
+def assert_certified(scene, res, o, d, xtol, t_lo=-np.inf, t_hi=np.inf):
+    """Every CONVERGED ray has a sign change of φ within xtol of its depth (or φ = 0 there)."""
+    conv = res.status == Status.CONVERGED
+    t = res.t[conv]
+    assert np.all(np.isfinite(t))
+    a, b = np.maximum(t - xtol, t_lo), np.minimum(t + xtol, t_hi)
+    fa = scene.value(o[conv] + a[:, None] * d[conv], np)
+    fb = scene.value(o[conv] + b[:, None] * d[conv], np)
+    ft = scene.value(o[conv] + t[:, None] * d[conv], np)
+    ok = (np.sign(fa) != np.sign(fb)) | (ft == 0) | (fa == 0) | (fb == 0)
+    assert ok.all(), f"{int((~ok).sum())} CONVERGED rays without a sign change within {xtol:g}: t={t[~ok][:5]}"
+
+
+def _norm(x, xp):
+    return xp.sqrt(xp.sum(x * x, axis=-1))
+
+
+def shell10(x, xp):
+    """10·(||x| − 1| − 0.002): a shell 0.004 thick (thinner than the reference's sample spacing),
+    slope 10."""
+    return 10.0 * (xp.abs(_norm(x, xp) - 1.0) - 0.002)
+
+
+def cubed_sphere(x, xp):
+    """(|x| − 1)³: the unit sphere as a triple root; slope 3(|x| − 1)² ≤ 12 on |x| ≤ 3."""
+    r = _norm(x, xp) - 1.0
+    return r * r * r
+
+
+def inverse_square(x, xp):
+    """1 − 1/z²: the plane z = 1 seen from z = 1e-10, where φ ≈ −1e20."""
+    return 1.0 - 1.0 / (x[..., 2] * x[..., 2])
+
+
+@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant"])
+def test_understated_lipschitz_bound_is_flagged_never_a_silent_miss(backend, method):
+    scene = CallableField(shell10, lipschitz=1.0, bounds=((0.0, 0.0, 0.0), 1.5), name="tests.shell10")
+    o, d = rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=30.0, width=8, height=8)
+    b = np.linalg.norm(np.cross(o, d), axis=1)  # impact parameters: rays with b < 1.05 hit the outer sphere
+    hits = b < 1.0019
+    assert hits.sum() >= 40
+    res = solve(backend, method, scene, o, d, t_max=6.0)
+    exact = -np.sum(o * d, axis=1) - np.sqrt(np.maximum(1.002 ** 2 - b ** 2, 0.0))  # first hit of |x| = 1.002
+    st = res.status[hits]
+    assert not np.any(st == Status.MISS), "an understated L made hits look like misses"
+    good = (st == Status.CONVERGED) & (np.abs(res.t[hits] - exact[hits]) <= 1e-6)
+    assert np.all(good | (st == Status.LIPSCHITZ_VIOLATED))
+    assert np.any(st == Status.LIPSCHITZ_VIOLATED)
+    assert np.all(np.isnan(res.t[res.status == Status.LIPSCHITZ_VIOLATED]))
+
+
+def test_the_numerical_reference_flags_an_understated_bound():
+    from reference import first_hit_numeric
+
+    scene = CallableField(shell10, lipschitz=1.0, bounds=((0.0, 0.0, 0.0), 1.5), name="tests.shell10")
+    o, d = rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=30.0, width=8, height=8)
+    b = np.linalg.norm(np.cross(o, d), axis=1)
+    t, err = first_hit_numeric(scene, o, d, 0.0, 6.0)
+    hits = b < 1.0019
+    exact = -np.sum(o * d, axis=1) - np.sqrt(np.maximum(1.002 ** 2 - b ** 2, 0.0))
+    certified_miss = hits & np.isinf(t) & np.isfinite(err)
+    assert not certified_miss.any(), f"{int(certified_miss.sum())} hits certified as misses"
+    flagged = np.isnan(t)
+    assert np.all(np.isinf(err[flagged]))
+    assert np.all(flagged[hits] | (np.abs(t[hits] - exact[hits]) <= 1e-9))
+
+
+@pytest.mark.parametrize("method, knobs", [("march_secant", {"step": 1e8}), ("hybrid_secant", {})])
+def test_secant_converges_only_on_a_certified_bracket(backend, method, knobs):
+    scene = CallableField(inverse_square, lipschitz=None if method != "hybrid_secant" else 2e30, name="tests.invsq")
+    o = np.array([[0.0, 0.0, 1e-10]] * 4)
+    d = np.array([[0.0, 0.0, 1.0]] * 4)
+    res = solve(backend, method, scene, o, d, t_max=1e10, **knobs)
+    conv = res.status == Status.CONVERGED
+    assert np.all(np.abs(res.t[conv] - (1.0 - 1e-10)) <= 1e-9), res.t
+    assert_certified(scene, res, o, d, 1e-9)
+
+
+@pytest.mark.parametrize("method", ["hybrid_secant", "march_secant", "march_newton", "march_bisect"])
+def test_triple_root_converges_certified(backend, method):
+    n = 20_000 if backend.id == "numpy" else 2_000
+    s = np.linspace(0.0, 0.01, n, endpoint=False)
+    o = np.stack([np.zeros(n), np.zeros(n), -3.0 - s], axis=1)
+    d = np.tile([0.0, 0.0, 1.0], (n, 1))
+    scene = CallableField(cubed_sphere, lipschitz=12.0, bounds=((0.0, 0.0, 0.0), 1.0 + 1e-6), name="tests.cubed")
+    res = solve(backend, method, scene, o, d, t_max=6.0)
+    conv = res.status == Status.CONVERGED
+    assert conv.mean() >= 0.999, {Status(int(k)).name: int(v) for k, v in zip(*np.unique(res.status, return_counts=True))}
+    # a triple root: |φ| ≤ eps·|x|³ within ~eps^(1/3) of it, so the sign is only known to ~1e-5
+    xtol = 2e-5
+    assert np.max(np.abs(res.t[conv] - (2.0 + s[conv]))) <= xtol
+    assert np.max(res.evals) < 1000  # numpy's Newton stalled at 12,291 evaluations (MAX_ITER) before
+
+
+@pytest.mark.parametrize("distance", [1e4, 1e6])
+def test_bisection_stops_at_adjacent_floats_far_away(backend, distance):
+    o = np.array([[0.0, 0.0, distance]] * 8)
+    d = np.tile([0.0, 0.0, -1.0], (8, 1))
+    res = solve(backend, "march_bisect", Sphere(), o, d, t_max=2 * distance)
+    assert np.all(res.status == Status.CONVERGED)
+    assert np.all(np.abs(res.t - (distance - 1.0)) <= 4 * np.spacing(distance))
+    assert np.max(res.evals) < 200
+
+
+@pytest.mark.parametrize("method", ROOT)
+def test_bad_input_rays_get_nan_depth(backend, method):
+    o = np.array([[0.0, 0.0, 3.0], [np.nan, 0.0, 3.0], [0.0, np.inf, 3.0]])
+    d = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    res = solve(backend, method, Sphere(), o, d)
+    assert res.status[0] == Status.CONVERGED
+    assert np.all(res.status[1:] == Status.BAD_INPUT)
+    assert np.all(np.isnan(res.t[1:]))
+
+
+@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant"])
+def test_a_ray_with_no_surface_and_no_bound_is_a_miss(backend, method):
+    o = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 2.0]])
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]])
+    res = solve(backend, method, Plane(), o, d, t_max=np.inf, max_steps=100_000)
+    assert np.all(res.status == Status.MISS), res.status
+    assert np.all(np.isinf(res.t))
+
+
+@pytest.mark.parametrize("method", ROOT)
+def test_no_false_lipschitz_flag_anywhere_in_the_catalog(method):
+    numpy_backend = resolve_or_skip("numpy")
+    flagged = {}
+    for case in catalog():
+        if case.scene.info.lipschitz is None and method in ("sphere_trace", "hybrid_secant"):
+            continue
+        res = solve(numpy_backend, method, case.scene, case.origins, case.directions, case.t_min, case.t_max)
+        k = int(np.sum(res.status == Status.LIPSCHITZ_VIOLATED))
+        if k:
+            flagged[case.id] = k
+    assert not flagged
