@@ -517,8 +517,8 @@ class MarchRefine(_Search):
             # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise)
             h = 0.5 * self.xtol
             step = xp.abs(c - t)
-            toward = xp.where(t - a <= b - t, 1.0, -1.0)
-            c = xp.where(step < h, t + toward * (step + 0.5 * h), c)
+            lift = step + 0.5 * h  # (both branches arrays: a where on two Python floats would be float64)
+            c = xp.where(step < h, xp.where(t - a <= b - t, t + lift, t - lift), c)
             # safeguards (rtsafe, Numerical Recipes §9.4; Brent): bisect where the iterate leaves the
             # closed bracket (or is NaN), and where the bracket did not halve over the last three steps
             # (checked every third iteration), so a multiple root or a poor derivative costs at most
