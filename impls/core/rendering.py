@@ -37,7 +37,8 @@ Colour ρ: the ``color`` input (``ArrayBackend.prepare(..., color=...)``; a fiel
 ``work_saved``; ``t`` is the expected depth Σ w_i t_i.
 
 Flagged rays: a BAD_INPUT ray (non-finite origin or direction, zero direction) is not sampled and
-every float output is NaN (``samples_used`` 0); a band ray without a hit is MISS with ``t`` = inf
+every float output is NaN (``samples_used`` 0); a ray whose colour, opacity or depth comes out
+non-finite (φ or ρ NaN along it) is NON_FINITE with every float output NaN; a band ray without a hit is MISS with ``t`` = inf
 and colour and opacity 0 (the background).
 """
 
@@ -49,7 +50,7 @@ import numpy as np
 
 from reference import rendering as R
 
-from .rootfind import BAD, CONV, MISS, _device, bad_rays
+from .rootfind import BAD, CONV, MISS, NONF, _device, bad_rays
 
 BLOCK = 16
 
@@ -204,9 +205,13 @@ def make_volume_impl(model, sampler, compact):
         ok = status == CONV
         evals = evals + xp.astype(ok, xp.int32) * coarse_cost
         saved = xp.astype(planned - used, o.dtype) / planned
-        # flagged rays (BAD_INPUT): every float output NaN; MISS (band, no hit): t = inf, colour and
-        # opacity 0 (the background), nothing sampled
-        bad = status == BAD
+        # a non-finite colour, opacity or depth (φ or ρ NaN along the ray) is NON_FINITE, not a result
+        finite = xp.isfinite(depth) & xp.isfinite(opacity) & xp.all(xp.isfinite(C), axis=1)
+        status = xp.astype(xp.where(ok & ~finite, NONF, status), xp.int32)
+        ok = status == CONV
+        # flagged rays (BAD_INPUT, NON_FINITE): every float output NaN; MISS (band, no hit): t = inf,
+        # colour and opacity 0 (the background), nothing sampled
+        bad = (status == BAD) | (status == NONF)
         nan = xp.full_like(depth, math.nan)
         t = xp.where(ok, depth, xp.where(bad, nan, xp.full_like(depth, math.inf)))
         return {"t": t, "status": status, "iterations": used, "evals": evals,
@@ -263,10 +268,12 @@ def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
         rgb = color.value(x, xp)
         # CONVERGED: ρ at the hit; MISS: 0 (the background); any other status (BAD_INPUT,
         # MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED): NaN, the status says why
-        miss = s["status"] == MISS
+        status = xp.astype(xp.where(ok & ~xp.all(xp.isfinite(rgb), axis=1), NONF, s["status"]), xp.int32)
+        ok = status == CONV
+        miss = status == MISS
         blank = xp.where(miss, xp.zeros_like(s["t"]), xp.full_like(s["t"], math.nan))
-        bad = s["status"] == BAD
-        return {"t": xp.where(bad, xp.full_like(s["t"], math.nan), s["t"]), "status": s["status"],
+        bad = status == BAD
+        return {"t": xp.where(bad, xp.full_like(s["t"], math.nan), s["t"]), "status": status,
                 "iterations": s["iterations"], "evals": evals,
                 "color": xp.where(ok[:, None], rgb, xp.broadcast_to(blank[:, None], rgb.shape))}
 
