@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from typing import Any, Callable
 
@@ -12,18 +13,77 @@ from .methods import get_method
 from .protocol import Capabilities, Prepared, RayResult
 
 
-def check_rays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Validate ray arrays (float64 numpy, shape (n, 3), finite, unit directions)."""
-    o = np.asarray(origins, dtype=np.float64)
-    d = np.asarray(directions, dtype=np.float64)
-    if o.ndim != 2 or o.shape[1] != 3:
-        raise ValueError(f"origins must have shape (n, 3), got {o.shape}; reshape with origins.reshape(-1, 3)")
+def _real_rows(a: Any, name: str) -> np.ndarray:
+    """``a`` as a numpy array of real numbers (float or integer dtype), or a TypeError/ValueError
+    naming ``name``."""
+    try:
+        arr = np.asarray(a)
+    except Exception as exc:  # ragged lists, tensors that need .detach(), …
+        raise TypeError(f"{name} must be an array of real numbers of shape (n, 3); np.asarray({name}) failed: "
+                        f"{type(exc).__name__}: {exc}") from None
+    if arr.dtype.kind not in "fiu":
+        hint = " (take the real part explicitly if that is meant)" if arr.dtype.kind == "c" else ""
+        raise TypeError(f"{name} must be an array of real numbers (float or integer dtype), got dtype {arr.dtype}{hint}")
+    return arr
+
+
+def unit_tolerance(*dtypes: Any) -> float:
+    """|‖d‖ − 1| allowed for a direction: 8·√3·ε of the coarsest of ``dtypes`` (a direction
+    normalised in that precision is within a few ε of unit length: 3 rounded squares, a rounded
+    sum and square root, 3 rounded quotients).  float64: 3.1e-15; float32: 1.7e-6."""
+    eps = max(float(np.finfo(dt).eps) if np.dtype(dt).kind == "f" else float(np.finfo(np.float64).eps)
+              for dt in dtypes)
+    return 8.0 * math.sqrt(3.0) * eps
+
+
+def check_rays(origins: Any, directions: Any, dtype: str = "float64") -> tuple[np.ndarray, np.ndarray]:
+    """Validate ray arrays; returns float64 numpy copies of shape (n, 3), n ≥ 1.
+
+    Whole-call errors (ValueError/TypeError naming ``origins`` or ``directions``): not real
+    numbers, wrong shape, mismatched counts, or a finite non-zero direction that is not unit
+    within :func:`unit_tolerance` of the given arrays' dtype and the run ``dtype`` (float32
+    directions normalised in float32 pass; the message gives the worst ray and the fix).
+
+    Per-ray errors (flagged ``Status.BAD_INPUT`` by every method, outputs NaN): a non-finite
+    origin or direction component, or a zero direction — returned with that direction set to NaN,
+    so that one test (``rootfind.bad_rays``: any component non-finite) flags all of them."""
+    o_in, d_in = _real_rows(origins, "origins"), _real_rows(directions, "directions")
+    o = np.array(o_in, dtype=np.float64)  # copies: the zero-direction rows below are overwritten
+    d = np.array(d_in, dtype=np.float64)
+    if o.ndim != 2 or o.shape[1] != 3 or o.shape[0] == 0:
+        raise ValueError(f"origins must have shape (n, 3) with n ≥ 1, got {o.shape}; reshape with origins.reshape(-1, 3)")
     if d.shape != o.shape:
-        raise ValueError(f"directions must have the shape of origins {o.shape}, got {d.shape}")
-    dn = np.linalg.norm(d, axis=1)
-    if not np.all(np.abs(dn - 1) < 1e-12):
-        raise ValueError("directions must be unit vectors; normalise them with d / np.linalg.norm(d, axis=1, keepdims=True)")
+        raise ValueError(f"directions must have the shape of origins {o.shape}, got {d.shape} (one direction per origin)")
+    finite = np.all(np.isfinite(d), axis=1)
+    with np.errstate(over="ignore"):
+        dn = np.linalg.norm(np.where(finite[:, None], d, 0.0), axis=1)
+    zero = finite & (dn == 0)
+    d[zero] = np.nan
+    check = finite & ~zero
+    dev = np.where(check, np.abs(dn - 1), 0.0)
+    tol = unit_tolerance(d_in.dtype, dtype)
+    if np.any(dev > tol):
+        i = int(np.argmax(dev))
+        raise ValueError(
+            f"directions must be unit vectors (|‖d‖ − 1| ≤ {tol:.1e} for {d_in.dtype} directions and dtype={dtype!r}); "
+            f"{int(np.count_nonzero(dev > tol))} of {len(d)} are not, the worst (ray {i}) has ‖d‖ − 1 = {dn[i] - 1:.3e}. "
+            "Normalise them in float64: d = np.asarray(d, np.float64); d = d / np.linalg.norm(d, axis=1, keepdims=True)")
     return o, d
+
+
+def check_range(t_min: Any, t_max: Any) -> tuple[float, float]:
+    """[t_min, t_max] as floats: real numbers (not bool), t_min finite, t_max > t_min (may be +inf)."""
+    out = []
+    for name, v in (("t_min", t_min), ("t_max", t_max)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+            raise TypeError(f"{name} must be a real number, got {type(v).__name__} {v!r}")
+        out.append(float(v))
+    lo, hi = out
+    if not math.isfinite(lo):
+        raise ValueError(f"t_min={t_min!r} must be finite (the depth where every ray's search starts)")
+    if not (lo < hi):
+        raise ValueError(f"t_min={t_min!r} must be < t_max={t_max!r} (t_max may be inf; NaN is not a depth)")
+    return lo, hi
 
 
 def check_color(method: str, color: Any) -> Any:
@@ -94,28 +154,35 @@ class ArrayBackend:
         with ``value(x, xp) -> (..., 3)`` written against the array namespace ``xp``; ``None``
         means :class:`reference.rendering.SineColor` ``()``.  Passing it to a method that does not
         shade is a ValueError (it would be silently ignored otherwise)."""
+        if not isinstance(method, str):
+            raise TypeError(f"method must be a method name (str), got {type(method).__name__} {method!r}")
         spec = get_method(method)
+        if not (callable(getattr(scene, "value", None)) and hasattr(scene, "info")):
+            raise TypeError(f"scene must be a reference.scene.Field (a scene tree, or a CallableField wrapping "
+                            f"fn(x, xp)), got {type(scene).__name__}")
         if method not in self._impl:
             raise NotImplementedError(f"backend {self.id} does not implement {method!r}; it implements {self.methods()}")
-        if dtype not in self.capabilities.dtypes:
+        if not isinstance(dtype, str) or dtype not in self.capabilities.dtypes:
             raise ValueError(f"dtype={dtype!r} not supported by {self.id}; use one of {self.capabilities.dtypes}")
         reason = spec.skip_reason(scene)
         if reason:
             raise ValueError(reason)
-        if not (t_min < t_max):
-            raise ValueError(f"t_min={t_min} must be < t_max={t_max}")
+        t_min, t_max = check_range(t_min, t_max)
         knobs = spec.validate(knobs)
         extra = {"color": check_color(method, color)} if spec.needs_color else {}
         if color is not None and not spec.needs_color:
             raise ValueError(f"{method} does not shade: pass color only to methods with MethodSpec.needs_color "
                              f"({spec.family} family methods take none)")
-        o_np, d_np = check_rays(origins, directions)
+        o_np, d_np = check_rays(origins, directions, dtype)
         if spec.needs_t_hit:
             if t_hit is None:
                 raise ValueError(f"{method} evaluates at given hits: pass t_hit (per-ray depth, shape (n,))")
-            t_hit = np.asarray(t_hit, dtype=np.float64)
+            t_hit = np.asarray(_real_rows(t_hit, "t_hit"), dtype=np.float64)
             if t_hit.shape != (o_np.shape[0],):
                 raise ValueError(f"t_hit must have shape ({o_np.shape[0]},), got {t_hit.shape}")
+        elif t_hit is not None:
+            raise ValueError(f"{method} finds its own depths: pass t_hit only to methods with MethodSpec.needs_t_hit "
+                             "(it would be ignored otherwise)")
         o, d = self.asarray(o_np, dtype), self.asarray(d_np, dtype)
         th = None if t_hit is None else self.asarray(t_hit, dtype)
         impl = self._impl[method]

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from typing import Any
+
+import numpy as np
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,16 +23,42 @@ class Knob:
     doc: str
     high: float = math.inf  # inclusive upper bound
 
+    #: int knobs are step/sample counts held in int32 counters
+    INT_MAX = 2**31 - 1
+
+    def valid_range(self) -> str:
+        hi = min(self.high, self.INT_MAX) if self.kind is int else self.high
+        what = "an integer" if self.kind is int else "a finite real number"
+        fmt = (lambda v: str(int(v))) if self.kind is int else (lambda v: f"{v:g}")  # noqa: E731
+        return f"{what} ≥ {fmt(self.low)}" if hi == math.inf else f"{what} in [{fmt(self.low)}, {fmt(hi)}]"
+
     def check(self, method: str, value: Any) -> Any:
-        try:
-            v = self.kind(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"{method}: knob {self.name}={value!r} must be {self.kind.__name__} ({self.doc})") from None
-        if self.kind is int and v != value:
-            raise ValueError(f"{method}: knob {self.name}={value!r} must be an integer ({self.doc})")
-        if not (math.isfinite(v) and self.low <= v <= self.high):
-            bounds = f"≥ {self.low}" if self.high == math.inf else f"in [{self.low}, {self.high}]"
-            raise ValueError(f"{method}: knob {self.name}={value!r} must be finite and {bounds} ({self.doc})")
+        """``value`` as this knob's kind, or an error naming the method, the knob and its valid range.
+
+        TypeError: not a real number (a string, None, an array, or a bool: ``True`` is not 1 step).
+        ValueError: NaN or ±inf, a non-integral value for an integer knob, or outside [low, high]."""
+        where = f"{method}: knob {self.name}={value!r}"
+        valid = f"valid: {self.valid_range()} ({self.doc})"
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+            raise TypeError(f"{where} must be a number, not {type(value).__name__}; {valid}")
+        if self.kind is int:
+            if isinstance(value, numbers.Integral):
+                v = int(value)
+            else:
+                f = float(value)
+                if not math.isfinite(f):
+                    raise ValueError(f"{where} must be finite; {valid}")
+                if f != int(f):
+                    raise ValueError(f"{where} must be an integer; {valid}")
+                v = int(f)
+            hi = min(self.high, self.INT_MAX)
+        else:
+            v = float(value)
+            if not math.isfinite(v):
+                raise ValueError(f"{where} must be finite; {valid}")
+            hi = self.high
+        if not (self.low <= v <= hi):
+            raise ValueError(f"{where} is out of range; {valid}")
         return v
 
 
@@ -70,7 +99,8 @@ class MethodSpec:
         names = {k.name for k in self.knobs}
         unknown = set(knobs) - names
         if unknown:
-            raise ValueError(f"{self.name}: unknown knob(s) {sorted(unknown)}; valid knobs are {sorted(names)}")
+            raise ValueError(f"{self.name}: unknown knob(s) {sorted(map(str, unknown))}; valid knobs are "
+                             f"{sorted(names) or 'none'}")
         return {k.name: k.check(self.name, knobs.get(k.name, k.default)) for k in self.knobs}
 
 

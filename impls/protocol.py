@@ -32,7 +32,7 @@ class Status(enum.IntEnum):
     MISS = 2  #: the ray left [t_min, t_max] with no hit; ``t`` is ``inf``
     MAX_ITER = -2  #: the step budget ran out; ``t`` is the last iterate
     NON_FINITE = -3  #: φ or t became NaN/inf; ``t`` is NaN
-    BAD_INPUT = -5  #: the ray itself is invalid (non-finite origin, zero direction)
+    BAD_INPUT = -5  #: the ray itself is invalid (non-finite origin or direction, zero direction); outputs NaN
     ILL_CONDITIONED = -6  #: derivative along the ray ≈ 0 (grazing), e.g. for dt/dθ
     #: a step observed |φ(t₁) − φ(t₀)| > L·|t₁ − t₀|: the scene's declared Lipschitz bound L is
     #: false there, so no certified answer exists; ``t`` is NaN
@@ -47,6 +47,15 @@ class RayResult:
     ``iterations`` and ``evals`` (field evaluations per ray).  Other outputs go to ``outputs``
     under the names its :class:`impls.methods.MethodSpec` lists (e.g. ``normal`` (n, 3),
     ``curvature_laplacian`` (n,), ``dt_dtheta`` (n, P), ``color`` (n, 3)).
+
+    Values by status (every method, every backend; ``status`` says why a value is missing):
+
+    * CONVERGED — every output finite (a non-finite one turns the status NON_FINITE);
+    * MISS — ``t`` = inf; renderers' ``color``/``opacity`` 0 (the background); other outputs NaN;
+    * BAD_INPUT (non-finite origin or direction, zero direction), NON_FINITE, LIPSCHITZ_VIOLATED
+      — every float output NaN, ``t`` included;
+    * MAX_ITER — ``t`` the last iterate (its error still shrinks with the budget), other outputs NaN;
+    * ILL_CONDITIONED — dt/dθ at a grazing hit: the value is returned but not trustworthy.
     """
 
     t: np.ndarray

@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .scene import Field, SceneInfo, _points
+from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label
 
 
 def _phi_along(scene, o, d, rows, t):
@@ -175,7 +175,13 @@ class CallableField(Field):
     is an ``exact_sdf``; hits come from :func:`first_hit_numeric`.  ``name`` identifies it in
     case ids and hashes (a function has no stable content hash).  ``bounds = (centre, radius)``
     is an optional ball the user asserts contains every point where φ ≤ 0
-    (:meth:`Field.bounding_sphere`); a wrong ball makes the root finders miss surface outside it."""
+    (:meth:`Field.bounding_sphere`); a wrong ball makes the root finders miss surface outside it.
+
+    ``fn`` must return one real floating value per point: an array of ``x``'s library (the
+    namespace ``xp``), shape ``x.shape[:-1]``, dtype ``x.dtype`` (another floating precision is
+    converted).  Anything else — a scalar, a trailing axis of length 1, an integer or complex
+    array, a numpy array for torch/jax points — and any exception ``fn`` raises become a
+    :class:`reference.scene.FieldError` (a ValueError) naming the field (:func:`check_field_output`)."""
 
     kind = "callable"
 
@@ -215,7 +221,18 @@ class CallableField(Field):
         return s
 
     def _eval(self, x, xp, cursor):
-        return self.fn(x, xp)
+        # The user's function is the one place where φ can come back malformed: check it here (not
+        # only in Field.value) so that a CallableField inside CSG or a transform is checked too, and
+        # name the field when the function raises (else the error points into a root finder).
+        try:
+            out = self.fn(x, xp)
+        except FieldError:
+            raise
+        except Exception as exc:
+            raise FieldError(f"{field_label(self)} raised {type(exc).__name__}: {exc} (evaluating fn(x, xp) at "
+                             f"points x of shape {tuple(getattr(x, 'shape', ()))}, {type(x).__module__.split('.')[0]} "
+                             f"arrays; compute with the namespace xp it is given)") from exc
+        return check_field_output(self, x, out, xp)
 
     def _rebuild(self, own, children):
         return self

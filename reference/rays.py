@@ -16,11 +16,36 @@ def pinhole(eye, look_at, up=(0.0, 1.0, 0.0), fov_deg: float = 40.0, width: int 
 
     The image plane at distance 1 spans tan(fov/2) vertically (fov is the vertical field of
     view, degrees) and keeps square pixels.  Returns ``origins`` (all equal to ``eye``) and
-    unit ``directions``.
+    unit ``directions``.  A ValueError names the argument when the camera is undefined: ``look_at``
+    equal to ``eye``, ``up`` zero or parallel to the view direction, a non-finite vector, a field
+    of view outside (0°, 180°), or a non-positive image size.
     """
-    eye = np.asarray(eye, np.float64)
-    forward = normalize(np.asarray(look_at, np.float64) - eye)
-    right = normalize(np.cross(forward, np.asarray(up, np.float64)))
+    vecs = {}
+    for name, v in (("eye", eye), ("look_at", look_at), ("up", up)):
+        a = np.asarray(v, np.float64)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"pinhole: {name} must be 3 finite numbers, got {v!r}")
+        vecs[name] = a
+    eye, view = vecs["eye"], vecs["look_at"] - vecs["eye"]
+    scale = max(np.abs(vecs["look_at"]).max(), np.abs(eye).max(), 1.0)
+    if not np.linalg.norm(view) > 8 * np.finfo(np.float64).eps * scale:
+        raise ValueError(f"pinhole: look_at={look_at!r} equals eye={tuple(eye.tolist())}: the view direction "
+                         "look_at − eye is undefined; put look_at where the camera looks, away from eye")
+    forward = normalize(view)
+    up_v = vecs["up"]
+    side = np.cross(forward, up_v)
+    # |forward × up| = |up| sin(angle): below ~1e-8·|up| the image's horizontal axis is rounding noise
+    if not np.linalg.norm(side) > 1e-8 * np.linalg.norm(up_v):
+        raise ValueError(f"pinhole: up={up!r} is parallel to the view direction look_at − eye "
+                         f"({tuple(np.round(forward, 6).tolist())}) or zero: the image's horizontal axis is undefined; "
+                         "pass an up vector not parallel to it (e.g. (0, 0, 1) when looking along ±y)")
+    for name, v in (("fov_deg", fov_deg),):
+        if not (isinstance(v, (int, float)) and 0 < float(v) < 180):
+            raise ValueError(f"pinhole: {name} must be in (0, 180) degrees, got {v!r}")
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"pinhole: {name} must be a whole number ≥ 1 (pixels), got {v!r}")
+    right = normalize(side)
     true_up = np.cross(right, forward)
     half_h = np.tan(np.radians(fov_deg) / 2)
     half_w = half_h * width / height

@@ -246,7 +246,11 @@ class Field:
 
     # -- evaluation ------------------------------------------------------------------------
     def value(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
-        """φ(x; θ) for points ``x`` of shape ``(..., 3)`` in the caller's library ``xp``."""
+        """φ(x; θ) for points ``x`` of shape ``(..., 3)`` in the caller's library ``xp``.
+
+        The result is checked once per call (:func:`check_field_output`): an array of ``x``'s
+        library and floating dtype with shape ``x.shape[:-1]``, else a :class:`FieldError` naming
+        the field — a wrong shape would otherwise be broadcast against the rays silently."""
         if theta is not None:
             n_params = self.param_vector().size
             if tuple(theta.shape) != (n_params,):
@@ -254,7 +258,7 @@ class Field:
                     f"theta has shape {tuple(theta.shape)} but the scene has {n_params} parameters; "
                     "pass scene.param_vector() (or an array of the same length)"
                 )
-        return self._eval(x, xp, ParamCursor(xp, x, theta))
+        return check_field_output(self, x, self._eval(x, xp, ParamCursor(xp, x, theta)), xp)
 
     def __call__(self, x: Any, xp: Any = np, theta: Any | None = None) -> Any:
         return self.value(x, xp, theta)
@@ -385,6 +389,79 @@ class Field:
 
     def content_hash(self) -> str:
         return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:12]
+
+
+class FieldError(ValueError):
+    """A scene's field did not return φ of the points it was given (wrong shape, dtype or array
+    library), or raised while evaluating; the message names the field and the fix."""
+
+
+def field_label(field: Any) -> str:
+    """How error messages name a field: its ``name`` (user fields) and its class."""
+    name = getattr(field, "name", None)
+    return f"scene field {name!r} ({type(field).__name__})" if name else f"scene field {type(field).__name__}"
+
+
+def _array_lib(a: Any) -> str:
+    """The array library of ``a`` ("numpy", "torch", "jax", or its type's name for anything else)."""
+    import array_api_compat
+
+    if isinstance(a, (np.ndarray, np.generic)):
+        return "numpy"
+    if array_api_compat.is_torch_array(a):
+        return "torch"
+    if array_api_compat.is_jax_array(a):
+        return "jax"
+    return type(a).__name__
+
+
+def _is_real_floating(a: Any) -> bool:
+    dt = a.dtype
+    if getattr(dt, "is_floating_point", None) is not None:  # torch.dtype
+        return dt.is_floating_point and not dt.is_complex
+    return np.dtype(dt).kind == "f"
+
+
+def check_field_output(field: Any, x: Any, out: Any, xp: Any = None) -> Any:
+    """``out`` if it is a valid φ of the points ``x`` (shape ``(..., 3)``): an array of ``x``'s
+    library (numpy, torch, jax, …), shape ``x.shape[:-1]`` and ``x``'s dtype.  A real floating
+    result of another precision is converted to ``x``'s dtype (the loops carry one dtype);
+    anything else is a :class:`FieldError` naming the field, what it returned and what was
+    expected.
+
+    Cost: the common valid case is three attribute comparisons per call, no pass over the data;
+    under ``jax.jit`` the check runs once, at trace time, where shapes and dtypes are static."""
+    try:
+        if type(out) is type(x) and out.shape == x.shape[:-1] and out.dtype == x.dtype:
+            return out
+        xs, xd = tuple(x.shape), x.dtype
+    except AttributeError:
+        if not hasattr(x, "shape"):  # points that are not an array: nothing to compare against
+            return out
+        xs, xd = tuple(x.shape), x.dtype
+    want = xs[:-1]
+    lib_x = _array_lib(x)
+    expected = (f"expected φ of shape x.shape[:-1] = {want} (one value per point), a real floating {lib_x} array "
+                f"like x (dtype {xd})")
+    where = f"{field_label(field)} was given points x of shape {xs} ({lib_x}, dtype {xd})"
+    lib_out = _array_lib(out)
+    if lib_out != lib_x or not hasattr(out, "shape"):
+        if isinstance(out, (int, float, complex, bool)) or (lib_out == "numpy" and np.ndim(out) == 0 and lib_x != "numpy"):
+            got = f"a scalar {type(out).__name__}"
+        else:
+            got = f"a {type(out).__module__.split('.')[0]} {type(out).__name__}"
+        raise FieldError(f"{where} and returned {got}; {expected}. Compute with the namespace xp the field is given "
+                         "(e.g. xp.sqrt(xp.sum(x * x, axis=-1)), not np.linalg.norm) and keep one value per point")
+    if tuple(out.shape) != want:
+        raise FieldError(f"{where} and returned shape {tuple(out.shape)}; {expected}. A result of another shape would "
+                         "be broadcast against the rays (e.g. every ray given ray 0's value): reduce over the last axis "
+                         "only, without keepdims or indexing such as [..., :1]")
+    if out.dtype == xd:
+        return out
+    if not _is_real_floating(out):
+        raise FieldError(f"{where} and returned dtype {out.dtype}; {expected}. φ must be real and floating "
+                         "(cast with xp.astype(phi, x.dtype); take the real part only if it is meant)")
+    return out.to(xd) if lib_x == "torch" else out.astype(xd)
 
 
 def _points(x, name: str = "x") -> np.ndarray:

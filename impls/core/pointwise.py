@@ -16,8 +16,8 @@ lecture 'Properties - Normal' and 'Mean Curvature'):
   the symmetric H).
 
 Status per ray: CONVERGED where the outputs are finite; MISS where t_hit is not finite (no
-hit to evaluate at; outputs NaN); BAD_INPUT for a non-finite ray; NON_FINITE where ∇φ is
-not finite or zero.
+hit to evaluate at; outputs NaN); BAD_INPUT for a non-finite ray or a zero direction (every
+float output NaN, ``t`` included); NON_FINITE where ∇φ is not finite or zero.
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ def hit_points(xp, o, d, t_hit):
 
 
 def finish(xp, status, values: dict, t_hit, cost):
-    """Mark non-finite outputs NON_FINITE, blank outputs of rays that are not CONVERGED (NaN)."""
+    """Mark non-finite outputs NON_FINITE, blank outputs of rays that are not CONVERGED (NaN);
+    ``t`` is ``t_hit`` except on BAD_INPUT rays, where it is NaN like every other output."""
     finite = None
     for v in values.values():
         f = xp.isfinite(v) if v.ndim == 1 else xp.all(xp.isfinite(v), axis=tuple(range(1, v.ndim)))
@@ -49,7 +50,8 @@ def finish(xp, status, values: dict, t_hit, cost):
     for k, v in values.items():
         mask = ok if v.ndim == 1 else xp.reshape(ok, (-1,) + (1,) * (v.ndim - 1))
         out[k] = xp.where(mask, v, xp.full_like(v, float("nan")))
-    out.update(t=t_hit, status=status, iterations=xp.zeros_like(status), evals=xp.full_like(status, cost))
+    t = xp.where(status == BAD, xp.full_like(t_hit, float("nan")), t_hit)
+    out.update(t=t, status=status, iterations=xp.zeros_like(status), evals=xp.full_like(status, cost))
     return out
 
 

@@ -35,6 +35,11 @@ Colour ρ: the ``color`` input (``ArrayBackend.prepare(..., color=...)``; a fiel
 ``value(x, xp) -> (..., 3)``, default :class:`reference.rendering.SineColor`).  Outputs ``color``
 (n, 3), ``opacity``, ``samples_used``,
 ``work_saved``; ``t`` is the expected depth Σ w_i t_i.
+
+Flagged rays: a BAD_INPUT ray (non-finite origin or direction, zero direction) is not sampled and
+every float output is NaN (``samples_used`` 0); a ray whose colour, opacity or depth comes out
+non-finite (φ or ρ NaN along it) is NON_FINITE with every float output NaN; a band ray without a hit is MISS with ``t`` = inf
+and colour and opacity 0 (the background).
 """
 
 from __future__ import annotations
@@ -45,7 +50,7 @@ import numpy as np
 
 from reference import rendering as R
 
-from .rootfind import BAD, CONV, MISS, _device, bad_rays
+from .rootfind import BAD, CONV, MISS, NONF, _device, bad_rays
 
 BLOCK = 16
 
@@ -134,7 +139,7 @@ def composite(xp, scene, color, o, d, edges, pts, *, model, s, threshold, compac
         w = Ti[:, :-1] * a * keep * xp.astype(live, a.dtype)[:, None]
         C = xp.sum(w[..., None] * color.value(x, xp), axis=1)
         depth = xp.sum(w * pts, axis=1)
-        T = xp.prod(1 - a * keep, axis=-1)
+        T = xp.prod(1 - a * keep * xp.astype(live, a.dtype)[:, None], axis=-1)  # a ray not live stays clear
         used = xp.zeros_like(o[:, 0], dtype=xp.int32)
         evals = xp.zeros_like(o[:, 0], dtype=xp.int32)
         for j0 in range(0, N, BLOCK):
@@ -199,16 +204,28 @@ def make_volume_impl(model, sampler, compact):
                                                    threshold=t_threshold, compact=compact, status=status)
         ok = status == CONV
         evals = evals + xp.astype(ok, xp.int32) * coarse_cost
-        return {"t": xp.where(ok, depth, xp.full_like(depth, math.inf)), "status": status,
-                "iterations": used, "evals": evals, "color": C, "opacity": opacity, "samples_used": used,
-                "work_saved": xp.astype(planned - used, o.dtype) / planned}
+        saved = xp.astype(planned - used, o.dtype) / planned
+        # a non-finite colour, opacity or depth (φ or ρ NaN along the ray) is NON_FINITE, not a result
+        finite = xp.isfinite(depth) & xp.isfinite(opacity) & xp.all(xp.isfinite(C), axis=1)
+        status = xp.astype(xp.where(ok & ~finite, NONF, status), xp.int32)
+        ok = status == CONV
+        # flagged rays (BAD_INPUT, NON_FINITE): every float output NaN; MISS (band, no hit): t = inf,
+        # colour and opacity 0 (the background), nothing sampled
+        bad = (status == BAD) | (status == NONF)
+        nan = xp.full_like(depth, math.nan)
+        t = xp.where(ok, depth, xp.where(bad, nan, xp.full_like(depth, math.inf)))
+        return {"t": t, "status": status, "iterations": used, "evals": evals,
+                "color": xp.where(bad[:, None], xp.full_like(C, math.nan), C),
+                "opacity": xp.where(bad, nan, opacity), "samples_used": used,
+                "work_saved": xp.where(bad, nan, saved)}
 
     impl.__name__ = f"volume_{model}_{sampler}"
     return impl
 
 
 def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
-    """``render_surface``: ρ at the first hit found by the backend's hybrid root finder; 0 on a miss.
+    """``render_surface``: ρ at the first hit found by the backend's hybrid root finder; 0 on a
+    miss; NaN on a ray the root finder did not resolve (any other status; ``t`` NaN on BAD_INPUT).
 
     Differentiable through the hit (backends with autodiff, i.e. given ``grad_hess`` and
     ``stop_gradient``): the colour is ρ(o + t d) with IDR's depth (Yariv et al. 2020, eq. 3;
@@ -249,8 +266,16 @@ def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
             evals = evals + xp.astype(ok, evals.dtype) * (c1 + 1)
         x = o_safe + t[:, None] * d_safe
         rgb = color.value(x, xp)
-        return {"t": s["t"], "status": s["status"], "iterations": s["iterations"], "evals": evals,
-                "color": xp.where(ok[:, None], rgb, xp.zeros_like(rgb))}
+        # CONVERGED: ρ at the hit; MISS: 0 (the background); any other status (BAD_INPUT,
+        # MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED): NaN, the status says why
+        status = xp.astype(xp.where(ok & ~xp.all(xp.isfinite(rgb), axis=1), NONF, s["status"]), xp.int32)
+        ok = status == CONV
+        miss = status == MISS
+        blank = xp.where(miss, xp.zeros_like(s["t"]), xp.full_like(s["t"], math.nan))
+        bad = status == BAD
+        return {"t": xp.where(bad, xp.full_like(s["t"], math.nan), s["t"]), "status": status,
+                "iterations": s["iterations"], "evals": evals,
+                "color": xp.where(ok[:, None], rgb, xp.broadcast_to(blank[:, None], rgb.shape))}
 
     return render_surface
 
