@@ -32,17 +32,19 @@ def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict
 
     knobs = {**{k.name: k.default for k in METHODS[method].knobs}, **knobs}
     bounds = search_bounds(scene, knobs, theta)
+    # a bound stated on a domain only (the algebraic sphere's on |x| ≤ R) is not checked past the ray bounds
+    probe = getattr(scene.info, "domain", None) is None
     if knobs.get("ladder", -1) == -1:
         knobs["ladder"] = ladder
     if method == "sphere_trace":
         return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
-                           omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=bounds)
+                           omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=bounds, probe=probe)
     if method in ("hybrid_secant", "render_surface"):
         return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
                            overstep=max(knobs["overstep"], knobs["min_step"]), bounds=bounds, ladder=knobs["ladder"],
                            ladder_after=knobs["ladder_after"], extrapolate=knobs["extrapolate"],
-                           reach=knobs["reach"])
+                           reach=knobs["reach"], probe=probe)
     if method.startswith("march_"):
         return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
                            max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds, ladder=knobs["ladder"],

@@ -193,6 +193,7 @@ class SphereTrace(_Search):
     t_min: float
     t_max: float
     bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
+    probe: bool = False  # evaluate leaving steps where they end, within t_max (the scene's L holds there)
 
     stages = ("step",)
 
@@ -216,8 +217,9 @@ class SphereTrace(_Search):
         # beyond hi, or past every finite depth (t_max = inf and no ray bound): the ray left
         out = (t_new > s["hi"]) | ~xp.isfinite(t_new)
         # a leaving ray is evaluated where its step ends (within t_max; past the ray bound φ is still
-        # defined), so that a step which jumped over thin surface under a false L shows its slope
-        t_far = xp.minimum(t_new, self.t_max)
+        # defined, and where the scene's L holds everywhere also still bounded by L), so that a step
+        # which jumped over thin surface under a false L shows its slope; else at the bound's end
+        t_far = xp.minimum(t_new, self.t_max if self.probe else s["hi"])
         t_eval = xp.where(out, xp.where(xp.isfinite(t_far), t_far, t), t_new)
         f_new, _, cost = ev(o, d, t_eval, False)
         iters = s["iterations"] + 1
@@ -310,6 +312,7 @@ class MarchRefine(_Search):
     ladder_after: int = 0  # marching steps before a ray goes on in ladder steps
     extrapolate: float = 0.0  # hybrid only: forced step ≥ this × the secant's distance to the zero (0: off)
     reach: float = 0.0  # hybrid only: largest extrapolated step
+    probe: bool = False  # hybrid only: evaluate leaving steps where they end, within t_max (L holds there)
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -376,9 +379,9 @@ class MarchRefine(_Search):
         else:
             h = self.min_step
         t_n = xp.minimum(t + h, hi)
-        if self._hybrid:
-            # a leaving step is evaluated where it ends (within t_max: φ is defined past the ray bound),
-            # so that its slope is checked against L like any other step's
+        if self._hybrid and self.probe:
+            # a leaving step is evaluated where it ends (within t_max: φ is defined past the ray bound,
+            # and bounded by L where the scene states no domain), so that its slope is checked too
             t_n = xp.where(t + h > hi, xp.minimum(t + h, self.t_max), t_n)
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
         zero = f_n == 0
