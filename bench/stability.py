@@ -140,7 +140,7 @@ def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
         out["n_flagged"] += flagged
         out["n_nonfinite"] += n_nf
         out["n_over_tol"] += over
-        if not math.isnan(err):
+        if not math.isnan(err) and st.get("CONVERGED", 0):  # else it is 0 from rays both call a miss
             errs.append(err)
         for col in ("evals_max", "iterations_max"):
             v = _num(r.get(col), float("nan"))
@@ -194,8 +194,8 @@ def scoreboard(cells: pd.DataFrame) -> pd.DataFrame:
     """Per backend: families survived (every root finder × dtype cell of the family on that
     backend survived or flagged) out of the families it has a judged cell in, and the same in
     cells; the families failed, by name."""
-    cols = ["backend", "families_survived", "families_total", "cells_survived", "cells_flagged", "cells_total",
-            "failed_families"]
+    cols = ["backend", "dtypes", "families_survived", "families_total", "cells_survived", "cells_flagged",
+            "cells_total", "failed_families"]
     if cells is None or not len(cells):
         return pd.DataFrame(columns=cols)
     order = {f: i for i, f in enumerate(families())}
@@ -204,7 +204,8 @@ def scoreboard(cells: pd.DataFrame) -> pd.DataFrame:
         judged = g[g["verdict"] != "n/a"]
         fam_ok = judged.groupby("family")["verdict"].agg(lambda v: all(survived(x) for x in v))
         failed = sorted((f for f, ok in fam_ok.items() if not ok), key=lambda f: (order.get(f, len(order)), f))
-        rows.append({"backend": backend, "families_survived": int(fam_ok.sum()), "families_total": int(len(fam_ok)),
+        rows.append({"backend": backend, "dtypes": sorted(set(map(str, g["dtype"])), reverse=True),
+                     "families_survived": int(fam_ok.sum()), "families_total": int(len(fam_ok)),
                      "cells_survived": int(judged["verdict"].map(survived).sum()),
                      "cells_flagged": int((judged["verdict"] == "flagged").sum()),
                      "cells_total": int(len(judged)), "failed_families": failed})
@@ -212,10 +213,12 @@ def scoreboard(cells: pd.DataFrame) -> pd.DataFrame:
 
 
 def scoreboard_lines(board: pd.DataFrame) -> list[str]:
-    """``numpy: 6/9 families survived (71/90 cells, 4 flagged); failed: understated, tangent, far``."""
+    """``numpy (float64, float32): 6/9 families survived (71/90 cells, 4 of them flagged); failed:
+    understated, tangent, far``."""
     out = []
     for _, r in board.iterrows():
-        line = (f"{r['backend']}: {r['families_survived']}/{r['families_total']} families survived "
+        line = (f"{r['backend']} ({', '.join(r['dtypes'])}): {r['families_survived']}/{r['families_total']} "
+                f"families survived "
                 f"({r['cells_survived']}/{r['cells_total']} cells, {r['cells_flagged']} of them flagged)")
         if r["failed_families"]:
             line += "; failed: " + ", ".join(r["failed_families"])
@@ -228,11 +231,12 @@ def _fmt(v: float, fmt: str = ".1e") -> str:
 
 
 def cell_text(c) -> str:
-    """Compact: mark, max CONVERGED depth error, worst evaluations per ray (``✓ 2.2e-16 · 41 ev``)."""
+    """Compact: mark, max CONVERGED depth error (one digit; — when no ray converged), worst field
+    evaluations per ray (``✓ 2e-16 · 41``)."""
     if c["verdict"] == "n/a":
         return MARKS["n/a"]
     ev = c["evals_max"]
-    return f"{c['mark']} {_fmt(c['error_max'])} · {'—' if math.isnan(ev) else int(ev)} ev"
+    return f"{c['mark']} {_fmt(c['error_max'], '.0e')} · {'—' if math.isnan(ev) else int(ev)}"
 
 
 def cell_detail(c) -> str:
@@ -254,7 +258,9 @@ def stability_matrix(cells: pd.DataFrame, detail: bool = False) -> pd.DataFrame:
     present = [f for f in families() if f in set(cells["family"])]
     present += sorted(set(cells["family"]) - set(present))
     rows = []
-    for (method, backend, dtype), g in cells.groupby(["method", "backend", "dtype"]):
+    # backends side by side per method and dtype (float64 first): a backend that disagrees stands out
+    keyed = cells.assign(_dt=[-np.finfo(np.dtype(str(d))).bits if d else 0 for d in cells["dtype"]])
+    for (method, _, dtype, backend), g in keyed.groupby(["method", "_dt", "dtype", "backend"]):
         row = {"method": method, "backend": backend, "dtype": dtype}
         by = {r["family"]: r for _, r in g.iterrows()}
         for f in present:
@@ -268,3 +274,32 @@ def stability_matrix(cells: pd.DataFrame, detail: bool = False) -> pd.DataFrame:
 
 __all__ = ["ANSWER_STATUSES", "MARKS", "cell_detail", "cell_text", "depth_tolerance", "judge_cell", "scoreboard",
            "scoreboard_lines", "stability_cells", "stability_matrix", "survived"]
+
+
+# -- the stage -------------------------------------------------------------------------------
+
+
+def stage_dtypes(suite, backend_id: str) -> list[str]:
+    """The dtypes a stability stage runs on ``backend_id`` (``Suite.backend_dtypes``, else the
+    suite's)."""
+    return list(suite.backend_dtypes.get(backend_id, suite.dtypes))
+
+
+def run_stage(suite, backends: dict, out_dir, *, timeout_s: float = 120.0, resume: bool = False,
+              progress=None, env_extra: dict | None = None) -> pd.DataFrame:
+    """Run ``suite`` (a stability plan) accuracy only into ``out_dir``, backend by backend with
+    :func:`stage_dtypes` each (the runner's resume mode appends each backend's rows to the same
+    run); returns the frame.  ``resume``: finish a stage ``out_dir`` already holds."""
+    from pathlib import Path
+
+    from .runner import run
+    from .timing import TimingPolicy
+
+    out_dir = Path(out_dir)
+    policy = TimingPolicy(min_repeats=1, min_time_s=0.0, timeout_s=timeout_s, accuracy_only=True)
+    df = None
+    for i, (bid, backend) in enumerate(backends.items()):
+        again = (resume or i > 0) and (out_dir / "environment.json").exists()
+        df = run(suite, {bid: backend}, out_dir, dtypes=stage_dtypes(suite, bid), policy=policy, progress=progress,
+                 resume=again, env_extra=env_extra)
+    return df if df is not None else pd.DataFrame()

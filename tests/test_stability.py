@@ -137,13 +137,15 @@ def test_scoreboard_and_matrix():
     assert board.loc["jax", "cells_survived"] == 5 and board.loc["jax", "cells_total"] == 6
     assert board.loc["numpy", "cells_flagged"] == 2
     lines = S.scoreboard_lines(S.scoreboard(c))
-    assert any(line.startswith("jax: 2/3 families survived") and "failed: understated" in line for line in lines)
+    assert any(line.startswith("jax (float64, float32): 2/3 families survived") and "failed: understated" in line for line in lines)
     m = S.stability_matrix(c)
     assert list(m.columns) == ["method", "backend", "dtype", "understated", "tangent", "grazing"]  # catalog order
     assert len(m) == 4
     jax32 = m[(m["backend"] == "jax") & (m["dtype"] == "float32")].iloc[0]
     assert jax32["understated"].startswith("✗") and jax32["tangent"].startswith("⚑")
-    assert jax32["grazing"] == "✓ 1.0e-15 · 40 ev"
+    assert jax32["grazing"] == "✓ 1e-15 · 40"
+    assert list(zip(m["backend"], m["dtype"])) == [("jax", "float64"), ("numpy", "float64"), ("jax", "float32"),
+                                                   ("numpy", "float32")]
     md = S.stability_matrix(c, detail=True)
     text, detail = md.iloc[0]["tangent"]
     assert "MAX_ITER 6" in detail and "flagged rays 6" in detail
