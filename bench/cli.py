@@ -2,7 +2,7 @@
 
     python -m bench run --suite quick [--backend numpy,jax:cpu] [--method sphere_trace] [--case 'sphere.*']
                         [--dtype float64] [--out DIR] [--resume] [--threads 1] [--allocator tuned|default]
-                        [--accuracy-only] [--no-claims] [--budget S] [--timeout S]
+                        [--accuracy-only] [--no-claims] [--no-stability] [--budget S] [--timeout S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default]
     python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
@@ -193,6 +193,29 @@ def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list
     return (1 if errors else 0), errors
 
 
+def run_stability_into(out: Path, suite, backends: dict, args, console) -> str:
+    """The suite's stability stage (:func:`bench.stability.run_stage`) into ``out/stability``;
+    never raises.  Returns "" or a note saying why it did not complete."""
+    import time
+
+    from .report import STABILITY_DIR
+    from .stability import run_stage
+
+    started = time.monotonic()
+    try:
+        from impls.registry import Unavailable
+
+        ok = {b: v for b, v in backends.items() if not isinstance(v, Unavailable)}
+        df = run_stage(suite, ok, out / STABILITY_DIR, timeout_s=args.timeout, resume=args.resume,
+                       env_extra={"threads": str(args.threads)})
+    except Exception as exc:  # the stage must not cost the run its report
+        note = f"stability stage failed: {type(exc).__name__}: {exc}"
+        console.print(f"[red]{note}[/]")
+        return note
+    console.print(f"stability: {len(df)} rows in {time.monotonic() - started:.1f} s, in {out / STABILITY_DIR}")
+    return ""
+
+
 def cmd_run(args) -> int:
     from .environment import configure_threads
 
@@ -271,6 +294,10 @@ def cmd_run(args) -> int:
         except ValueError as exc:
             return _error(str(exc))
     env = json.loads((out / "environment.json").read_text())
+    if suite.stability and not (args.no_stability or args.case or args.method or args.dtype):
+        note = run_stability_into(out, get_suite(suite.stability), backends, args, console)
+        env["stability"] = note or "ran"
+        write_json(out / "environment.json", env)
     if not args.no_claims:
         lines.line("claims: checking the lecture's claims")
         note = run_claims_into(out, quick=suite.name == "quick", console=console)
@@ -396,7 +423,7 @@ def cmd_baseline(args) -> int:
 
     out = Path(args.out)
     with tempfile.TemporaryDirectory(prefix="isobench-baseline-") as tmp:
-        rc = main(["run", "--suite", args.suite, "--accuracy-only", "--no-claims", "--no-progress", "--out",
+        rc = main(["run", "--suite", args.suite, "--accuracy-only", "--no-claims", "--no-stability", "--no-progress", "--out",
                    str(Path(tmp) / "run")] + sum((["--backend", b] for b in args.backend or []), []))
         if rc != 0:
             return rc
@@ -533,6 +560,8 @@ def main(argv: list[str] | None = None) -> int:
                    "bounds the configuration in flight, records what is left as skipped 'over budget' rows, is marked "
                    "incomplete and exits 1; --resume finishes it")
     r.add_argument("--no-claims", action="store_true", help="do not run the claims ledger at the end")
+    r.add_argument("--no-stability", action="store_true", help="do not run the suite's stability stage (every root "
+                   "finder × dtype on one case per adversarial ray family, accuracy only, into stability/)")
     r.add_argument("--reference-timeout", type=_seconds, default=30.0, help="seconds for one costly reference answer (a "
                    "rendering integral for one case and density); past it that quantity is skipped with the reason, "
                    "and that density is not retried in this run (default 30, 0: none)")

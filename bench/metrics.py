@@ -162,8 +162,14 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
     # iterate): what a convergence plot in the step budget needs; the max error above stays inf.
     it = np.abs(np.asarray(res.t, np.float64)[exact_hit] - exact_t[exact_hit])
     it = it[np.isfinite(it)]
+    # n_false_miss counts every ray that hits but is not CONVERGED; of those, the ones the method
+    # declined with a failure status (MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED…) are flagged, not
+    # silent: n_miss_declined lets a reader (bench.stability) tell them apart from reported MISSes.
+    # n_converged_nonfinite: CONVERGED with a non-finite t, a silent NaN.
     row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
            "n_false_hit": int(np.sum(got_hit & ~exact_hit)), "n_false_miss": int(np.sum(~got_hit & exact_hit)),
+           "n_miss_declined": int(np.sum(_declined(res) & exact_hit)),
+           "n_converged_nonfinite": int(np.sum(got_hit & ~np.isfinite(np.asarray(res.t, np.float64)))),
            "error_iterate_median": float(np.median(it)) if it.size else float("nan"),
            "reference_error_bound": float(getattr(case, "exact_t_error_bound", 0.0) or 0.0)}
     return [row]

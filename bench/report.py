@@ -8,6 +8,10 @@ Sections, in reading order:
    intersection of the same rays, compile time and evaluations per ray.
 2. *Fastest configuration reaching an error target* (1e-4, 1e-8, 1e-12): per case, method,
    quantity and backend, the cheapest knob setting whose max error is at or below the target.
+2b. *Stability matrix* (:mod:`bench.stability`): the scoreboard (per backend, adversarial
+   families survived / total), then every root finder × backend × dtype against each
+   adversarial ray family at default knobs, from the run's stability stage (``stability/``
+   under the run directory) when it has one, else from the run's own rows.
 3. *Time versus error*, one plot per method family × case × quantity × dtype: one curve per
    method and backend (a point per knob setting; x = median time per call over all rays of the
    case, y = max error over the rays, both log); ✕ at the top edge = infinite error (a false hit
@@ -415,6 +419,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             series_all.append((title, series))
     summ, targets, supp, skipped = summary_table(df), fastest_to_target(df), support_matrix(df), not_run(df)
     rates = rates_table(series_all)
+    stab_cells, stab_note = stability_section(df, out_dir)
     env_df = pd.DataFrame(sorted(env.items()), columns=["key", "value"])
     claims = read_claims(out_dir)
     configs = config_outcomes(df)
@@ -429,6 +434,10 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
     def md_table(d: pd.DataFrame) -> str:
         return d.to_markdown(index=False, floatfmt=".3g") if len(d) else "_none_"
 
+    if scoreboard is None and len(stab_cells):
+        from . import stability
+
+        scoreboard = stability.scoreboard_lines(stability.scoreboard(stab_cells))
     fs = summary.first_screen(df, env, claims=claims, scoreboard=scoreboard, regressions=regressions)
     md = [f"# isobench report — run {env.get('run_id', '?')}", "",
           f"Suite `{env.get('suite', '?')}`, commit `{env.get('commit', '?')}`, {env.get('cpu', '?')} "
@@ -436,6 +445,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
           *_first_screen_md(fs, md_table),
           "## Best accuracy per backend", "", md_table(summ), "",
           "## Fastest configuration reaching an error target", "", md_table(targets), "",
+          *_stability_md(stab_cells, stab_note), "",
           "## Time versus error", "", *md_img("time"), "",
           "## Convergence", "", *md_img("conv"), "", md_table(rates), "",
           "## Support matrix (configurations)", "", md_table(supp), ""]
@@ -469,7 +479,11 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
              "table.t th{background:#f3f3f3}h2{border-bottom:2px solid #ccc;padding-bottom:2px}"
              "figure{display:inline-block;margin:0.5em;vertical-align:top}img{max-width:100%}"
              "p.note{color:#555;font-size:14px}.warn{color:#a40}div.scroll{overflow-x:auto}"
-             "table.t td{max-width:30em;overflow-wrap:anywhere}")
+             "table.t td{max-width:30em;overflow-wrap:anywhere}"
+             "table.stab td,table.stab th{padding:2px 5px;white-space:nowrap}table.stab td{max-width:none}"
+             "td.st{font-family:ui-monospace,monospace;font-size:11px}td.ok{background:#e8f5e9}"
+             "td.flag{background:#fff8e1}td.bad{background:#fdecea;color:#a00}td.na{color:#999}"
+             "ul.board{font-weight:600}")
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>isobench report {e(env.get('run_id', ''))}</title>"
              f"<style>{style}</style></head><body>",
              f"<h1>isobench report</h1><p>Run <code>{e(env.get('run_id', '?'))}</code>, suite "
@@ -487,6 +501,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             "<h2>Fastest configuration reaching an error target</h2>",
             "<p class='note'>The cheapest knob setting whose max error is at or below the target: median time per "
             "call, its multiple of the closed-form time, and the knob setting.</p>", table(targets),
+            _stability_html(stab_cells, stab_note),
             "<h2>Time versus error</h2><p class='note'>One plot per method family, case, quantity and dtype; one "
             "point per knob setting (faint markers), a line through each backend's (and method's) Pareto-optimal "
             "settings; colour = method, marker = backend; lower-left is better. ✕ at the top edge: an infinite error "
@@ -510,6 +525,90 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             parts += [_claims_html(claims, out_dir)]
     parts += ["<h2>Environment</h2>", table(env_df), "</body></html>"]
     write_text(out_dir / "report.html", "\n".join(parts))
+
+
+STABILITY_DIR = "stability"
+
+
+def _default_knobs(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows at the method's default knobs (the stability matrix judges methods as shipped)."""
+    if not len(df):
+        return df
+    keep = [knob_label(str(m), str(k)) in ("defaults", "") for m, k in zip(df["method"], df["knob"].fillna(""))]
+    return df[np.array(keep, bool)]
+
+
+def stability_section(df: pd.DataFrame, run_dir: Path) -> tuple[pd.DataFrame, str]:
+    """The stability cells of a run and a note saying where they come from: the stability stage
+    (``run_dir/stability/results.*``, written by ``bench run`` for a suite with a stability plan)
+    when present, else the run's own root-finder rows on adversarial cases; default knobs only."""
+    from . import stability
+    from .results import read_results
+
+    note = "from the run's own rows on adversarial cases"
+    src = df
+    stage = Path(run_dir) / STABILITY_DIR
+    if (stage / "results.parquet").exists() or (stage / "results.csv").exists():
+        try:
+            src = read_results(stage)
+            note = f"from the stability stage ({STABILITY_DIR}/results.*)"
+        except Exception as exc:  # an unreadable stage is a note in the report, not a lost report
+            note = f"the stability stage could not be read ({type(exc).__name__}: {exc}); from the run's own rows"
+    if src is None or not len(src) or "method" not in src:
+        return stability.stability_cells(None), note
+    return stability.stability_cells(_default_knobs(src)), note
+
+
+_STABILITY_RULE = (
+    "✓ survived: no false hit, no hitting ray reported MISS, every CONVERGED depth within √ε(dtype)·max(1, T) "
+    "(T the case's largest depth); ⚑ flagged: no wrong answer, but some rays declined with a failure status "
+    "(MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED…) — counts as survived; ✗ failed: a silent wrong answer or a "
+    "failed configuration; — not run. Cells: mark · max depth error of the CONVERGED rays (— none converged) · "
+    "worst field evaluations per ray; default knobs. float32 cells are judged against the float64 rays' exact "
+    "depths.")
+
+
+def _stability_md(cells: pd.DataFrame, note: str) -> list[str]:
+    from . import stability
+
+    out = ["## Stability matrix", ""]
+    if not len(cells):
+        return out + ["_no root finder ran on an adversarial case (the quick suite's stability stage or "
+                      "`python -m bench run --suite stability` runs them)_"]
+    out += [f"- {line}" for line in stability.scoreboard_lines(stability.scoreboard(cells))]
+    out += ["", f"{_STABILITY_RULE} Source: {note}.", "",
+            stability.stability_matrix(cells).to_markdown(index=False), ""]
+    bad = cells[cells["verdict"].isin(["failed", "flagged"])]
+    if len(bad):
+        out += ["Failed and flagged cells:", ""]
+        out += [f"- {r['method']} · {r['backend']} · {r['dtype']} · {r['family']}: {stability.cell_detail(r)}"
+                for _, r in bad.iterrows()]
+    return out
+
+
+def _stability_html(cells: pd.DataFrame, note: str) -> str:
+    from . import stability
+
+    e = html.escape
+    head = "<h2 id='stability'>Stability matrix</h2>"
+    if not len(cells):
+        return head + ("<p class='note'>No root finder ran on an adversarial case (the quick suite's stability "
+                       "stage or <code>python -m bench run --suite stability</code> runs them).</p>")
+    board = "".join(f"<li>{e(line)}</li>" for line in stability.scoreboard_lines(stability.scoreboard(cells)))
+    m = stability.stability_matrix(cells, detail=True)
+    fams = [c for c in m.columns if c not in ("method", "backend", "dtype")]
+    cls = {"✓": "ok", "⚑": "flag", "✗": "bad", "—": "na"}
+    rows = []
+    for _, r in m.iterrows():
+        tds = "".join(f"<td>{e(str(r[c]))}</td>" for c in ("method", "backend", "dtype"))
+        for f in fams:
+            text, detail = r[f]
+            tds += f"<td class='st {cls.get(text[:1], 'na')}' title='{e(detail)}'>{e(text)}</td>"
+        rows.append(f"<tr>{tds}</tr>")
+    th = "".join(f"<th>{e(c)}</th>" for c in ["method", "backend", "dtype"] + fams)
+    return (head + f"<ul class='board'>{board}</ul><p class='note'>{e(_STABILITY_RULE)} Hover a cell for its "
+            f"statuses, false hits and misses, and cases. Source: {e(note)}.</p>"
+            f"<div class='scroll'><table class='t stab'><tr>{th}</tr>{''.join(rows)}</table></div>")
 
 
 def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:

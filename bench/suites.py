@@ -69,6 +69,12 @@ class Suite:
         # computed once; smooth scenes, where the integral costs ~0.1 s per ray, not ~1 s (kinks)
         "render": ("sphere.camera.64x64", "torus.camera.32x32", "algsphere.camera.32x32")})
     secondary_dtype_cases: int | None = None
+    #: the suite run after this one as its stability stage (accuracy only, into ``stability/``
+    #: under the run directory; :func:`bench.stability.run_stage`), or None
+    stability: str | None = None
+    #: backend id → the dtypes a stage runs on it (default: the suite's dtypes); a pair left out
+    #: is named in the report's stability section as not planned
+    backend_dtypes: dict = dataclasses.field(default_factory=dict)
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
@@ -141,6 +147,13 @@ def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> l
     return unique
 
 
+def _root_methods() -> tuple[str, ...]:
+    """The catalog's root finders (family ``root``), in catalog order."""
+    from impls.methods import METHODS
+
+    return tuple(name for name, spec in METHODS.items() if spec.family == "root")
+
+
 SUITES = {
     # quick: CI and the README's first command, < 2 min on 2 cores: cases tagged "quick", float64,
     # each method on its first applicable quick case with its main dial at 3 settings (a short
@@ -148,7 +161,7 @@ SUITES = {
     # volume renderers against ρ(x*) only (the rendering integral costs ~10 s to minutes per case).
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
                    min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=None,
-                   expensive_references=False, small_cases_first=True),
+                   expensive_references=False, small_cases_first=True, stability="stability.quick"),
     # full: < 15 min on 2 cores.  Each method on 3 applicable cases from different scene
     # families, float64; its main dial swept over the full range (every decade of a tolerance,
     # 7 budgets) on the first, with the continuous rendering integral as the volume renderers'
@@ -156,6 +169,21 @@ SUITES = {
     # ≥ 3 samples of timing each.  Defaults everywhere are measured before any sweep point.  No
     # time budget: every run covers its whole plan (a --budget is a guard against a hang).  Every case of the catalog is
     # still run by some method; ``--case '*'`` runs a method on all of its cases.
+    # stability: every root finder at default knobs, float64 and float32, on the one representative
+    # case per adversarial ray family (catalog tag "stability"), accuracy only (one call per
+    # configuration): the report's stability matrix.  The quick suite runs it as a stage of its
+    # own (``Suite.stability``) into the run directory's ``stability/``, apart from the rows the
+    # committed baseline gates.
+    "stability": Suite(name="stability", case_pattern="*", case_tags=("stability",), dtypes=("float64", "float32"),
+                       sweeps={}, level="quick", main_dial_only=True, sweep_cases=0, expensive_references=False,
+                       methods=_root_methods(), min_time_s=0.0, min_repeats=1),
+    # the quick suite's stage: the same plan, but jax in float64 only — jax compiles once per
+    # (method, scene, dtype, shape), ~1.5–3 s each on 2 cores, so its float32 half alone would add
+    # ~2 minutes; numpy and torch (no compilation) run both dtypes in seconds
+    "stability.quick": Suite(name="stability.quick", case_pattern="*", case_tags=("stability",),
+                             dtypes=("float64", "float32"), sweeps={}, level="quick", main_dial_only=True,
+                             sweep_cases=0, expensive_references=False, methods=_root_methods(), min_time_s=0.0,
+                             min_repeats=1, backend_dtypes={"jax": ("float64",)}),
     "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
                   min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=1, max_cases=3,
                   diverse_cases=True, secondary_dtype_cases=1, budget_s=None),

@@ -190,8 +190,71 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
 #
 # Tags say what a case exercises and needs: the scene's own kind, ``sdf`` (exact SDF),
 # ``lipschitz`` (a Lipschitz bound exists), ``csg``, ``transform``, ``grazing``, ``tangent``,
-# ``inside``, ``surface``, ``far``, ``scale``, ``thin``, ``parallel``, ``camera``, ``mlp``,
-# ``numerical`` (no closed-form hits) and ``quick`` (the CI suite).
+# ``inside``, ``surface``, ``far``, ``scale``, ``thin``, ``parallel``, ``understated``,
+# ``camera``, ``mlp``, ``numerical`` (no closed-form hits), ``quick`` (the CI suite) and
+# ``stability`` (the one representative case per adversarial family that the stability plan
+# runs).  Tags are not part of a case's version.
+
+#: the adversarial ray families (the stability matrix's columns), most specific first: a case
+#: belongs to the first of these among its tags (``box.parallel`` is also ``grazing``, but its
+#: family is ``parallel``)
+ADVERSARIAL_FAMILIES = ("understated", "tangent", "parallel", "thin", "scale", "far", "surface", "inside", "grazing")
+
+
+def adversarial_family(tags) -> str | None:
+    """The adversarial family of a case with ``tags`` (see :data:`ADVERSARIAL_FAMILIES`), or None."""
+    tags = set(tags)
+    return next((f for f in ADVERSARIAL_FAMILIES if f in tags), None)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DeclaredLipschitz(Field):
+    """A child field φ whose :class:`SceneInfo` declares ``lipschitz`` = ``declared`` instead of
+    the child's own (true) bound: the same values, the same surface and the same closed-form
+    answers (delegated to the child), only the claim about its slope differs.  With ``declared``
+    below the true L it is a *lie* that a method trusting L (step φ/L) tunnels through, and the
+    truth does not depend on L: hits come from the child's closed form, not from a numerical
+    reference that would trust the declared bound."""
+
+    child: Field = None
+    declared: float = 1.0
+    kind = "understated"
+
+    def __post_init__(self):
+        if not isinstance(self.child, Field):
+            raise ValueError(f"child must be a Field (a scene node), got {type(self.child).__name__}")
+        if not (np.isfinite(self.declared) and self.declared > 0):
+            raise ValueError(f"declared must be a finite Lipschitz constant > 0, got {self.declared!r}")
+
+    @property
+    def children(self):
+        return (self.child,)
+
+    @property
+    def info(self):
+        ci = self.child.info
+        return dataclasses.replace(ci, lipschitz=float(self.declared), exact_sdf=False, distance_bound=False)
+
+    def bounding_sphere(self):
+        return self.child.bounding_sphere()
+
+    def ray_bounds(self, xp, o, d):
+        return self.child.ray_bounds(xp, o, d)
+
+    def _eval(self, x, xp, cursor):
+        return self.child._eval(x, xp, cursor)
+
+    def ray_intervals(self, o, d):
+        return self.child.ray_intervals(o, d)
+
+    def first_hit(self, o, d, t_min: float = 0.0):
+        return self.child.first_hit(o, d, t_min)
+
+    def _jet(self, x):
+        return self.child._jet(x)
+
+    def curvatures_exact(self, x):
+        return self.child.curvatures_exact(x)
 
 
 def _scene_tags(scene: Field) -> tuple[str, ...]:
@@ -255,12 +318,13 @@ def _register_all() -> None:
     # sphere ---------------------------------------------------------------------------------
     for k in (3, 6, 9, 12):
         _add(f"sphere.grazing.1e-{k}", lambda k=k: (Sphere(), *_rays.grazing_pm(256, k, 3.0, seed=k)),
-             ("grazing",) + (("quick",) if k == 6 else ()),
+             ("grazing",) + (("quick", "stability") if k == 6 else ()),
              f"unit sphere, impact parameters 1 ± 1e-{k} from distance 3 (half near misses)")
     for e in (3, 6):
-        _add(f"sphere.far.1e{e}", lambda e=e: (Sphere(), *_rays.far(256, 10.0**e, 1.2, seed=e)), ("far",),
+        _add(f"sphere.far.1e{e}", lambda e=e: (Sphere(), *_rays.far(256, 10.0**e, 1.2, seed=e)),
+             ("far",) + (("stability",) if e == 6 else ()),
              f"unit sphere seen from distance 1e{e} (rays aimed at the ball of radius 1.2)", t_max=2 * 10.0**e)
-    _add("sphere.inside", lambda: (Sphere(), *_rays.in_ball(256, 0.999, seed=11)), ("inside",),
+    _add("sphere.inside", lambda: (Sphere(), *_rays.in_ball(256, 0.999, seed=11)), ("inside", "stability"),
          "origins inside the unit sphere: the first hit is the exit")
 
     def _surface():
@@ -269,14 +333,14 @@ def _register_all() -> None:
         d = _rays.normalize(-o + 0.9 * _rays.normalize(rng.normal(size=(256, 3))))
         return Sphere(), o, d
 
-    _add("sphere.surface", _surface, ("surface",),
+    _add("sphere.surface", _surface, ("surface", "stability"),
          "origins on the unit sphere (to rounding), directions into it; t_min = −1e-9 so the "
          "answer is the hit at the origin itself (t ≈ 0)", t_min=-1e-9)
     for e, sgn in ((6, "-"), (6, "")):
         scale = 10.0 ** (-e if sgn else e)
         _add(f"sphere.scale.1e{sgn}{e}",
              lambda scale=scale: (Sphere(radius=scale), *_cam(32, eye=(0.0, 0.0, 3 * scale))),
-             ("scale", "camera"), f"sphere of radius {scale:g} seen by a 32×32 camera at 3× its radius",
+             ("scale", "camera") + (("stability",) if sgn else ()), f"sphere of radius {scale:g} seen by a 32×32 camera at 3× its radius",
              t_max=10 * scale, color_frequency=2.0 / scale)
 
     # plane ----------------------------------------------------------------------------------
@@ -310,7 +374,7 @@ def _register_all() -> None:
         o[np.arange(n), axis] = -3.0 * d[np.arange(n), axis]
         return Box((1.0, 1.0, 1.0)), o, d
 
-    _add("box.parallel", _box_parallel, ("parallel", "grazing"),
+    _add("box.parallel", _box_parallel, ("parallel", "grazing", "stability"),
          "rays parallel to the faces of the unit-half-size box, 1e-9 outside (miss) or inside (hit) a face plane")
     _add("box.inside", lambda: (Box((1.0, 0.5, 0.25)), *_rays.in_ball(256, 0.24, seed=15)), ("inside",),
          "origins inside a box, random directions")
@@ -344,7 +408,7 @@ def _register_all() -> None:
         d = np.tile([1.0, 0.0, 0.0], (n, 1))
         return Torus(1.0, 0.25), o, d
 
-    _add("torus.tangent", _torus_tangent, ("tangent", "grazing"),
+    _add("torus.tangent", _torus_tangent, ("tangent", "grazing", "stability"),
          "rays in the plane z = r touching the top of the tube at ρ = R: double roots of the quartic")
     for e in (3, 6):
         _add(f"torus.far.1e{e}", lambda e=e: (Torus(1.0, 0.25), *_rays.far(256, 10.0**e, 1.0, seed=40 + e)), ("far",),
@@ -388,6 +452,20 @@ def _register_all() -> None:
     _add("scaled.torus.k3", lambda: (Scaled(Torus(1.0, 0.25), 3.0), *_cam(32, eye=(0.0, -2.5, 1.8))), ("camera",),
          "3 × the torus SDF: same surface, L = 3")
 
+    # understated Lipschitz bound ------------------------------------------------------------
+    def _understated():
+        # 10 × a hollow ball (shell 0.9 ≤ |x| ≤ 1): true L = 10, declared 1.  From an origin in the
+        # hollow (|o| ≤ 0.5), φ ≥ 10·0.4 = 4, so a step φ/L_declared ≥ 4 clears the whole ball
+        # (radius 1) in one step: a method that trusts L returns a miss; every ray hits the
+        # inner sphere at the closed-form exit of the hollow.
+        o, d = _rays.in_ball(256, 0.5, seed=80)
+        scene = DeclaredLipschitz(Scaled(Difference(Sphere(radius=1.0), Sphere(radius=0.9)), 10.0), 1.0)
+        return scene, o, d
+
+    _add("shell.understated.L10", _understated, ("understated", "stability"),
+         "10 × a hollow ball's distance bound (true L = 10) declared with L = 1; origins in the hollow: "
+         "every ray hits the inner sphere |x| = 0.9, a step of φ/1 jumps past the whole shell")
+
     # CSG ------------------------------------------------------------------------------------
     _add("csg.union.camera.32x32",
          lambda: (Union(Torus(1.0, 0.25), Box((0.4, 0.4, 0.4))), *_cam(32, eye=(0.0, -2.5, 1.8))),
@@ -402,7 +480,7 @@ def _register_all() -> None:
          lambda: (Complement(Sphere(radius=1.0)), *_rays.impact(256, np.linspace(0.0, 1.5, 256), 3.0, seed=70)),
          ("inside",), "the outside of the unit sphere as the solid: origins inside it at distance 3")
     _add("csg.shell.1e-4",
-         lambda: (Difference(Sphere(radius=1.0), Sphere(radius=1.0 - 1e-4)), *_cam(32)), ("thin", "camera"),
+         lambda: (Difference(Sphere(radius=1.0), Sphere(radius=1.0 - 1e-4)), *_cam(32)), ("thin", "camera", "stability"),
          "a spherical shell 1e-4 thick (hollow ball), 32×32 camera")
 
     # fields without closed-form hits ----------------------------------------------------------

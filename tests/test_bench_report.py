@@ -116,3 +116,63 @@ def test_knob_labels_show_only_what_differs_from_the_defaults():
     assert knob_label("hybrid_secant", knob_string(dict(defaults, xtol=1e-8, ladder=0))) == "ladder=0,xtol=1e-08"
     assert knob_label("normal", "") == ""
     assert knob_label("not_in_the_catalog", "max_steps=16,tol=1e-06") == "max_steps=16,tol=1e-06"
+
+
+def _stability_rows():
+    from impls.methods import METHODS
+
+    from bench.results import knob_string
+
+    knob = knob_string({k.name: k.default for k in METHODS["sphere_trace"].knobs})
+    base = {"schema_version": 2, "case_version": "v", "method": "sphere_trace", "family": "root", "knob": knob, "knobs_json": "{}",
+            "quantity": "depth", "unit": "scene units", "outcome": "ok", "reason": "", "evals_max": 41,
+            "iterations_max": 40, "n_miss_declined": 0, "n_converged_nonfinite": 0}
+    rows = []
+    for bid in ("numpy", "jax"):
+        rows.append({**base, "case_id": "sphere.grazing.1e-6", "backend": bid, "dtype": "float64", "error_max": 2e-16,
+                     "error_max_finite": 2e-16, "n_false_hit": 0, "n_false_miss": 0,
+                     "status_counts": json.dumps({"CONVERGED": 128, "MISS": 128})})
+        rows.append({**base, "case_id": "shell.understated.L10", "backend": bid, "dtype": "float64",
+                     "error_max": float("inf"), "error_max_finite": 0.0, "n_false_hit": 0, "n_false_miss": 256,
+                     "status_counts": json.dumps({"MISS": 256}), "evals_max": 2})
+    # a sweep point (not default knobs) that would fail the cell: the matrix judges default knobs only
+    rows.append({**rows[0], "knob": "max_steps=4,tol=1e-10", "n_false_miss": 7, "error_max": float("inf")})
+    return to_frame(rows)
+
+
+def test_report_stability_section_scoreboard_then_matrix_after_the_first_tables(tmp_path):
+    from bench.results import write_results
+
+    write_results(_stability_rows(), tmp_path / report.STABILITY_DIR)
+    report.build(frame(), {"run_id": "r"}, tmp_path)
+    html = (tmp_path / "report.html").read_text()
+    i_fast, i_stab, i_time = (html.index(s) for s in ("Fastest configuration", "Stability matrix", "Time versus error"))
+    assert i_fast < i_stab < i_time
+    sec = html[i_stab:i_time]
+    board = "numpy (float64): 1/2 families survived (1/2 cells, 0 of them flagged); failed: understated"
+    assert board in sec and "jax (float64): 1/2" in sec
+    assert sec.index(board) < sec.index("<table")
+    assert "✓ 2e-16 · 41" in sec and "✗ — · 2" in sec  # no ray converged on the understated case
+    assert "256 hitting ray(s) reported MISS" in sec and "title=" in sec
+    assert "stability stage" in sec
+    md = (tmp_path / "report.md").read_text()
+    m_fast, m_stab, m_time = (md.index(s) for s in ("## Fastest configuration", "## Stability matrix",
+                                                     "## Time versus error"))
+    assert m_fast < m_stab < m_time
+    assert f"- {board}" in md and "| understated" in md.replace("|  ", "| ")
+
+
+def test_report_stability_section_without_a_stage_uses_the_runs_rows_or_says_none(tmp_path):
+    report.build(frame(), {"run_id": "r"}, tmp_path)  # case "c" is no adversarial case
+    assert "No root finder ran on an adversarial case" in (tmp_path / "report.html").read_text()
+    report.build(pd.concat([frame(), _stability_rows()], ignore_index=True), {"run_id": "r"}, tmp_path / "b")
+    sec = (tmp_path / "b" / "report.html").read_text()
+    assert "run&#x27;s own rows" in sec and "1/2 families survived" in sec
+
+
+def test_report_with_an_unreadable_stability_stage_says_so(tmp_path):
+    (tmp_path / report.STABILITY_DIR).mkdir()
+    (tmp_path / report.STABILITY_DIR / "results.csv").write_text("garbage,\n1,2,3\n")
+    report.build(pd.concat([frame(), _stability_rows()], ignore_index=True), {"run_id": "r"}, tmp_path)
+    html = (tmp_path / "report.html").read_text()
+    assert "the stability stage could not be read" in html and "1/2 families survived" in html

@@ -225,3 +225,34 @@ def test_property_csg_intervals_are_the_inside_set(p, q, op):
             member |= (ts > s0) & (ts < s1)
         near = np.min(np.abs(ts[:, None] - bnd[None, :]), axis=1, initial=np.inf) < 1e-9 if bnd.size else np.zeros(ts.size, bool)
         assert np.array_equal(member[~near], inside[i][~near]), (op, i)
+
+
+def test_understated_case_declares_a_false_lipschitz_bound_and_has_closed_form_hits():
+    from reference.cases import adversarial_family
+
+    case = get_case("shell.understated.L10")
+    assert adversarial_family(case.tags) == "understated"
+    assert case.scene.info.exact_hits and case.exact_t_error_bound == 0.0
+    # the declared bound is false: along the rays φ changes faster than L_declared · |Δt|
+    L = case.scene.info.lipschitz
+    t0, t1 = np.zeros(case.n_rays), np.full(case.n_rays, 0.05)
+    phi0 = case.scene(case.origins + t0[:, None] * case.directions)
+    phi1 = case.scene(case.origins + t1[:, None] * case.directions)
+    assert np.max(np.abs(phi1 - phi0) / 0.05) > 5 * L
+    # every ray starts in the hollow and leaves it through the inner sphere |x| = 0.9
+    assert case.hit_mask.all()
+    x = case.exact_points
+    np.testing.assert_allclose(np.linalg.norm(x, axis=1), 0.9, atol=1e-14)
+    assert np.all(np.linalg.norm(case.origins, axis=1) <= 0.5)
+
+
+def test_stability_cases_are_one_per_adversarial_family_and_tags_do_not_change_versions():
+    import dataclasses
+
+    from reference.cases import ADVERSARIAL_FAMILIES, adversarial_family, catalog
+
+    reps = catalog(tags={"stability"})
+    fams = [adversarial_family(c.tags) for c in reps]
+    assert sorted(fams) == sorted(ADVERSARIAL_FAMILIES)
+    c = reps[0]
+    assert dataclasses.replace(c, tags=()).version == c.version
