@@ -237,6 +237,9 @@ def cmd_run(args) -> int:
         suite = get_suite(args.suite)
     except ValueError as exc:
         return _error(f"--suite: {exc}")
+    err = _load_user_cases(args)
+    if err:
+        return _error(err)
     if args.resume and not args.out:
         return _error("--resume needs --out DIR: the run directory to finish")
     try:
@@ -446,8 +449,28 @@ def cmd_baseline(args) -> int:
     return 0
 
 
+def _load_user_cases(args) -> str | None:
+    """Register the cases of ``--cases`` specs and of the ``isobench.cases`` entry points; an
+    error message for a bad spec (a broken entry point is a printed warning, not fatal)."""
+    from reference import user_cases
+
+    _, errors = user_cases.load_entry_points()
+    for e in errors:
+        print(f"warning: a case plug-in could not be loaded: {e}", file=sys.stderr, flush=True)
+    for spec in _split(getattr(args, "cases", None)) or []:
+        try:
+            user_cases.load(spec)
+        except (ValueError, TypeError) as exc:
+            return str(exc)
+    return None
+
+
 def cmd_cases(args) -> int:
     from reference import catalog
+
+    err = _load_user_cases(args)
+    if err:
+        return _error(err)
 
     tags = set(_split(args.tag) or [])
     try:
@@ -538,6 +561,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--backend", action="append", help="backend ids, comma-separated or repeated (default: all available)")
     r.add_argument("--method", action="append", help="methods to run (default: all in the suite)")
     r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's)")
+    r.add_argument("--cases", action="append", help="your own cases: package.module:attribute (a Case, a list of them, or a function "
+                   "returning either), comma-separated; they join the catalog tagged 'user' (reference/user_cases.py)")
     r.add_argument("--dtype", action="append", help="float64 and/or float32 (default: the suite's)")
     r.add_argument("--out", help="output directory (default: reports/<run-id>/)")
     r.add_argument("--min-time", type=_seconds, default=None, help="seconds of timed calls per configuration "
@@ -600,6 +625,7 @@ def main(argv: list[str] | None = None) -> int:
     k = sub.add_parser("cases", help="list the case catalog")
     k.add_argument("--case", help="glob on ids")
     k.add_argument("--tag", action="append", help="only cases with these tags")
+    k.add_argument("--cases", action="append", help="also list your own cases: package.module:attribute (see run --cases)")
     k.set_defaults(fn=cmd_cases)
 
     b = sub.add_parser("backends", help="list backends and what they can do")
