@@ -298,6 +298,7 @@ def cmd_run(args) -> int:
             return _error(str(exc))
     env = json.loads((out / "environment.json").read_text())
     if suite.stability and not (args.no_stability or args.case or args.method or args.dtype):
+        lines.line(f"stability: root finders × dtypes on one case per adversarial ray family ({suite.stability})")
         note = run_stability_into(out, get_suite(suite.stability), backends, args, console)
         env["stability"] = note or "ran"
         write_json(out / "environment.json", env)
