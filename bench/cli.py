@@ -158,6 +158,21 @@ class _ProgressLines:
                   f"{counts.get('failed', 0)} failed" + ("" if what == "done" else f"; next: {what[:80]}"))
 
 
+def _first_screen_lines(df, env: dict, out: Path) -> list[str]:
+    """The report's answers in a few lines: which to pick at 1e-8, the stability scoreboard, the
+    claims' verdict counts (:func:`bench.summary.first_screen`); nothing if they cannot be made."""
+    from . import report, stability, summary
+
+    try:
+        cells, _ = report.stability_section(df, out)
+        board = stability.scoreboard_lines(stability.scoreboard(cells)) if len(cells) else []
+        fs = summary.first_screen(df, env, claims=report.read_claims(out), scoreboard=board)
+        text = summary.terminal_text(fs).splitlines()[1:]  # the first line repeats the counts above
+        return [t[:160] for t in text]
+    except Exception as exc:  # the summary must never cost the run its exit code
+        return [f"(summary unavailable: {type(exc).__name__}: {exc})"]
+
+
 def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list[str]]:
     """The closing lines (counts, failures, incompleteness, report path) and the exit code:
     0, or 1 when the run is incomplete (its --budget ran out) or no configuration ran."""
@@ -180,6 +195,7 @@ def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list
                         f"{' and others' if len(g) > 1 else ''}: {reason}")
         if by_reason.ngroups > 5:
             said.append(f"  … {by_reason.ngroups - 5} more kinds of failure: see the report")
+    said += _first_screen_lines(df, env, out)
     said.append(f"report: {out / 'report.html'}")
     for text in said:
         print(text, flush=True)

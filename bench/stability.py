@@ -191,20 +191,21 @@ def survived(verdict: str) -> bool:
 
 
 def scoreboard(cells: pd.DataFrame) -> pd.DataFrame:
-    """Per backend: families survived (every root finder × dtype cell of the family on that
-    backend survived or flagged) out of the families it has a judged cell in, and the same in
-    cells; the families failed, by name."""
+    """Per backend and dtype: families survived (every root finder's cell of the family on that
+    backend in that dtype survived or flagged) out of the families it has a judged cell in, and
+    the same in cells; the families failed, by name.  (Per dtype, so that float32's precision
+    floor does not hide how float64 fares.)"""
     cols = ["backend", "dtypes", "families_survived", "families_total", "cells_survived", "cells_flagged",
             "cells_total", "failed_families"]
     if cells is None or not len(cells):
         return pd.DataFrame(columns=cols)
     order = {f: i for i, f in enumerate(families())}
     rows = []
-    for backend, g in cells.groupby("backend"):
+    for (backend, dtype), g in cells.groupby(["backend", "dtype"], sort=False):
         judged = g[g["verdict"] != "n/a"]
         fam_ok = judged.groupby("family")["verdict"].agg(lambda v: all(survived(x) for x in v))
         failed = sorted((f for f, ok in fam_ok.items() if not ok), key=lambda f: (order.get(f, len(order)), f))
-        rows.append({"backend": backend, "dtypes": sorted(set(map(str, g["dtype"])), reverse=True),
+        rows.append({"backend": backend, "dtypes": [str(dtype)],
                      "families_survived": int(fam_ok.sum()), "families_total": int(len(fam_ok)),
                      "cells_survived": int(judged["verdict"].map(survived).sum()),
                      "cells_flagged": int((judged["verdict"] == "flagged").sum()),
@@ -216,7 +217,7 @@ def scoreboard_lines(board: pd.DataFrame) -> list[str]:
     """``numpy (float64, float32): 6/9 families survived (71/90 cells, 4 of them flagged); failed:
     understated, tangent, far``."""
     out = []
-    for _, r in board.iterrows():
+    for _, r in board.sort_values(["dtypes", "backend"], key=lambda c: c.astype(str), ascending=[False, True]).iterrows():
         line = (f"{r['backend']} ({', '.join(r['dtypes'])}): {r['families_survived']}/{r['families_total']} "
                 f"families survived "
                 f"({r['cells_survived']}/{r['cells_total']} cells, {r['cells_flagged']} of them flagged)")
@@ -279,10 +280,22 @@ __all__ = ["ANSWER_STATUSES", "MARKS", "cell_detail", "cell_text", "depth_tolera
 # -- the stage -------------------------------------------------------------------------------
 
 
+def _per_backend(table: dict, backend_id: str, default):
+    """``table``'s entry for ``backend_id`` (``jax:cpu``), else for its library (``jax``), else ``default``."""
+    return table.get(backend_id, table.get(backend_id.partition(":")[0], default))
+
+
 def stage_dtypes(suite, backend_id: str) -> list[str]:
-    """The dtypes a stability stage runs on ``backend_id`` (``Suite.backend_dtypes``, else the
-    suite's)."""
-    return list(suite.backend_dtypes.get(backend_id, suite.dtypes))
+    """The dtypes a stability stage runs on ``backend_id`` (``Suite.backend_dtypes``, by id or
+    library, else the suite's)."""
+    return list(_per_backend(suite.backend_dtypes, backend_id, suite.dtypes))
+
+
+def stage_methods(suite, backend_id: str) -> list[str] | None:
+    """The methods a stability stage runs on ``backend_id`` (``Suite.backend_methods``, by id or
+    library; None: the suite's)."""
+    m = _per_backend(suite.backend_methods, backend_id, None)
+    return None if m is None else list(m)
 
 
 def run_stage(suite, backends: dict, out_dir, *, timeout_s: float = 120.0, resume: bool = False,
@@ -300,6 +313,6 @@ def run_stage(suite, backends: dict, out_dir, *, timeout_s: float = 120.0, resum
     df = None
     for i, (bid, backend) in enumerate(backends.items()):
         again = (resume or i > 0) and (out_dir / "environment.json").exists()
-        df = run(suite, {bid: backend}, out_dir, dtypes=stage_dtypes(suite, bid), policy=policy, progress=progress,
-                 resume=again, env_extra=env_extra)
+        df = run(suite, {bid: backend}, out_dir, dtypes=stage_dtypes(suite, bid), methods=stage_methods(suite, bid),
+                 policy=policy, progress=progress, resume=again, env_extra=env_extra)
     return df if df is not None else pd.DataFrame()

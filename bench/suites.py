@@ -72,9 +72,11 @@ class Suite:
     #: the suite run after this one as its stability stage (accuracy only, into ``stability/``
     #: under the run directory; :func:`bench.stability.run_stage`), or None
     stability: str | None = None
-    #: backend id → the dtypes a stage runs on it (default: the suite's dtypes); a pair left out
-    #: is named in the report's stability section as not planned
+    #: backend id or library → the dtypes a stage runs on it (default: the suite's dtypes); a pair
+    #: left out is named in the report's stability section as not planned
     backend_dtypes: dict = dataclasses.field(default_factory=dict)
+    #: backend id or library → the methods a stage runs on it (default: the suite's)
+    backend_methods: dict = dataclasses.field(default_factory=dict)
 
     def sweep_for(self, spec) -> list[dict]:
         if spec.name in self.sweeps:
@@ -177,13 +179,15 @@ SUITES = {
     "stability": Suite(name="stability", case_pattern="*", case_tags=("stability",), dtypes=("float64", "float32"),
                        sweeps={}, level="quick", main_dial_only=True, sweep_cases=0, expensive_references=False,
                        methods=_root_methods(), min_time_s=0.0, min_repeats=1),
-    # the quick suite's stage: the same plan, but jax in float64 only — jax compiles once per
-    # (method, scene, dtype, shape), ~1.5–3 s each on 2 cores, so its float32 half alone would add
-    # ~2 minutes; numpy and torch (no compilation) run both dtypes in seconds
+    # the quick suite's stage: the same plan, but jax in float64 only and on its two Lipschitz
+    # tracers — jax compiles once per (method, scene, dtype, shape), ~1.5–3 s each on 2 cores, so
+    # its whole plan alone would add ~4 minutes; numpy and torch (no compilation) run it all in
+    # seconds.  `--suite stability` runs everything everywhere.
     "stability.quick": Suite(name="stability.quick", case_pattern="*", case_tags=("stability",),
                              dtypes=("float64", "float32"), sweeps={}, level="quick", main_dial_only=True,
                              sweep_cases=0, expensive_references=False, methods=_root_methods(), min_time_s=0.0,
-                             min_repeats=1, backend_dtypes={"jax": ("float64",)}),
+                             min_repeats=1, backend_dtypes={"jax": ("float64",)},
+                             backend_methods={"jax": ("sphere_trace", "hybrid_secant")}),
     "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
                   min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=1, max_cases=3,
                   diverse_cases=True, secondary_dtype_cases=1, budget_s=None),

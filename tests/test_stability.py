@@ -131,13 +131,18 @@ def test_scoreboard_and_matrix():
             rows.append(row(case="u.case", backend=b, dtype=dt, fm=256 if bad else 0, statuses={"MISS": 256} if bad
                             else {"CONVERGED": 256}))
     c = cells(rows)
-    board = S.scoreboard(c).set_index("backend")
-    assert board.loc["numpy", "families_survived"] == 3 and board.loc["numpy", "families_total"] == 3
-    assert board.loc["jax", "families_survived"] == 2 and board.loc["jax", "failed_families"] == ["understated"]
-    assert board.loc["jax", "cells_survived"] == 5 and board.loc["jax", "cells_total"] == 6
-    assert board.loc["numpy", "cells_flagged"] == 2
+    board = S.scoreboard(c)
+    board = board.set_index([board["backend"], board["dtypes"].map(lambda d: d[0])])
+    for dt in ("float64", "float32"):  # per backend and dtype
+        assert board.loc[("numpy", dt), "families_survived"] == 3 and board.loc[("numpy", dt), "families_total"] == 3
+        assert board.loc[("numpy", dt), "cells_flagged"] == 1
+    assert board.loc[("jax", "float64"), "families_survived"] == 3
+    assert board.loc[("jax", "float32"), "families_survived"] == 2
+    assert board.loc[("jax", "float32"), "failed_families"] == ["understated"]
+    assert board.loc[("jax", "float32"), "cells_survived"] == 2 and board.loc[("jax", "float32"), "cells_total"] == 3
     lines = S.scoreboard_lines(S.scoreboard(c))
-    assert any(line.startswith("jax (float64, float32): 2/3 families survived") and "failed: understated" in line for line in lines)
+    assert lines[0].startswith("jax (float64): 3/3 families survived")  # float64 first, then float32
+    assert any(line.startswith("jax (float32): 2/3 families survived") and "failed: understated" in line for line in lines)
     m = S.stability_matrix(c)
     assert list(m.columns) == ["method", "backend", "dtype", "understated", "tangent", "grazing"]  # catalog order
     assert len(m) == 4
