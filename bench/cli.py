@@ -326,7 +326,7 @@ def cmd_run(args) -> int:
     lines.line("report: writing report.md and report.html")
     report.build(df, env, out)
     code, errors = _summary(df, env, out, lines)
-    nominal = {"quick": 120.0, "full": 900.0}.get(suite.name)
+    nominal = {"quick": 240.0, "full": 900.0}.get(suite.name)
     if nominal and float(env.get("elapsed_s", 0)) > nominal:
         print(f"note: the {suite.name} suite took {env.get('elapsed_s')} s, more than its nominal {nominal:g} s "
               "(a loaded machine, or select less with --case/--method)", flush=True)

@@ -375,14 +375,17 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
         spec = METHODS[method]
         sweep = suite.sweep_for(spec)
         usable = []
+        excluded = set(suite.exclude_cases.get(spec.family, ())) if not explicit else set()
         for case in cases:
+            if case.id in excluded:
+                continue
             if applies(spec, case) is not None:
                 work.append((0, order[case.id], case, method, 0, sweep[0], 0))
             else:
                 usable.append(case)
         if suite.diverse_cases and not explicit:
             lead = suite.lead_cases.get(spec.family, suite.lead_cases.get("*", ()))
-            usable = _one_per_family(usable, lead, shift=names.index(method))
+            usable = _one_per_family(usable, lead, shift=names.index(method) if suite.rotate_families else 0)
         if not explicit and suite.max_cases is not None:
             usable = usable[:suite.max_cases]
         for rank, case in enumerate(usable):

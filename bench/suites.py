@@ -69,6 +69,12 @@ class Suite:
         # computed once; smooth scenes, where the integral costs ~0.1 s per ray, not ~1 s (kinks)
         "render": ("sphere.camera.64x64", "torus.camera.32x32", "algsphere.camera.32x32")})
     secondary_dtype_cases: int | None = None
+    #: with ``diverse_cases``: rotate the scene families by method, so that methods cover
+    #: different families (False: every method of a family on the same cases, which "which to
+    #: pick" compares)
+    rotate_families: bool = True
+    #: method family → case ids the suite does not plan for it (too costly for its purpose)
+    exclude_cases: dict = dataclasses.field(default_factory=dict)
     #: the suite run after this one as its stability stage (accuracy only, into ``stability/``
     #: under the run directory; :func:`bench.stability.run_stage`), or None
     stability: str | None = None
@@ -157,13 +163,21 @@ def _root_methods() -> tuple[str, ...]:
 
 
 SUITES = {
-    # quick: CI and the README's first command, < 2 min on 2 cores: cases tagged "quick", float64,
-    # each method on its first applicable quick case with its main dial at 3 settings (a short
-    # time-versus-error curve per method and backend), 0.05 s and ≥ 3 samples of timing each;
-    # volume renderers against ρ(x*) only (the rendering integral costs ~10 s to minutes per case).
+    # quick: CI and the README's first command, a showcase: every method on the same four scene
+    # kinds where they apply (sphere grazing rays, torus, CSG torus ∪ box, the MLP; the next quick
+    # cases where one does not), its main dial at 3 settings on the first (a short time-versus-error
+    # curve per method and backend) and defaults on the others, float64, 0.05 s and ≥ 3 samples of
+    # timing each; volume renderers against ρ(x*) only (the rendering integral costs ~10 s to
+    # minutes per case); then the stability stage (below).
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
-                   min_time_s=0.05, main_dial_only=True, max_cases=1, min_repeats=3, budget_s=None,
-                   expensive_references=False, small_cases_first=True, stability="stability.quick"),
+                   min_time_s=0.05, main_dial_only=True, max_cases=4, sweep_cases=1, min_repeats=3, budget_s=None,
+                   expensive_references=False, small_cases_first=True, diverse_cases=True, rotate_families=False,
+                   lead_cases={"*": ("sphere.grazing.1e-6", "torus.camera.32x32", "csg.union.camera.32x32",
+                                     "mlp.camera.32x32"),
+                               # dt/dθ of the MLP's 350 weights costs 40 s a configuration on jax
+                               "param_grad": ("sphere.grazing.1e-6", "torus.camera.32x32", "csg.union.camera.32x32",
+                                              "box.camera.32x32")},
+                   exclude_cases={"param_grad": ("mlp.camera.32x32",)}, stability="stability.quick"),
     # full: < 15 min on 2 cores.  Each method on 3 applicable cases from different scene
     # families, float64; its main dial swept over the full range (every decade of a tolerance,
     # 7 budgets) on the first, with the continuous rendering integral as the volume renderers'

@@ -487,7 +487,7 @@ def _register_all() -> None:
     from .mlp import MLPField
     from .numerical import CallableField
 
-    _add("mlp.camera.32x32", lambda: (MLPField(), *_cam(32, fov=50.0)), ("camera", "mlp"),
+    _add("mlp.camera.32x32", lambda: (MLPField(), *_cam(32, fov=50.0)), ("camera", "mlp", "quick"),
          "the stored 3→16→16→1 MLP blob (Lipschitz bound ≈ 29.9) seen by a 32×32 camera; hits from the "
          "certified numerical reference", t_max=6.0)
     _add("callable.wavy.camera.32x32",
