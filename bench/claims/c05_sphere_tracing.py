@@ -11,7 +11,6 @@ within the step budget.
 
 from __future__ import annotations
 
-import functools
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from reference import AlgebraicSphere, Difference, Ellipsoid, Scaled, Sphere, Un
 from .adapters import label
 from .scenes import AXES, torus
 from .figures import figure
-from .ledger import LEDGER, Evidence, Trial
+from .ledger import LEDGER, Trial
 from .tracing import camera_rays, sphere_trace_signed
 
 TOL = 1e-10
@@ -86,47 +85,6 @@ def _part(how: str) -> str:
     return "5c" if ("no Lipschitz step" in how or "step φ (L=" in how) else "5b"
 
 
-@LEDGER.claim(
-    "5a",
-    statement="sphere tracing t ← t + f(x), until |f| ≤ ε, terminates at the first intersection for SDFs",
-    equation="slide 'Ray marching: Sphere Tracing'",
-    how_checked=_HOW,
-    scope="exact SDFs and distance bounds (|φ| ≤ distance), camera and grazing rays, a finite step budget; "
-    "named class: rays that do not graze the surface (a near miss at distance δ needs ~√(1/δ) steps)",
-)
-def check_tracing_sdf(ctx):
-    parts, key, fig = _tracing(ctx)
-    return Evidence(parts["5a"], key, fig)
-
-
-@LEDGER.claim(
-    "5b",
-    statement="on non-SDF implicit functions sphere tracing with the Lipschitz step φ/L terminates at the first "
-    "intersection",
-    equation="slide 'Ray marching: Sphere Tracing' (the question it raises)",
-    how_checked=_HOW,
-    scope="any implicit function with a valid Lipschitz bound L on the traced region",
-)
-def check_tracing_lipschitz(ctx):
-    parts, key, _ = _tracing(ctx)
-    return Evidence(parts["5b"], key, note="plot: claim_5a.png")
-
-
-@LEDGER.claim(
-    "5c",
-    statement="on non-SDF implicit functions sphere tracing with the plain step φ (no Lipschitz bound) terminates "
-    "at the first intersection",
-    equation="slide 'Ray marching: Sphere Tracing' (the question it raises)",
-    how_checked=_HOW,
-    scope="any implicit function, step φ; named class: functions whose Lipschitz constant is ≤ 1 (then step φ "
-    "is a Lipschitz step)",
-)
-def check_tracing_plain(ctx):
-    parts, key, _ = _tracing(ctx)
-    return Evidence(parts["5c"], key, note="plot: claim_5a.png")
-
-
-@functools.lru_cache(maxsize=2)
 def _tracing(ctx):
     """The trials of claims 5a–5c, computed once per context: (part → trials, key numbers, figure)."""
     n_side = 12 if ctx.quick else 48
@@ -175,3 +133,26 @@ def _tracing(ctx):
     axes[1].legend(fontsize=7)
     parts = {p: [t for q, t in trials if q == p] for p in ("5a", "5b", "5c")}
     return parts, key, fig
+
+
+LEDGER.parts(_tracing, [
+    dict(id="5a",
+         statement="sphere tracing t ← t + f(x), until |f| ≤ ε, terminates at the first intersection for SDFs",
+         equation="slide 'Ray marching: Sphere Tracing'",
+         how_checked=_HOW,
+         scope="exact SDFs and distance bounds (|φ| ≤ distance), camera and grazing rays, a finite step budget; "
+         "named class: rays that do not graze the surface (a near miss at distance δ needs ~√(1/δ) steps)"),
+    dict(id="5b",
+         statement="on non-SDF implicit functions sphere tracing with the Lipschitz step φ/L terminates at the first "
+         "intersection",
+         equation="slide 'Ray marching: Sphere Tracing' (the question it raises)",
+         how_checked=_HOW,
+         scope="any implicit function with a valid Lipschitz bound L on the traced region"),
+    dict(id="5c",
+         statement="on non-SDF implicit functions sphere tracing with the plain step φ (no Lipschitz bound) terminates "
+         "at the first intersection",
+         equation="slide 'Ray marching: Sphere Tracing' (the question it raises)",
+         how_checked=_HOW,
+         scope="any implicit function, step φ; named class: functions whose Lipschitz constant is ≤ 1 (then step φ "
+         "is a Lipschitz step)"),
+])

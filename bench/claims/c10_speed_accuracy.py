@@ -17,7 +17,6 @@ error = ‖C − C_exact‖₂ over RGB.
 
 from __future__ import annotations
 
-import functools
 
 import time
 
@@ -28,7 +27,7 @@ from reference.rendering import render_exact
 
 from . import adapters
 from .figures import figure
-from .ledger import LEDGER, Evidence, Trial
+from .ledger import LEDGER, Trial
 from .rendering import composite
 from .tracing import camera_rays
 
@@ -79,33 +78,6 @@ _HOW = ("pinhole image of the unit sphere, colour γ=1; surface: backend sphere 
         "accurate for any N' holds if its smallest error exceeds surface rendering's best median error",)
 
 
-@LEDGER.claim(
-    "10a",
-    statement="volume rendering is not accurate, surface rendering is accurate",
-    equation="slides 'Surface Rendering (Cons/Pros)' and 'Take-Home Message'",
-    how_checked=_HOW,
-    scope="rendering a surface (the sphere) at the accuracy each renderer can reach: any N for volume rendering "
-    "(including the continuous limit N → ∞) against surface rendering's best tolerance",
-)
-def check_accuracy(ctx):
-    parts, key, fig = _speed(ctx)
-    return Evidence(parts["10a"], key, fig)
-
-
-@LEDGER.claim(
-    "10b",
-    statement="volume rendering is quick, surface rendering is slow",
-    equation="slides 'Surface Rendering (Cons/Pros)' and 'Take-Home Message'",
-    how_checked=_HOW,
-    scope="the same image rendered to the same error: time of surface rendering to reach the volume renderer's "
-    "best error against the volume renderer's time there (numpy, one machine)",
-)
-def check_speed(ctx):
-    parts, key, _ = _speed(ctx)
-    return Evidence(parts["10b"], key, note="plot: claim_10a.png")
-
-
-@functools.lru_cache(maxsize=2)
 def _speed(ctx):
     """Trials of claims 10a (accuracy) and 10b (speed), measured once: (part → trials, key, figure)."""
     n_side = 24 if ctx.quick else 64
@@ -179,3 +151,19 @@ def _speed(ctx):
     ax.set_ylabel("median render time (s)")
     ax.legend(fontsize=7)
     return {p: [t for q, t in trials if q == p] for p in ("10a", "10b")}, key, fig
+
+
+LEDGER.parts(_speed, [
+    dict(id="10a",
+         statement="volume rendering is not accurate, surface rendering is accurate",
+         equation="slides 'Surface Rendering (Cons/Pros)' and 'Take-Home Message'",
+         how_checked=_HOW,
+         scope="rendering a surface (the sphere) at the accuracy each renderer can reach: any N for volume rendering "
+         "(including the continuous limit N → ∞) against surface rendering's best tolerance"),
+    dict(id="10b",
+         statement="volume rendering is quick, surface rendering is slow",
+         equation="slides 'Surface Rendering (Cons/Pros)' and 'Take-Home Message'",
+         how_checked=_HOW,
+         scope="the same image rendered to the same error: time of surface rendering to reach the volume renderer's "
+         "best error against the volume renderer's time there (numpy, one machine)"),
+])

@@ -19,7 +19,6 @@ ratio 1 − |⟨n, d⟩| (slow at grazing incidence).
 
 from __future__ import annotations
 
-import functools
 
 import numpy as np
 
@@ -28,7 +27,7 @@ from reference import Sphere
 from .c07_implicit_dt import implicit_and_trick
 from .scenes import sphere_dt_truth
 from .figures import figure
-from .ledger import LEDGER, Evidence, Trial
+from .ledger import LEDGER, Trial
 
 RTOL = 1e-8
 
@@ -96,44 +95,6 @@ _SCOPE = ("rays that hit the surface transversally, differentiated after a finit
           "the tolerance within that budget")
 
 
-@LEDGER.claim(
-    "11a",
-    statement="differentiable sphere tracing (autodiff through the unrolled eq. 16) gives the surface gradient dt/dθ",
-    equation="eq. (16)",
-    how_checked=_HOW,
-    scope=_SCOPE + ": (1 − |⟨n,d⟩|)^k_max ≤ tolerance (sphere tracing's error ratio per step is 1 − |⟨n,d⟩|)",
-)
-def check_unrolled_tracing(ctx):
-    parts, key, fig = _unrolled_all(ctx)
-    return Evidence(parts["11a"], key, fig)
-
-
-@LEDGER.claim(
-    "11b",
-    statement="differentiable secant (autodiff through the unrolled secant iterations) gives dt/dθ",
-    equation="slide 'Other rendering techniques' (open question)",
-    how_checked=_HOW,
-    scope=_SCOPE + " (every ray here: the secant converges superlinearly)",
-)
-def check_unrolled_secant(ctx):
-    parts, key, _ = _unrolled_all(ctx)
-    return Evidence(parts["11b"], key, note="plot: claim_11a.png")
-
-
-@LEDGER.claim(
-    "11c",
-    statement="differentiable root finding (implicit differentiation, eq. 8, at the root finder's iterate) gives "
-    "dt/dθ",
-    equation="eq. (8) with slide 'Other rendering techniques' (open question)",
-    how_checked=_HOW,
-    scope=_SCOPE + " (every ray here)",
-)
-def check_implicit_at_iterate(ctx):
-    parts, key, _ = _unrolled_all(ctx)
-    return Evidence(parts["11c"], key, note="plot: claim_11a.png")
-
-
-@functools.lru_cache(maxsize=2)
 def _unrolled_all(ctx):
     """Trials of claims 11a–11c, measured once: (part → trials, key numbers, figure)."""
     k_max = 60 if ctx.quick else 200
@@ -181,3 +142,23 @@ def _unrolled_all(ctx):
         ax.set_ylabel("relative error of dt/dθ (dimensionless)")
         ax.legend(fontsize=7)
     return {p: [t for q, t in trials if q == p] for p in ("11a", "11b", "11c")}, key, fig
+
+
+LEDGER.parts(_unrolled_all, [
+    dict(id="11a",
+         statement="differentiable sphere tracing (autodiff through the unrolled eq. 16) gives the surface gradient dt/dθ",
+         equation="eq. (16)",
+         how_checked=_HOW,
+         scope=_SCOPE + ": (1 − |⟨n,d⟩|)^k_max ≤ tolerance (sphere tracing's error ratio per step is 1 − |⟨n,d⟩|)"),
+    dict(id="11b",
+         statement="differentiable secant (autodiff through the unrolled secant iterations) gives dt/dθ",
+         equation="slide 'Other rendering techniques' (open question)",
+         how_checked=_HOW,
+         scope=_SCOPE + " (every ray here: the secant converges superlinearly)"),
+    dict(id="11c",
+         statement="differentiable root finding (implicit differentiation, eq. 8, at the root finder's iterate) gives "
+         "dt/dθ",
+         equation="eq. (8) with slide 'Other rendering techniques' (open question)",
+         how_checked=_HOW,
+         scope=_SCOPE + " (every ray here)"),
+])

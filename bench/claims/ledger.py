@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import json
 import math
 from typing import Any, Callable
@@ -167,6 +168,20 @@ class Ledger:
             return fn
 
         return deco
+
+    def parts(self, compute: Callable[[CheckContext], tuple], parts: list[dict]) -> None:
+        """Register the parts of a compound claim, each a claim of its own (``parts``: dicts of
+        ``id``, ``statement``, ``equation``, ``how_checked``, ``scope``), measured together:
+        ``compute(ctx) -> (trials by part id, key numbers, figure)`` runs once per context for all
+        of them; the figure goes with the first part."""
+        cached = functools.lru_cache(maxsize=2)(compute)
+        first = parts[0]["id"]
+        for i, part in enumerate(parts):
+            def check(ctx, pid=part["id"], lead=i == 0):
+                trials, key, fig = cached(ctx)
+                return Evidence(trials[pid], key, fig if lead else None, note="" if lead else f"plot: claim_{first}.png")
+
+            self.add(Claim(check=check, **part))
 
     def ids(self) -> list[str]:
         return list(self._claims)
