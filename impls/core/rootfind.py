@@ -180,10 +180,11 @@ class SphereTrace(_Search):
     when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
     when the next t exceeds t_max (or leaves the scene's ray bounds, see :func:`clip_to_bounds`);
     MAX_ITER after ``max_steps`` steps; LIPSCHITZ_VIOLATED when a step's ends differ by more
-    than L times its length (the declared bound is false on that ray: :func:`lipschitz_violated`;
-    a leaving step is evaluated where it ends, within t_max, for that check).  One φ evaluation at t_min (the start of the ray
-    bounds, when that is later) plus one per step (a step that leaves the range re-evaluates
-    the last point: one evaluation per iteration keeps the loop shape fixed).
+    than L times its length (the declared bound is false on that ray: :func:`lipschitz_violated`).
+    One φ evaluation at t_min (the start of the ray bounds, when that is later) plus one per
+    step; a step that leaves the range is evaluated where it ends, within t_max (``probe``: the
+    scene's bound holds everywhere), else at the end of the ray bounds, so that its slope is
+    checked too (a step over thin surface under a false L shows it).
     """
 
     inv_lip: float
