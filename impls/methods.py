@@ -109,7 +109,7 @@ class MethodSpec:
 # "good" setting.  The first knob of each method is its main accuracy dial.
 
 _MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)")
-_XTOL = Knob("xtol", 1e-12, float, 0.0, "stop refining when the bracket or the last step is ≤ xtol (depth units)")
+_XTOL = Knob("xtol", 1e-12, float, 0.0, "converged when the sign-change bracket is ≤ xtol wide or its ends are adjacent floats (depth units)")
 _MIN_STEP = Knob("min_step", 1e-5, float, 1e-9,
                  "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed")
 _OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,

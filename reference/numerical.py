@@ -54,13 +54,22 @@ def _bisect(scene, o, d, rows, lo, hi, f_lo):
     return lo, hi
 
 
-def lipschitz_violated(f0, f1, t0, t1, L: float):
+def lipschitz_violated(f0, f1, t0, t1, L: float, mag):
     """Pairs whose slope |f1 − f0|/|t1 − t0| exceeds ``L`` beyond rounding: the allowance is
-    16ε(|f0| + |f1|)/L + 16ε(|t0| + |t1|) on top of |t1 − t0| (φ's rounding and that of the
-    point o + t d; the root finders use the same rule, :func:`impls.core.rootfind.lipschitz_violated`)."""
+    16ε((|f0| + |f1|)/L + |t0| + |t1| + ``mag``) on top of |t1 − t0|, ``mag`` = |o|₁ plus the
+    scene's offset and extent (:func:`_magnitude`): the rounding of the point o + t d and of φ's
+    intermediates.  The root finders use the same rule (:func:`impls.core.rootfind.lipschitz_violated`,
+    where the reasoning is spelled out)."""
     eps = 16.0 * np.finfo(np.float64).eps
     a0, a1 = np.abs(f0), np.abs(f1)
-    return np.abs(f1 - f0) / L > np.abs(t1 - t0) + eps * ((a0 + a1) / L + np.abs(t0) + np.abs(t1))
+    return np.abs(f1 - f0) / L > np.abs(t1 - t0) + eps * ((a0 + a1) / L + np.abs(t0) + np.abs(t1) + mag)
+
+
+def _magnitude(scene, o):
+    """|o|₁ + |centre| + radius of the scene's bounding ball (per ray; 0 for the ball without one)."""
+    ball = scene.bounding_sphere()
+    extra = 0.0 if ball is None else float(np.linalg.norm(np.asarray(ball[0], np.float64)) + float(ball[1]))
+    return np.sum(np.abs(o), axis=1) + (extra if math.isfinite(extra) else 0.0)
 
 
 def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossings):
@@ -79,7 +88,8 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
     violated = np.zeros(n, bool)
     if lipschitz is not None:
         L = float(lipschitz)
-        violated |= np.any(lipschitz_violated(f[:, :-1], f[:, 1:], ts[:-1], ts[1:], L), axis=1)
+        mag = _magnitude(scene, o)
+        violated |= np.any(lipschitz_violated(f[:, :-1], f[:, 1:], ts[:-1], ts[1:], L, mag[:, None]), axis=1)
         unc = (~change) & (np.abs(f[:, 1:]) + np.abs(f[:, :-1]) <= L * (ts[1] - ts[0]))
         rows, cols = np.nonzero(unc)
         pend = (rows, ts[cols], ts[cols + 1], f[rows, cols], f[rows, cols + 1])
@@ -92,7 +102,7 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
                 break
             m = a + (b - a) / 2
             fm = _phi_along(scene, o, d, r, m)
-            violated[r[lipschitz_violated(fa, fm, a, m, L) | lipschitz_violated(fm, fb, m, b, L)]] = True
+            violated[r[lipschitz_violated(fa, fm, a, m, L, mag[r]) | lipschitz_violated(fm, fb, m, b, L, mag[r])]] = True
             nxt = []
             for lo, hi, flo, fhi in ((a, m, fa, fm), (m, b, fm, fb)):
                 sc = (flo > 0) != (fhi > 0)

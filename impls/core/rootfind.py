@@ -123,18 +123,35 @@ def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None):
     return status + IN
 
 
-def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip):
+def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag):
     """Rays whose step from (t0, f0) to (t1, f1) shows |f1 − f0| > L·|t1 − t0|: the declared
     Lipschitz bound L = 1/``inv_lip`` is false on that ray, so no step computed from it is safe.
 
-    Rounding slack: φ is computed at x = o + t d, whose rounding moves x by about ε(|o| + |t|)
-    and φ by L times that, and φ's own rounding is a few ε|φ| for the fields here; so the test
-    allows 16ε(|f0| + |f1|)/L + 16ε(|t0| + |t1|) on top of |t1 − t0| (ε of the dtype; |o| ≲
-    |φ|/L + |t| for fields whose value grows with distance, as every bounded-slope field that is
-    worth a bound does).  A NaN anywhere compares false (left to NON_FINITE)."""
+    Rounding slack, in depth units: |f1 − f0|/L may exceed |t1 − t0| by
+    16ε·((|f0| + |f1|)/L + |t0| + |t1| + ``mag``), ε the dtype's, ``mag`` = |o|₁ + ``scale``
+    (:func:`_magnitude`).  Why each term: the
+    point x = o + t d is rounded by up to ε|x| per coordinate, |x| ≤ |o|₁ + |t|, which moves φ
+    by up to L·ε|x|; φ's own evaluation rounds its intermediates, which for the fields here
+    (distances to centres and planes, CSG min/max, affine layers) are bounded by |φ|/L, |x| and
+    the scene's extent and offset ``scale`` (|centre| + radius of its bounding ball, see
+    :func:`impls.core.methods_root.make_root_finder`); 16 covers the few operations of each.
+    Without the |o| and ``scale`` terms an exact SDF far from the origin (a sphere of radius 1e6
+    centred 1e6 away, seen from 3 units) is flagged: its φ carries ε·1e6 of rounding while
+    |φ|, |t| ≈ 3.  The slack is a relative 1e-14 of those magnitudes, so an understated L is
+    still seen on any step longer than that.  A NaN anywhere compares false (left to
+    NON_FINITE)."""
     eps = 16.0 * float(np.finfo(np.dtype(str(t0.dtype).rpartition(".")[2])).eps)
     a0, a1 = xp.abs(f0), xp.abs(f1)
-    return xp.abs(f1 - f0) * inv_lip > xp.abs(t1 - t0) + eps * ((a0 + a1) * inv_lip + xp.abs(t0) + xp.abs(t1))
+    at = xp.abs(t0) + xp.abs(t1) + mag
+    if inv_lip != 1.0:
+        return xp.abs(f1 - f0) * inv_lip > xp.abs(t1 - t0) + eps * ((a0 + a1) * inv_lip + at)
+    return xp.abs(f1 - f0) > xp.abs(t1 - t0) + eps * (a0 + a1 + at)
+
+
+def _magnitude(xp, o, scale: float):
+    """|o|₁ + ``scale`` per ray: the magnitude of the points φ is evaluated at beyond |t|, for the
+    rounding slack of :func:`lipschitz_violated`."""
+    return xp.abs(o[:, 0]) + xp.abs(o[:, 1]) + xp.abs(o[:, 2]) + scale
 
 
 def final_t(xp, t, status):
@@ -195,6 +212,7 @@ class SphereTrace(_Search):
     t_max: float
     bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
     probe: bool = False  # evaluate leaving steps where they end, within t_max (the scene's L holds there)
+    scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
 
     stages = ("step",)
 
@@ -227,7 +245,7 @@ class SphereTrace(_Search):
         # accept a point only if its unbounding sphere overlaps the previous one (Keinert et al.)
         ok = ~((om > 1) & (xp.abs(f_new) * self.inv_lip + r_prev < t_new - t_prev))
         # the step's two ends are evaluated: a slope above L shows the declared bound is false
-        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip)
+        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, _magnitude(xp, o, self.scale))
         # (a ray that left has no depth to lose to a non-finite φ: it is a MISS, or flagged)
         status = _verdict(xp, ~xp.isfinite(f_new) & ~out, (xp.abs(f_new) <= self.tol) & ok, iters >= self.max_steps,
                           miss=out, lipv=lipv)
@@ -292,10 +310,11 @@ class MarchRefine(_Search):
     spacing).  The reported ``t`` lies in that bracket: the last iterate (bisection), or the
     zero of the chord through the last two iterates (secant, Newton), which after a lengthened
     step are the bracket's ends.  A marching step whose sign change spans ≤ ``xtol`` is
-    converged at once.  Every step of the hybrid march also checks the declared bound: a step
-    whose ends differ by more than L·h (beyond rounding, :func:`lipschitz_violated`) ends the
-    ray with LIPSCHITZ_VIOLATED, and a step leaving the ray bounds is evaluated where it ends
-    (within ``t_max``) so that a step over thin surface under a false L is seen.
+    converged at once.  Every marching and ladder step of the hybrid, and of constant-step
+    marching where the scene declares a bound (``check_inv_lip``), checks it: a step whose ends
+    differ by more than L·h (beyond rounding, :func:`lipschitz_violated`) ends the ray with
+    LIPSCHITZ_VIOLATED (t = NaN); a hybrid step leaving the ray bounds is evaluated where it
+    ends (within ``t_max``) so that a step over thin surface under a false L is seen.
     ``max_steps`` bounds marching plus refinement steps.
     """
 
@@ -314,6 +333,9 @@ class MarchRefine(_Search):
     extrapolate: float = 0.0  # hybrid only: forced step ≥ this × the secant's distance to the zero (0: off)
     reach: float = 0.0  # hybrid only: largest extrapolated step
     probe: bool = False  # hybrid only: evaluate leaving steps where they end, within t_max (L holds there)
+    # constant step only: 1/L of a bound the scene declares, checked on every marching step (None: no check)
+    check_inv_lip: float | None = None
+    scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -328,6 +350,12 @@ class MarchRefine(_Search):
     @property
     def _hybrid(self) -> bool:
         return self.inv_lip is not None
+
+    @property
+    def _check(self) -> float | None:
+        """1/L of the bound the marching steps check (the hybrid's own; constant steps: the
+        scene's declared one, if any)."""
+        return self.inv_lip if self._hybrid else self.check_inv_lip
 
     def reads(self, stage: str) -> frozenset[str]:
         """The state entries the step of ``stage`` reads, all that a compacting driver carries
@@ -393,7 +421,9 @@ class MarchRefine(_Search):
         miss = ~cross & gone
         conv = cross & (zero | (t_n - t <= self.xtol))
         nonf = ~fin & xp.isfinite(t_n)
-        lipv = None
+        # the step's two ends are evaluated: a slope above the declared L shows it is false here
+        lipv = None if self._check is None else lipschitz_violated(xp, f, f_n, t, t_n, self._check,
+                                                                   _magnitude(xp, o, self.scale))
         new = {}
         if self._hybrid:
             # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
@@ -401,7 +431,6 @@ class MarchRefine(_Search):
             # or a step no longer than min_step.  A rejected step stays where it was.
             # (a step past every finite depth needs no certificate: nothing lies beyond it)
             ok = cross | (r + self._radius(xp, f_n) >= h) | (h <= self.min_step) | ~xp.isfinite(t_n)
-            lipv = lipschitz_violated(xp, f, f_n, t, t_n, self.inv_lip)
             new["dl"] = xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self._cap)
             miss = miss & ok
             t_n, f_n = xp.where(ok, t_n, t), xp.where(ok, f_n, f)
@@ -471,8 +500,10 @@ class MarchRefine(_Search):
             R = self._radius(xp, F)
             spacing = xp.where(T >= hi[:, None], T - Tp, h[:, None])
             certified = (xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None]
-            violated = lipschitz_violated(xp, Fp, F, Tp, T, self.inv_lip)
-            event = event | ~certified | violated
+            event = event | ~certified
+        if self._check is not None:
+            violated = lipschitz_violated(xp, Fp, F, Tp, T, self._check, _magnitude(xp, o, self.scale)[:, None])
+            event = event | violated
         stopped = xp.any(event, axis=1)
         first = xp.argmax(xp.astype(event, xp.int8), axis=1)
         e = xp.where(stopped, first, k - 1)[:, None]  # the first event's pair, or the last pair
@@ -483,7 +514,7 @@ class MarchRefine(_Search):
         Te, Fe, Tpe, Fpe = at(T), at(F), at(Tp), at(Fp)
         cross_e = stopped & at(cross)
         nonf = stopped & ~at(finite) & xp.isfinite(Te)
-        lipv = stopped & at(violated) if self._hybrid else None
+        lipv = stopped & at(violated) if self._check is not None else None
         onto = cross_e | ~stopped  # the ray moves onto sample e; otherwise it stays at e's start
         miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te)
         conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
