@@ -206,8 +206,8 @@ def scoreboard(cells: pd.DataFrame) -> pd.DataFrame:
         fam_ok = judged.groupby("family")["verdict"].agg(lambda v: all(survived(x) for x in v))
         failed = sorted((f for f, ok in fam_ok.items() if not ok), key=lambda f: (order.get(f, len(order)), f))
         rows.append({"backend": backend, "dtypes": [str(dtype)],
-                     "families_survived": int(fam_ok.sum()), "families_total": int(len(fam_ok)),
-                     "cells_survived": int(judged["verdict"].map(survived).sum()),
+                     "families_survived": sum(bool(v) for v in fam_ok.values), "families_total": int(len(fam_ok)),
+                     "cells_survived": sum(survived(v) for v in judged["verdict"]),
                      "cells_flagged": int((judged["verdict"] == "flagged").sum()),
                      "cells_total": int(len(judged)), "failed_families": failed})
     return pd.DataFrame(rows, columns=cols)

@@ -181,3 +181,12 @@ def test_metrics_separate_declined_rays_from_reported_misses():
     assert r["n_false_miss"] == 2 and r["n_miss_declined"] == 1 and r["n_converged_nonfinite"] == 1
     c = one([{**row(), **r, "status_counts": json.dumps(res.status_counts())}])
     assert c["verdict"] == "failed" and c["n_false_miss"] == 1 and c["n_nonfinite"] == 1 and c["n_flagged"] == 1
+
+
+def test_scoreboard_of_a_backend_with_no_judged_cell():
+    """A plugged backend whose every cell was skipped: no crash, 0 of 0 (it broke the report)."""
+    c = pd.DataFrame([{"method": "sphere_trace", "backend": "fake", "dtype": "float64", "family": "grazing",
+                       "verdict": "n/a"}])
+    board = S.scoreboard(c)
+    assert board.loc[0, "families_survived"] == 0 and board.loc[0, "families_total"] == 0
+    assert S.scoreboard_lines(board)[0].startswith("fake (float64): 0/0")
