@@ -81,11 +81,17 @@ def _existing_run_files(out: Path) -> list[str]:
     return [name for name in RUN_FILES if (out / name).exists()]
 
 
-def _resolve_backends(ids: list[str], flag: str = "--backend"):
-    """{id: backend or Unavailable}, or an error message when an id names nothing (a typo)."""
+def _resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
+    """{id: backend or Unavailable}, each loop driver given ``threads`` worker threads, or an
+    error message when an id names nothing (a typo)."""
     from impls import registry
 
+    from .environment import configure_driver
+
     backends = {bid: registry.resolve(bid) for bid in ids}
+    for b in backends.values():
+        if not isinstance(b, registry.Unavailable):
+            configure_driver(b, threads)
     unknown = [b for b in backends.values() if isinstance(b, registry.Unavailable) and b.unknown]
     if unknown:
         return None, f"{flag}: " + "; ".join(b.reason for b in unknown)
@@ -276,7 +282,7 @@ def cmd_run(args) -> int:
     from impls import registry
 
     ids = _split(args.backend) or registry.default_ids()
-    backends, msg = _resolve_backends(ids)
+    backends, msg = _resolve_backends(ids, args.threads)
     if msg:
         return _error(msg + "; `python -m bench backends` lists the backends")
     if "torch" in sys.modules:
@@ -551,7 +557,8 @@ def cmd_speed(args) -> int:
     bad = [(bid, b) for bid, b in ((bid, registry.resolve(bid)) for bid in ids) if isinstance(b, registry.Unavailable)]
     if bad:
         return _error("--backend: " + "; ".join(f"{bid}: {b.reason}" for bid, b in bad))
-    rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {})
+    rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {},
+                         threads=args.threads)
     for row in rows:
         row["threads"] = args.threads
         row["allocator"] = allocator

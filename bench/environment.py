@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
@@ -35,7 +36,29 @@ def _cpu_model() -> str:
 
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-RECORDED_VARS = THREAD_VARS + ("ISOBENCH_THREADS", "XLA_FLAGS")
+RECORDED_VARS = THREAD_VARS + ("XLA_FLAGS",)
+
+
+def configure_driver(backend, threads: int) -> None:
+    """Give a backend's loop driver ``threads`` worker threads where its settings have them
+    (``backend.settings``: the numpy/torch compacting driver; jax's masked driver has none, XLA
+    is configured by :func:`configure_threads`).  A plug-in without settings is left alone."""
+    settings = getattr(backend, "settings", None)
+    configure = getattr(backend, "configure", None)
+    if callable(configure) and "threads" in getattr(type(settings), "__dataclass_fields__", {}):
+        configure(threads=threads)
+
+
+def driver_record(backend) -> str:
+    """``backend.settings.record()`` as JSON (the loop driver's settings, recorded with every row);
+    "" for a backend that states none, or whose record fails (a plug-in's fault is not the run's)."""
+    settings = getattr(backend, "settings", None)
+    if settings is None or not callable(getattr(settings, "record", None)):
+        return ""
+    try:
+        return json.dumps(settings.record(), sort_keys=True)
+    except Exception:  # noqa: BLE001 - untrusted plug-in code
+        return ""
 
 
 def configure_threads(n: int) -> dict[str, str]:
@@ -49,10 +72,6 @@ def configure_threads(n: int) -> dict[str, str]:
     for var in THREAD_VARS:
         if not os.environ.get(var):
             os.environ[var] = done[var] = str(n)
-    # isobench's own: the worker threads of the numpy/torch root-finder drivers
-    # (impls.core.driver.worker_threads)
-    if not os.environ.get("ISOBENCH_THREADS"):
-        os.environ["ISOBENCH_THREADS"] = done["ISOBENCH_THREADS"] = str(n)
     if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
         # XLA's CPU client spreads element-wise work over its Eigen thread pool; off = one thread
         flags = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()

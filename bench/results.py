@@ -7,7 +7,9 @@ values) are stored as JSON strings so the same table round-trips through parquet
 
 Schema history: 1 — the skeleton (depth only); 2 — ``family``, ``quantity``, ``unit``,
 ``error_rel_max``, ``error_ulps_max``, ``n_checked``, ``n_declined``, ``loops``, ``rounds``,
-``error_iterate_median``, ``reference_error_bound``, ``timing_note``.
+``error_iterate_median``, ``reference_error_bound``, ``timing_note``; ``driver_json`` (the
+backend's loop-driver settings, :func:`bench.environment.driver_record`; added without a version
+bump: readers treat it as optional).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ COLUMNS = [
     "error_max_finite", "error_rel_max", "error_ulps_max", "error_max_eps", "n_checked", "n_declined",
     "n_false_hit", "n_false_miss", "evals_per_ray", "evals_p99", "evals_max", "iterations_max",
     "first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_samples_s", "time_ratio_cf", "n_samples",
-    "loops", "rounds", "error_iterate_median", "reference_error_bound", "reference_s", "knobs_json", "timing_note", "traceback",
+    "loops", "rounds", "error_iterate_median", "reference_error_bound", "reference_s", "knobs_json", "timing_note", "traceback", "driver_json",
 ]
 #: the reason of a configuration skipped because its run's time budget ran out (prefix)
 OVER_BUDGET = "over the run's time budget"

@@ -97,7 +97,8 @@ def _base_row(run_id: str, cfg: Config, backend: Any) -> dict:
         "schema_version": SCHEMA_VERSION, "run_id": run_id, "case_id": cfg.case.id, "case_version": cfg.case.version,
         "backend": cfg.backend_id, "device": _device(cfg, backend), "dtype": cfg.dtype, "method": cfg.method,
         "family": spec.family if spec else "", "knob": knob_string(cfg.knobs),
-        "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "n_rays": cfg.case.n_rays,
+        "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "driver_json": environment.driver_record(backend),
+        "n_rays": cfg.case.n_rays,
         "quantity": primary_quantity(spec) if spec else "",
     }
 
@@ -532,6 +533,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     for bid, b in backends.items():
         if not isinstance(b, Unavailable):
             env.update(_versions(bid, b))
+            if environment.driver_record(b):
+                env[f"backend.{bid}.driver"] = environment.driver_record(b)
     write_json(out_dir / "environment.json", env)
     cfgs = plan(suite, list(backends), case_pattern, methods, dtypes)
     if not cfgs:

@@ -84,7 +84,7 @@ def _median_time(fn, k: int) -> float:
 
 
 def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repeats: int = 3, knobs=None,
-            t_max: float = 10.0) -> list[dict]:
+            t_max: float = 10.0, threads: int = 1) -> list[dict]:
     """One row per scene × backend (see the module docstring).
 
     Backends run one after the other, each on every scene (jax, last by default, leaves XLA's
@@ -95,10 +95,13 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
     :func:`bench.environment.tune_allocator`, 0.43 s alone and 0.40–0.44 s after them.)"""
     from impls import Status, registry
 
+    from .environment import configure_driver
+
     runs = []
     cases = scenes(n_side)
     for bid in backend_ids:
         b = registry.resolve(bid)
+        configure_driver(b, threads)
         for name, (scene, o, d) in cases.items():
             p = b.prepare(method, scene, o, d, t_min=0.0, t_max=t_max, **(knobs or {}))
             t0 = time.perf_counter()

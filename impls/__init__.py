@@ -1,11 +1,16 @@
-"""isobench backends: numpy/, torch/, jax/ mirror each other module for module.
+"""isobench backends: numpy/, torch/, jax/ mirror each other module for module and hold only
+what differs between array libraries.
 
-``backend.py`` wraps the library (arrays, device, sync, compile, versions); ``tracing.py`` (root
-finders: φ along rays and the loop driver), ``gradients.py`` (∇φ and the Hessian),
-``param_grad.py`` (Jacobians in θ) and ``rendering.py`` bind the algorithms of ``core/`` —
-written once against the array API — to the library.  ``protocol.py`` is the contract,
-``methods.py`` the method catalog (the single source of methods, knobs, requirements and
-outputs), ``registry.py`` finds backends (built-in, entry points, ``module:attr``).
+``backend.py`` is the library's hook object (:class:`impls.base.ArrayBackend`: arrays, device,
+sync, compile, versions, and the hooks below); ``derivatives.py`` evaluates φ along rays with
+dφ/dt, ∇φ and the Hessian at points, and Jacobians in θ (autodiff, or central differences in
+numpy); ``driver.py`` runs a root finder's per-ray loop (active-set compaction in numpy and
+torch, masked ``lax.while_loop`` levels in jax) with the backend's recorded ``settings``.  The
+algorithms are in ``core/``, written once against the array API, and every backend runs the
+same method table (``core/table.py``), built once from ``methods.py``, the method catalog (the
+single source of methods, knobs and their defaults, requirements, outputs, and the builder of
+each root finder).  ``protocol.py`` is the contract, ``registry.py`` finds backends (built-in,
+entry points, ``module:attr``).
 """
 
 from .methods import METHODS, get_method

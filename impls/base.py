@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 import time
@@ -9,6 +10,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .core.param_grad import python_fori
+from .core.table import METHOD_TABLE
 from .methods import get_method
 from .protocol import Capabilities, Prepared, RayResult
 
@@ -100,26 +103,43 @@ def check_color(method: str, color: Any) -> Any:
 
 
 class ArrayBackend:
-    """Base of the built-in backends: validation, method lookup, ``prepare``.
+    """One array library's hooks; everything else is shared (validation, ``prepare``, the method
+    table :data:`impls.core.table.METHOD_TABLE`, built once from the catalog).
 
-    Subclasses set ``lib``, ``capabilities``, ``xp`` and ``_impl`` (name → function of
-    ``(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs)`` (plus ``color=`` for methods with
-    ``MethodSpec.needs_color``) returning a dict of native
-    arrays with at least ``t, status, iterations, evals``; ``t_hit`` is ``None`` or the
-    per-ray depth (native array) that point-wise methods (normals, curvature, dt/dθ) evaluate
-    at) and implement ``asarray``, ``to_numpy``, ``synchronize`` and optionally ``compile``.
+    A subclass sets ``lib``, ``capabilities``, ``xp`` (its array-API namespace) and ``settings``
+    (its loop driver's settings: a frozen dataclass with ``ladder`` and ``record()``, recorded
+    with every result), and implements the hooks:
+
+    * ``asarray(a, dtype)``, ``to_numpy(a)``, ``synchronize(out)``, ``versions()``, optionally
+      ``compile(fn, *args)``;
+    * ``ray_eval(scene, theta)`` → ``ev(o, d, t, deriv) -> (φ, dφ/dt or None, cost)`` along rays;
+    * ``grad_hess(scene, x, hess, theta=None)`` → ``(∇φ, Hessian or None, cost)`` at points;
+    * ``theta_jacobian(fun, theta)`` → ``(J, cost)``, the Jacobian (n, P) of θ ↦ fun(θ) (n,);
+    * ``run_loop(alg, o, d, ev)`` → the outputs of a root finder (:mod:`impls.core.rootfind`)
+      run to completion on every ray, with ``settings``;
+    * ``stop_gradient`` (``None``: no autodiff, ``render_surface`` is ρ at the hit itself),
+      ``compact`` (volume rendering drops terminated rays), ``fori_loop`` (the unrolled tracer's
+      loop, ``lax.fori_loop`` semantics).
+
+    ``cost`` counts φ evaluations per point or ray (autodiff: 1; central differences: more).
     """
 
     lib: str = ""
     capabilities = Capabilities()
     xp: Any = None
-    _impl: dict[str, Callable] = {}
+    settings: Any = None
+    stop_gradient: Callable[[Any], Any] | None = None
+    compact: bool = True
+    fori_loop = staticmethod(python_fori)
+    _impl = METHOD_TABLE
 
-    def __init__(self, device: str = "cpu"):
+    def __init__(self, device: str = "cpu", settings: Any = None):
         if device not in self.capabilities.devices:
             raise ValueError(f"{self.lib} backend: device {device!r} not available; available: {self.capabilities.devices}")
         self.device = device
         self.id = self.lib if self.lib == "numpy" else f"{self.lib}:{device}"
+        if settings is not None:
+            self.settings = settings
 
     def __repr__(self) -> str:
         return f"<isobench backend {self.id}>"
@@ -127,11 +147,40 @@ class ArrayBackend:
     def methods(self) -> tuple[str, ...]:
         return tuple(sorted(self._impl))
 
-    # subclasses ------------------------------------------------------------------------------
+    def configure(self, **changes: Any) -> None:
+        """Change driver settings of this backend (``backend.configure(threads=2)``); a name its
+        driver does not have is a ValueError listing those it has."""
+        names = {f.name for f in dataclasses.fields(self.settings)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise ValueError(f"{self.id}: driver settings {unknown} unknown; {type(self.settings).__name__} has "
+                             f"{sorted(names)}")
+        self.settings = dataclasses.replace(self.settings, **changes)
+
+    def solve(self, method: str, scene: Any, o: Any, d: Any, *, t_min: float, t_max: float, theta: Any = None,
+              **knobs: Any) -> dict:
+        """Root method ``method`` on rays ``o``, ``d`` (native arrays) with validated ``knobs``:
+        its algorithm (``MethodSpec.algorithm``) run by this backend's loop driver."""
+        alg = get_method(method).algorithm(scene, t_min, t_max, knobs, theta, ladder=self.settings.ladder)
+        return self.run_loop(alg, o, d, self.ray_eval(scene, theta))
+
+    # hooks -----------------------------------------------------------------------------------
     def asarray(self, a: np.ndarray, dtype: str) -> Any:  # pragma: no cover
         raise NotImplementedError
 
     def to_numpy(self, a: Any) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def ray_eval(self, scene: Any, theta: Any = None) -> Callable:  # pragma: no cover
+        raise NotImplementedError
+
+    def grad_hess(self, scene: Any, x: Any, hess: bool, theta: Any = None) -> tuple:  # pragma: no cover
+        raise NotImplementedError
+
+    def theta_jacobian(self, fun: Callable, theta: Any) -> tuple:  # pragma: no cover
+        raise NotImplementedError
+
+    def run_loop(self, alg: Any, o: Any, d: Any, ev: Callable) -> dict:  # pragma: no cover
         raise NotImplementedError
 
     def synchronize(self, out: Any = None) -> None:

@@ -9,9 +9,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
+
+from .core import methods_root
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +89,18 @@ class MethodSpec:
     needs_t_hit: bool = False
     outputs: tuple[str, ...] = ()
     needs_color: bool = False
+    #: root family: ``build(scene, t_min, t_max, knobs, theta, *, ladder)`` → the algorithm
+    #: (:mod:`impls.core.rootfind`) from the knobs ``validate`` returned; ``ladder`` is the loop
+    #: driver's choice of ladder samples for the knob value -1 (:mod:`impls.core.methods_root`)
+    build: Callable[..., Any] | None = None
+
+    def algorithm(self, scene, t_min: float, t_max: float, knobs: dict[str, Any], theta: Any = None, *,
+                  ladder: int) -> Any:
+        """The root finder of this method for ``knobs`` as :meth:`validate` returns them (every knob
+        present: defaults are filled there, once)."""
+        if self.build is None:
+            raise ValueError(f"{self.name} is a {self.family} method, not a root finder")
+        return self.build(scene, t_min, t_max, knobs, theta, ladder=ladder)
 
     def skip_reason(self, scene) -> str | None:
         info = scene.info
@@ -158,7 +172,7 @@ def _specs() -> list[MethodSpec]:
                 Knob("omega", 1.0, float, 1.0, "over-relaxation factor ω (Keinert et al. 2014; 1 = plain)", 1.99),
                 _BOUNDS,
             ),
-            requires=("lipschitz",),
+            requires=("lipschitz",), build=methods_root.build_sphere_trace,
             description="Hart's sphere tracing t ← t + ω|φ|/L from t_min until |φ| ≤ tol "
             "(lecture: 'Sphere Tracing'); L is the scene's Lipschitz bound; ω > 1 with the safe fallback",
         ),
@@ -167,7 +181,7 @@ def _specs() -> list[MethodSpec]:
             family="root",
             knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
                    _REACH),
-            requires=("lipschitz",),
+            requires=("lipschitz",), build=methods_root.build_hybrid,
             description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, Δ in "
             "[min_step, overstep] halved while a step is not certified by overlapping unbounding spheres (and at "
             "least the secant's extrapolation past a shallow approach, within reach), in ladder steps of several "
@@ -181,7 +195,7 @@ def _specs() -> list[MethodSpec]:
             knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)"),
                    Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps"), _BOUNDS, _LADDER,
                    _LADDER_AFTER),
-            requires=(),
+            requires=(), build=methods_root.march_builder(refine),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
     specs += [
@@ -225,7 +239,7 @@ def _specs() -> list[MethodSpec]:
             name="render_surface", family="render",
             knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
                    _REACH),
-            requires=("lipschitz",), outputs=("color",), needs_color=True,
+            requires=("lipschitz",), outputs=("color",), needs_color=True, build=methods_root.build_hybrid,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",
         ),
     ]

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from impls.methods import METHODS
+
 from impls.core import param_grad
 from tests.test_conformance import SPHERE, AlgebraicSphere, camera
 
@@ -78,11 +80,15 @@ def _surface_rays(scene, n=4):
     return o, d, hit, scene.hit_param_grad(o[hit], d[hit], t[hit])
 
 
+# render_surface's knobs as prepare passes them: complete (MethodSpec.validate fills the defaults)
+KNOBS = METHODS["render_surface"].validate(dict(xtol=1e-13, min_step=1e-5, overstep=1e-2, max_steps=4096))
+
+
 @pytest.mark.parametrize("scene", DIFF_SCENES, ids=lambda s: s.kind)
 def test_torch_render_surface_gradient_is_the_hit_depth_gradient(scene):
     torch = pytest.importorskip("torch")
     from impls import registry
-    from impls.torch.rendering import render_surface
+    from impls.core.rendering import render_surface
 
     b = registry.resolve("torch:cpu")
     o, d, hit, dt_exact = _surface_rays(scene)
@@ -91,7 +97,7 @@ def test_torch_render_surface_gradient_is_the_hit_depth_gradient(scene):
 
     def color(theta, field=_PositionColor()):
         return render_surface(b, scene, O, D, t_min=0.0, t_max=T_MAX, t_hit=None, color=field, theta=theta,
-                              xtol=1e-13, min_step=1e-5, overstep=1e-2, max_steps=4096)["color"]
+                              **KNOBS)["color"]
 
     J = torch.autograd.functional.jacobian(color, th).numpy()  # (n, 3, P)
     want = np.zeros_like(J)  # misses: colour 0, derivative 0
@@ -110,7 +116,7 @@ def test_jax_render_surface_gradient_is_the_hit_depth_gradient(scene):
     from jax.test_util import check_grads
 
     from impls import registry
-    from impls.jax.rendering import render_surface
+    from impls.core.rendering import render_surface
 
     b = registry.resolve("jax:cpu")
     o, d, hit, dt_exact = _surface_rays(scene)
@@ -119,7 +125,7 @@ def test_jax_render_surface_gradient_is_the_hit_depth_gradient(scene):
 
     def color(theta, field=_PositionColor()):
         return render_surface(b, scene, O, D, t_min=0.0, t_max=T_MAX, t_hit=None, color=field, theta=theta,
-                              xtol=1e-13, min_step=1e-5, overstep=1e-2, max_steps=4096)["color"]
+                              **KNOBS)["color"]
 
     for jac in (jax.jacfwd, jax.jacrev):
         J = np.asarray(jax.jit(jac(color))(th))
@@ -131,11 +137,11 @@ def test_jax_render_surface_gradient_is_the_hit_depth_gradient(scene):
 
 def test_numpy_render_surface_is_the_colour_at_the_hit():
     from impls import registry
-    from impls.numpy.rendering import render_surface
+    from impls.core.rendering import render_surface
 
     o, d, hit, _ = _surface_rays(SPHERE)
     out = render_surface(registry.resolve("numpy"), SPHERE, o, d, t_min=0.0, t_max=10.0, t_hit=None,
-                         color=_PositionColor(), xtol=1e-13, min_step=1e-5, overstep=1e-2, max_steps=4096)
+                         color=_PositionColor(), **KNOBS)
     t = SPHERE.first_hit(o, d, 0.0)
     assert np.abs(out["color"][hit] - (o + t[:, None] * d)[hit]).max() < 1e-12
     assert np.all(out["color"][~hit] == 0)

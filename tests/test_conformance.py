@@ -347,9 +347,9 @@ def test_jax_jitted_equals_eager():
 
     o, d = camera(6)
     jitted = run(b, "march_newton", SPHERE, o, d, xtol=1e-13, step=0.01)
-    from impls.jax import tracing
+    from impls.core.table import METHOD_TABLE
 
-    eager = tracing.IMPLS["march_newton"](b, SPHERE, jnp.asarray(o), jnp.asarray(d), t_min=0.0, t_max=10.0, t_hit=None,
+    eager = METHOD_TABLE["march_newton"](b, SPHERE, jnp.asarray(o), jnp.asarray(d), t_min=0.0, t_max=10.0, t_hit=None,
                                           **METHODS["march_newton"].validate(dict(xtol=1e-13, step=0.01)))
     np.testing.assert_array_equal(np.asarray(eager["status"]), jitted.status)
     np.testing.assert_allclose(np.asarray(eager["t"]), jitted.t, rtol=1e-14)

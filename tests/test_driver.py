@@ -4,27 +4,24 @@ size, the straggler pool or the number of worker threads."""
 import numpy as np
 import pytest
 
-from impls.core.methods_root import make_root_finder
+from impls import registry
 from impls.methods import METHODS
 from reference.cases import get_case
 
 
+def make_root_finder(method, scene, t_min, t_max, knobs, ladder=16):
+    return METHODS[method].algorithm(scene, t_min, t_max, METHODS[method].validate(knobs), ladder=ladder)
+
+
 def _backend_loop(name):
-    if name == "numpy":
-        from impls.numpy import tracing
+    if name == "torch":
+        pytest.importorskip("torch")
+    b = registry.resolve(name if name == "numpy" else f"{name}:cpu")
 
-        return lambda alg, o, d, scene, **kw: tracing.run_loop(alg, o, d, tracing.ray_eval(None, scene), **kw)
-    pytest.importorskip("torch")
-    import torch
-
-    from impls import registry
-    from impls.torch import tracing
-
-    b = registry.resolve("torch:cpu")
-
-    def run(alg, o, d, scene, **kw):
-        out = tracing.run_loop(b, alg, torch.from_numpy(o), torch.from_numpy(d), tracing.ray_eval(b, scene), **kw)
-        return {k: v.numpy() for k, v in out.items()}
+    def run(alg, o, d, scene, block, pool, workers):
+        b.configure(block=block, pool=pool, threads=workers)
+        out = b.run_loop(alg, b.asarray(o, "float64"), b.asarray(d, "float64"), b.ray_eval(scene))
+        return {k: b.to_numpy(v) for k, v in out.items()}
 
     return run
 
@@ -49,30 +46,36 @@ def test_results_do_not_depend_on_blocks_pool_or_threads(backend, method):
         np.testing.assert_array_equal(got["t"], ref["t"])
 
 
-def test_worker_threads_reads_the_environment(monkeypatch):
-    from impls.core.driver import worker_threads
-
-    monkeypatch.delenv("ISOBENCH_THREADS", raising=False)
-    assert worker_threads() == 1
-    monkeypatch.setenv("ISOBENCH_THREADS", "2")
-    assert worker_threads() == 2
-    for bad in ("0", "two"):
-        monkeypatch.setenv("ISOBENCH_THREADS", bad)
-        with pytest.raises(ValueError, match="ISOBENCH_THREADS"):
-            worker_threads()
+@pytest.mark.parametrize("backend_id", ["numpy", "torch:cpu", "jax:cpu"])
+def test_driver_settings_are_validated_and_recorded(backend_id):
+    """Driver settings are one explicit configuration per backend: changed by ``configure``,
+    checked (whole numbers, known names), and recorded as a plain dict."""
+    b = registry.resolve(backend_id)
+    if isinstance(b, registry.Unavailable):
+        pytest.skip(b.reason)
+    rec = b.settings.record()
+    assert rec["driver"] in ("compacting", "masked") and rec["ladder"] == b.settings.ladder
+    name = "threads" if "threads" in rec else "chunk"
+    b.configure(**{name: 2})
+    assert b.settings.record()[name] == 2
+    for bad in (0, 1.5, True, "2"):
+        with pytest.raises(ValueError, match=name):
+            b.configure(**{name: bad})
+    with pytest.raises(ValueError, match="no_such_setting"):
+        b.configure(no_such_setting=1)
 
 
 @pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_newton"])
 def test_jax_results_do_not_depend_on_chunks_or_levels(method):
-    """The jax driver (impls.jax.tracing.run_loop: chunks, batches compacted level by level,
+    """The jax driver (impls.jax.driver.run_loop: chunks, batches compacted level by level,
     the chunks' capped stragglers finished together) gives the same per-ray results for any
     chunk size, shrink ratio, last size and cap, including a single uncompacted level."""
     pytest.importorskip("jax")
     import jax
     import jax.numpy as jnp
 
-    from impls import registry
-    from impls.jax import tracing
+    from impls.jax import derivatives
+    from impls.jax import driver as tracing
 
     registry.resolve("jax:cpu")  # float64 on
     case = get_case("csg.union.camera.32x32")
@@ -81,7 +84,7 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     if method != "sphere_trace":
         knobs["ladder_after"] = 8  # ladder steps in the masked loops and the straggler pass
     alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
-    ev = tracing.ray_eval(None, case.scene)
+    ev = derivatives.ray_eval(case.scene)
 
     def run(chunk, ratio, last, cap=1):
         f = jax.jit(lambda o, d: tracing.run_loop(alg, o, d, ev, chunk=chunk, ratio=ratio, last=last, tail_cap=cap))
@@ -107,14 +110,14 @@ def test_steps_read_only_what_they_declare(method):
     """The compacting drivers carry only ``alg.reads(stage)`` into a stage: each step, given only
     those entries, computes what it computes on the whole state (every stage, on rays in it)."""
     from impls.core import rootfind
-    from impls.numpy import tracing
+    from impls.numpy import derivatives
 
     case = get_case("csg.union.camera.32x32")
     knobs = {k.name: k.default for k in METHODS[method].knobs}
     knobs["ladder_after"] = 2
     alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
     assert len(alg.stages) == 3
-    ev = tracing.ray_eval(None, case.scene)
+    ev = derivatives.ray_eval(case.scene)
     o, d = case.origins, case.directions
     s = alg.init(np, o, d, ev)
     seen = set()

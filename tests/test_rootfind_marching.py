@@ -121,7 +121,7 @@ def test_bad_ladder_knobs_name_the_knob(knob, value):
 @pytest.mark.parametrize("backend,ladder", [("numpy", 16), ("torch", 16), ("jax:cpu", 0)])
 def test_the_default_ladder_is_the_drivers_choice(backend, ladder):
     """``ladder`` = -1 (the default) leaves it to the loop driver: 16 samples on the compacting
-    drivers, none on jax's masked levels (impls.jax.tracing.LADDER)."""
+    drivers, none on jax's masked levels (impls.jax.driver.LADDER)."""
     pytest.importorskip(backend.split(":")[0])
     scene = Sphere()
     o, d = _grazing_sphere_rays([1e-3, 1e-5, -1e-4])

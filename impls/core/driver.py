@@ -37,7 +37,7 @@ Why it looks the way it does (all measured on 2^20 rays, see ``bench/speed.py``)
 from __future__ import annotations
 
 import contextlib
-import os
+import dataclasses
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
@@ -45,15 +45,49 @@ from typing import Any, Callable
 from .rootfind import IN, STATE_OUT, final_t
 
 
+def _whole_at_least(owner: str, name: str, value: Any, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ValueError(f"{owner}: {name}={value!r} must be a whole number ≥ {low}")
+
+
+@dataclasses.dataclass(frozen=True)
+class CompactingSettings:
+    """How the compacting driver (:func:`run_compacted`) runs, held by a numpy or torch backend
+    (``backend.settings``) and recorded with every result row (``driver_json``).  None of them
+    changes a per-ray result except ``ladder``, which is part of the algorithm.
+
+    threads: worker threads running blocks side by side (``--threads`` of the bench commands).
+    block:   rays per block (state in cache, few Python-level steps; see the module docstring).
+    pool:    a stage's last rays of a block, fewer than this, join the straggler pool (0: none).
+    ladder:  samples per ladder step (:class:`impls.core.rootfind.MarchRefine`) where the knob
+             ``ladder`` is -1, "the driver's choice": 16 — once few rays are left, a compacting
+             loop step costs its per-call overhead whatever their number."""
+
+    threads: int = 1
+    block: int = 1 << 16
+    pool: int = 4096
+    ladder: int = 16
+
+    kind = "compacting"
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            _whole_at_least(type(self).__name__, f.name, getattr(self, f.name), 0 if f.name in ("ladder", "pool") else 1)
+
+    def record(self) -> dict:
+        """The settings as recorded with a result: ``{"driver": kind, field: value, …}``."""
+        return {"driver": self.kind, **dataclasses.asdict(self)}
+
+
 def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 1 << 16, pool: int = 4096,
-                  workers: int | None = None, guard: Callable[[], Any] = contextlib.nullcontext,
+                  workers: int = 1, guard: Callable[[], Any] = contextlib.nullcontext,
                   take: Callable[[Any, Any, int], Any] | None = None,
                   move: Callable[[Any, Any, Any], None] | None = None) -> dict:
     """Run ``alg`` on rays ``o``, ``d`` (n, 3); returns ``{t, status, iterations, evals}`` (n,).
 
     ``soa(a)`` returns a contiguous (3, n) copy of an (n, 3) array (backend-specific: the array
     API has no contiguity control; always a copy, which the blocks compact in place).
-    ``workers`` (default :func:`worker_threads`) > 1 runs the blocks on that many threads:
+    ``workers`` > 1 runs the blocks on that many threads:
     numpy and torch release the GIL inside their array operations, so blocks overlap; each
     thread writes only its own rays' outputs.  The straggler pool then runs on one thread: its
     steps are on few rays, where the per-call overhead (under the GIL) dominates, and split
@@ -113,7 +147,6 @@ def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 
             _run_stages(alg, xp, take, move, *part, ev, out, k, None, 0)
 
     starts = range(0, max(n, 1), block)
-    workers = worker_threads() if workers is None else workers
     if workers <= 1:
         for start in starts:
             run_block(start)
@@ -124,19 +157,6 @@ def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 
         if parts:
             run_pool(k, _concat(xp, parts))
     return out
-
-
-def worker_threads() -> int:
-    """Threads the compacting drivers use: ``ISOBENCH_THREADS`` (set by ``--threads`` of the
-    bench commands, :func:`bench.environment.configure_threads`), else 1."""
-    v = os.environ.get("ISOBENCH_THREADS", "1")
-    try:
-        n = int(v)
-    except ValueError:
-        raise ValueError(f"ISOBENCH_THREADS must be a whole number ≥ 1, got {v!r}") from None
-    if n < 1:
-        raise ValueError(f"ISOBENCH_THREADS must be a whole number ≥ 1, got {v!r}")
-    return n
 
 
 def _reads(alg, k: int):

@@ -1,4 +1,8 @@
-"""Build the root-finder state machine of a ``root``-family method from its knobs."""
+"""Build the root-finder state machine of a ``root``-family method from its validated knobs.
+
+Each root method's :class:`impls.methods.MethodSpec` names its builder here (``spec.build``);
+the knobs reach it complete (defaults are filled once, by ``MethodSpec.validate``), with the
+loop driver's choice of ladder samples for the knob value -1."""
 
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ def search_bounds(scene, knobs: dict, theta=None):
     """The scene whose ray bounds (:meth:`reference.scene.Field.ray_bounds`) the root finders
     clip rays to when knob ``bounds`` is on and φ is evaluated at the stored parameters (a θ
     passed in may move the surface out of the stored parameters' bounds), else None."""
-    if not knobs.get("bounds", 1) or theta is not None:
+    if not knobs["bounds"] or theta is not None:
         return None
     return scene
 
@@ -47,52 +51,51 @@ def marching_check(scene, bounds, theta) -> float | None:
     return 1.0 / float(lip)
 
 
-LADDER = 16  # ladder samples when the knob is -1 ("the driver's choice") and the driver states none
+def _ladder(knobs: dict, driver_ladder: int) -> int:
+    """Ladder samples: the knob, or the driver's choice where the knob leaves it to the driver (-1)."""
+    return driver_ladder if knobs["ladder"] == -1 else knobs["ladder"]
 
 
-def make_root_finder(method: str, scene, t_min: float, t_max: float, knobs: dict, theta=None, ladder: int = LADDER):
-    """The algorithm object (``init``/``step``) of root method ``method`` with validated knobs
-    (a knob left out takes its default: callers inside isobench may pass only some); ``ladder``
-    is the loop driver's choice of ladder samples where the knob leaves it to the driver (-1)."""
-    from ..methods import METHODS
-
-    knobs = {**{k.name: k.default for k in METHODS[method].knobs}, **knobs}
-    bounds = search_bounds(scene, knobs, theta)
-    # a bound stated on a domain only (the algebraic sphere's on |x| ≤ R) is not checked past the ray bounds
-    probe = getattr(scene.info, "domain", None) is None
-    scale = rounding_scale(scene)
-    if knobs.get("ladder", -1) == -1:
-        knobs["ladder"] = ladder
-    if method == "sphere_trace":
-        return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
-                           omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=bounds, probe=probe,
-                           scale=scale)
-    if method in ("hybrid_secant", "render_surface"):
-        return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
-                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
-                           overstep=max(knobs["overstep"], knobs["min_step"]), bounds=bounds, ladder=knobs["ladder"],
-                           ladder_after=knobs["ladder_after"], extrapolate=knobs["extrapolate"],
-                           reach=knobs["reach"], probe=probe, scale=scale)
-    if method.startswith("march_"):
-        return MarchRefine(refine=method[len("march_"):], min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
-                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds, ladder=knobs["ladder"],
-                           ladder_after=knobs["ladder_after"], extrapolate=0.0, scale=scale,
-                           check_inv_lip=marching_check(scene, bounds, theta))
-    raise ValueError(f"{method!r} is not a root finder")
+def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> SphereTrace:
+    """``sphere_trace``'s algorithm from its validated knobs (:meth:`impls.methods.MethodSpec.validate`)."""
+    return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
+                       omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
+                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene))
 
 
-ROOT_METHODS = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton")
+def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
+    """``hybrid_secant``'s (and ``render_surface``'s) algorithm from its validated knobs; the largest
+    forced step is at least the smallest (``overstep`` below ``min_step`` means no forced-step range)."""
+    return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
+                       max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
+                       overstep=max(knobs["overstep"], knobs["min_step"]), bounds=search_bounds(scene, knobs, theta),
+                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
+                       extrapolate=knobs["extrapolate"], reach=knobs["reach"],
+                       # a bound stated on a domain only (the algebraic sphere's on |x| ≤ R) is not
+                       # checked past the ray bounds
+                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene))
 
 
-def root_impls(solve, lib: str) -> dict:
-    """``{method: impl}`` for every root method, each a thin call of the backend's ``solve``."""
+def march_builder(refine: str):
+    """The builder of ``march_<refine>``'s algorithm: constant steps, then ``refine``."""
 
-    def bind(method):
-        def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-            return solve(method, backend, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
+    def build_march(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
+        bounds = search_bounds(scene, knobs, theta)
+        return MarchRefine(refine=refine, min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
+                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds,
+                           ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], extrapolate=0.0,
+                           scale=rounding_scale(scene), check_inv_lip=marching_check(scene, bounds, theta))
 
-        impl.__name__ = method
-        impl.__doc__ = f"{method} on {lib} (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."
-        return impl
+    build_march.__name__ = f"build_march_{refine}"
+    return build_march
 
-    return {m: bind(m) for m in ROOT_METHODS}
+
+def root_impl(method: str):
+    """The table entry of root method ``method``: the backend's :meth:`impls.base.ArrayBackend.solve`."""
+
+    def impl(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+        return backend.solve(method, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
+
+    impl.__name__ = method
+    impl.__doc__ = f"{method} (see impls.core.rootfind and impls.methods.METHODS[{method!r}])."
+    return impl

@@ -1,9 +1,10 @@
 """Hit-depth derivatives dt/dθ (θ = ``scene.param_vector()``, pre-order), written once.
 
-A backend supplies ``grad_hess`` (∇ₓφ, see :mod:`impls.core.pointwise`), ``theta_jacobian(
-backend, fun, theta) -> (J, cost)`` — the Jacobian (n, P) of a map θ ↦ (n,) array (forward-mode
-autodiff in torch/jax, central differences in numpy) — and ``solve(method, …)`` (its root-finder
-entry, used by the finite-difference method).
+A backend supplies ``backend.grad_hess`` (∇ₓφ, see :mod:`impls.core.pointwise`),
+``backend.theta_jacobian(fun, theta) -> (J, cost)`` — the Jacobian (n, P) of a map θ ↦ (n,) array (forward-mode
+autodiff in torch/jax, central differences in numpy) — ``backend.ray_eval`` (φ and dφ/dt along rays,
+used by the finite-difference method's Newton steps) and ``backend.fori_loop`` (the unrolled
+tracer's loop).
 
 * ``dt_implicit`` — lecture eq. 7–8: from φ(o + t(θ) d; θ) = 0,
   dt/dθ = −(∂φ/∂θ) / ⟨∇ₓφ, d⟩ at x̂ = o + t̂ d.
@@ -76,80 +77,80 @@ def python_fori(lower, upper, body, init):
     return val
 
 
-def make_impls(grad_hess, theta_jacobian, solve, ray_eval, fori_loop=python_fori):
-    """dt/dθ implementations bound to a backend; ``fori_loop`` runs the unrolled tracer (jax passes
-    ``lax.fori_loop`` so that a long unroll does not become a long trace)."""
+def dt_implicit(backend, scene, o, d, *, t_min, t_max, t_hit, min_cos):
+    xp = backend.xp
+    x, status = hit_points(xp, o, d, t_hit)
+    g, _, c1 = backend.grad_hess(scene, x, False)
+    gd, status = _guard(xp, status, g, d, min_cos)
+    J, c2 = backend.theta_jacobian(lambda th: scene.value(x, xp, th), theta0(backend, scene, o))
+    with _quiet(xp):
+        dt = -J / gd[:, None]
+    return _finish_dt(xp, status, dt, t_hit, c1 + c2)
 
-    def dt_implicit(backend, scene, o, d, *, t_min, t_max, t_hit, min_cos):
-        xp = backend.xp
-        x, status = hit_points(xp, o, d, t_hit)
-        g, _, c1 = grad_hess(backend, scene, x, False)
-        gd, status = _guard(xp, status, g, d, min_cos)
-        J, c2 = theta_jacobian(backend, lambda th: scene.value(x, xp, th), theta0(backend, scene, o))
-        with _quiet(xp):
-            dt = -J / gd[:, None]
-        return _finish_dt(xp, status, dt, t_hit, c1 + c2)
 
-    def dt_idr(backend, scene, o, d, *, t_min, t_max, t_hit, min_cos):
-        xp = backend.xp
-        x, status = hit_points(xp, o, d, t_hit)
-        g, _, c1 = grad_hess(backend, scene, x, False)
-        gd, status = _guard(xp, status, g, d, min_cos)  # gd is a constant here: the stop-gradient
-        th0 = theta0(backend, scene, o)
-        t_of = lambda th: idr_depth(xp, scene, x, t_hit, gd, th)  # noqa: E731
-        J, c2 = theta_jacobian(backend, t_of, th0)
-        return _finish_dt(xp, status, J, t_of(th0), c1 + c2 + 1)
+def dt_idr(backend, scene, o, d, *, t_min, t_max, t_hit, min_cos):
+    xp = backend.xp
+    x, status = hit_points(xp, o, d, t_hit)
+    g, _, c1 = backend.grad_hess(scene, x, False)
+    gd, status = _guard(xp, status, g, d, min_cos)  # gd is a constant here: the stop-gradient
+    th0 = theta0(backend, scene, o)
+    t_of = lambda th: idr_depth(xp, scene, x, t_hit, gd, th)  # noqa: E731
+    J, c2 = backend.theta_jacobian(t_of, th0)
+    return _finish_dt(xp, status, J, t_of(th0), c1 + c2 + 1)
 
-    def dt_unrolled(backend, scene, o, d, *, t_min, t_max, t_hit, steps, min_cos):
-        xp = backend.xp
-        inv_lip = 1.0 / float(scene.info.lipschitz)
 
-        def t_of(th):
-            return unrolled_depth(xp, scene, o, d, t_min, steps, th, fori_loop)
+def dt_unrolled(backend, scene, o, d, *, t_min, t_max, t_hit, steps, min_cos):
+    xp = backend.xp
+    inv_lip = 1.0 / float(scene.info.lipschitz)
 
-        th0 = theta0(backend, scene, o)
-        t = t_of(th0)
-        far = ~(t <= t_max)  # left the range, or NaN
-        x, status = hit_points(xp, o, d, xp.where(far, xp.full_like(t, float("inf")), t))
-        status = xp.astype(xp.where((status == CONV) & far, MISS, status), xp.int32)
-        reached = xp.abs(scene.value(x, xp)) * inv_lip <= UNROLLED_TOL
-        status = xp.astype(xp.where((status == CONV) & ~reached, MAXI, status), xp.int32)
-        g, _, c1 = grad_hess(backend, scene, x, False)
-        _, status = _guard(xp, status, g, d, min_cos)
-        J, c2 = theta_jacobian(backend, t_of, th0)
-        out = _finish_dt(xp, status, J, xp.where(far, xp.full_like(t, float("inf")), t), c1 + c2 * steps + steps + 1)
-        out["iterations"] = xp.full_like(out["iterations"], steps)
-        return out
+    def t_of(th):
+        return unrolled_depth(xp, scene, o, d, t_min, steps, th, backend.fori_loop)
 
-    def dt_finite_diff(backend, scene, o, d, *, t_min, t_max, t_hit, h, min_cos):
-        xp = backend.xp
-        x, status = hit_points(xp, o, d, t_hit)
-        g, _, c1 = grad_hess(backend, scene, x, False)
-        _, status = _guard(xp, status, g, d, min_cos)
-        th = scene.param_vector()
-        t0 = xp.where(xp.isfinite(t_hit), t_hit, xp.zeros_like(t_hit))
-        cols, cost = [], c1
-        for i in range(th.size):
-            hi = h * max(1.0, abs(float(th[i])))
-            ts = []
-            for sgn in (1.0, -1.0):
-                tp = th.copy()
-                tp[i] += sgn * hi
-                ev = ray_eval(backend, scene, backend.asarray(tp, _dtype_name(xp, o)))
-                t = t0
-                for _ in range(NEWTON_STEPS):
-                    f, df, c = ev(o, d, t, True)
-                    t = xp.where((status == CONV) | (status == ILL), t - f / df, t)  # non-hits stay put
-                    cost += c
-                ts.append(t)
-            cols.append((ts[0] - ts[1]) / (2 * hi))
-        dt = xp.stack(cols, axis=1) if cols else xp.zeros_like(o[:, :0])
-        out = _finish_dt(xp, status, dt, t_hit, cost)
-        out["iterations"] = xp.full_like(out["iterations"], NEWTON_STEPS)
-        return out
+    th0 = theta0(backend, scene, o)
+    t = t_of(th0)
+    far = ~(t <= t_max)  # left the range, or NaN
+    x, status = hit_points(xp, o, d, xp.where(far, xp.full_like(t, float("inf")), t))
+    status = xp.astype(xp.where((status == CONV) & far, MISS, status), xp.int32)
+    reached = xp.abs(scene.value(x, xp)) * inv_lip <= UNROLLED_TOL
+    status = xp.astype(xp.where((status == CONV) & ~reached, MAXI, status), xp.int32)
+    g, _, c1 = backend.grad_hess(scene, x, False)
+    _, status = _guard(xp, status, g, d, min_cos)
+    J, c2 = backend.theta_jacobian(t_of, th0)
+    out = _finish_dt(xp, status, J, xp.where(far, xp.full_like(t, float("inf")), t), c1 + c2 * steps + steps + 1)
+    out["iterations"] = xp.full_like(out["iterations"], steps)
+    return out
 
-    return {"dt_implicit": dt_implicit, "dt_idr": dt_idr, "dt_unrolled": dt_unrolled,
-            "dt_finite_diff": dt_finite_diff}
+
+def dt_finite_diff(backend, scene, o, d, *, t_min, t_max, t_hit, h, min_cos):
+    xp = backend.xp
+    x, status = hit_points(xp, o, d, t_hit)
+    g, _, c1 = backend.grad_hess(scene, x, False)
+    _, status = _guard(xp, status, g, d, min_cos)
+    th = scene.param_vector()
+    t0 = xp.where(xp.isfinite(t_hit), t_hit, xp.zeros_like(t_hit))
+    cols, cost = [], c1
+    for i in range(th.size):
+        hi = h * max(1.0, abs(float(th[i])))
+        ts = []
+        for sgn in (1.0, -1.0):
+            tp = th.copy()
+            tp[i] += sgn * hi
+            ev = backend.ray_eval(scene, backend.asarray(tp, _dtype_name(xp, o)))
+            t = t0
+            for _ in range(NEWTON_STEPS):
+                f, df, c = ev(o, d, t, True)
+                t = xp.where((status == CONV) | (status == ILL), t - f / df, t)  # non-hits stay put
+                cost += c
+            ts.append(t)
+        cols.append((ts[0] - ts[1]) / (2 * hi))
+    dt = xp.stack(cols, axis=1) if cols else xp.zeros_like(o[:, :0])
+    out = _finish_dt(xp, status, dt, t_hit, cost)
+    out["iterations"] = xp.full_like(out["iterations"], NEWTON_STEPS)
+    return out
+
+
+IMPLS = {"dt_implicit": dt_implicit, "dt_idr": dt_idr, "dt_unrolled": dt_unrolled,
+         "dt_finite_diff": dt_finite_diff}
 
 
 def central_jacobian(xp, fun, theta_np: np.ndarray, to_backend):

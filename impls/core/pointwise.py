@@ -1,7 +1,7 @@
 """Point-wise quantities at given hits x = o + t_hit d: unit normal and curvatures.
 
-Written once against ``xp``; a backend supplies ``grad_hess(backend, scene, x, hess) ->
-(g, H, cost)`` — ∇φ (n, 3), the Hessian H (n, 3, 3) or ``None``, and the φ evaluations per
+Written once against ``xp``; a backend supplies ``backend.grad_hess(scene, x, hess, theta=None)
+-> (g, H, cost)`` — ∇φ (n, 3), the Hessian H (n, 3, 3) or ``None``, and the φ evaluations per
 point it cost (autodiff: 1; numpy central differences: more).
 
 Formulas (R. Goldman, "Curvature formulas for implicit curves and surfaces", CAGD 22, 2005;
@@ -75,23 +75,22 @@ def curvatures(xp, g, H):
     return tr, (tr - nHn) / gn, gag / gn**4
 
 
-def make_impls(grad_hess):
-    """``normal`` and ``curvature`` method implementations bound to a backend's ``grad_hess``."""
+def normal(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+    xp = backend.xp
+    x, status = hit_points(xp, o, d, t_hit)
+    g, _, cost = backend.grad_hess(scene, x, False)
+    nrm, _ = normal_from_grad(xp, g)
+    return finish(xp, status, {"normal": nrm}, t_hit, cost)
 
-    def normal(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-        xp = backend.xp
-        x, status = hit_points(xp, o, d, t_hit)
-        g, _, cost = grad_hess(backend, scene, x, False)
-        nrm, _ = normal_from_grad(xp, g)
-        return finish(xp, status, {"normal": nrm}, t_hit, cost)
 
-    def curvature(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
-        xp = backend.xp
-        x, status = hit_points(xp, o, d, t_hit)
-        g, H, cost = grad_hess(backend, scene, x, True)
-        lap, div, gauss = curvatures(xp, g, H)
-        nrm, _ = normal_from_grad(xp, g)
-        return finish(xp, status, {"curvature_laplacian": lap, "curvature_divergence": div,
-                                   "gaussian_curvature": gauss, "normal": nrm}, t_hit, cost)
+def curvature(backend, scene, o, d, *, t_min, t_max, t_hit, **knobs):
+    xp = backend.xp
+    x, status = hit_points(xp, o, d, t_hit)
+    g, H, cost = backend.grad_hess(scene, x, True)
+    lap, div, gauss = curvatures(xp, g, H)
+    nrm, _ = normal_from_grad(xp, g)
+    return finish(xp, status, {"curvature_laplacian": lap, "curvature_divergence": div,
+                               "gaussian_curvature": gauss, "normal": nrm}, t_hit, cost)
 
-    return {"normal": normal, "curvature": curvature}
+
+IMPLS = {"normal": normal, "curvature": curvature}

@@ -50,6 +50,8 @@ import numpy as np
 
 from reference import rendering as R
 
+from ..methods import DENSITIES, SAMPLERS
+from .param_grad import theta0
 from .rootfind import BAD, CONV, MISS, NONF, _device, bad_rays
 
 BLOCK = 16
@@ -174,8 +176,9 @@ def composite(xp, scene, color, o, d, edges, pts, *, model, s, threshold, compac
     return C, 1 - T, depth, used, evals
 
 
-def make_volume_impl(model, sampler, compact):
-    """A ``volume_<model>_<sampler>`` implementation; ``compact``: drop terminated rays (numpy, torch)."""
+def make_volume_impl(model, sampler):
+    """A ``volume_<model>_<sampler>`` implementation; ``backend.compact``: drop terminated rays
+    (numpy, torch)."""
 
     def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, **knobs):
         xp = backend.xp
@@ -201,7 +204,7 @@ def make_volume_impl(model, sampler, compact):
         o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
         d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
         C, opacity, depth, used, evals = composite(xp, scene, color, o_safe, d_safe, edges, pts, model=model, s=sharpness,
-                                                   threshold=t_threshold, compact=compact, status=status)
+                                                   threshold=t_threshold, compact=backend.compact, status=status)
         ok = status == CONV
         evals = evals + xp.astype(ok, xp.int32) * coarse_cost
         saved = xp.astype(planned - used, o.dtype) / planned
@@ -223,13 +226,12 @@ def make_volume_impl(model, sampler, compact):
     return impl
 
 
-def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
+def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=None, **knobs):
     """``render_surface``: ρ at the first hit found by the backend's hybrid root finder; 0 on a
     miss; NaN on a ray the root finder did not resolve (any other status; ``t`` NaN on BAD_INPUT).
 
-    Differentiable through the hit (backends with autodiff, i.e. given ``grad_hess`` and
-    ``stop_gradient``): the colour is ρ(o + t d) with IDR's depth (Yariv et al. 2020, eq. 3;
-    lecture eq. 7–8) t = t̂ − φ(x̂; θ)/⟨∇φ(x̂; θ₀), d⟩, where the hit t̂ (root finder) and
+    Differentiable through the hit (backends with autodiff, i.e. with a ``backend.stop_gradient``):
+    the colour is ρ(o + t d) with IDR's depth (Yariv et al. 2020, eq. 3; lecture eq. 7–8) t = t̂ − φ(x̂; θ)/⟨∇φ(x̂; θ₀), d⟩, where the hit t̂ (root finder) and
     ∇φ(x̂) are constants.  Its value is t̂ up to φ(x̂)/⟨∇φ, d⟩ (the root finder's residual),
     and its first derivatives in θ, o and d are those of the exact hit depth, so ∂C/∂θ =
     J_ρ(x) d (∂t/∂θ) with ∂t/∂θ = −(∂φ/∂θ)/⟨∇φ, d⟩.  Pass ``theta`` (the scene's parameter
@@ -237,56 +239,43 @@ def make_surface_impl(solve, grad_hess=None, stop_gradient=None):
     it; the default is the scene's own parameters.  The correction costs one ∇φ and one φ
     evaluation per hit, counted in ``evals``.  numpy (no autodiff) returns ρ at t̂ itself.
     """
-
-    def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=None, **knobs):
-        xp = backend.xp
-        differentiable = grad_hess is not None
-        given = theta is not None  # a caller's θ: the root finder uses it (and so no ray bounds)
-        if differentiable and theta is None:
-            from .param_grad import theta0
-
-            theta = theta0(backend, scene, o)
-        const = stop_gradient if differentiable else (lambda a: a)
-        th_c = None if theta is None else const(theta)
-        s = solve("render_surface", backend, scene, const(o), const(d), t_min=t_min, t_max=t_max,
-                  theta=th_c if given else None, **knobs)
-        ok = s["status"] == CONV
-        o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
-        d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
-        t = xp.where(ok, s["t"], xp.zeros_like(s["t"]))
-        evals = s["evals"]
-        if differentiable:
-            t_hat = stop_gradient(t)
-            x_hat = stop_gradient(o_safe) + t_hat[:, None] * stop_gradient(d_safe)
-            g, _, c1 = grad_hess(backend, scene, x_hat, False, th_c)
-            gd = stop_gradient(xp.sum(g * d_safe, axis=-1))
-            gd = xp.where(ok & (gd != 0), gd, xp.ones_like(gd))
-            x0 = o_safe + t_hat[:, None] * d_safe  # carries ∂/∂o, ∂/∂d of φ(o + t̂ d)
-            t = t_hat - xp.where(ok, scene.value(x0, xp, theta) / gd, xp.zeros_like(gd))
-            evals = evals + xp.astype(ok, evals.dtype) * (c1 + 1)
-        x = o_safe + t[:, None] * d_safe
-        rgb = color.value(x, xp)
-        # CONVERGED: ρ at the hit; MISS: 0 (the background); any other status (BAD_INPUT,
-        # MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED): NaN, the status says why
-        status = xp.astype(xp.where(ok & ~xp.all(xp.isfinite(rgb), axis=1), NONF, s["status"]), xp.int32)
-        ok = status == CONV
-        miss = status == MISS
-        blank = xp.where(miss, xp.zeros_like(s["t"]), xp.full_like(s["t"], math.nan))
-        bad = status == BAD
-        return {"t": xp.where(bad, xp.full_like(s["t"], math.nan), s["t"]), "status": status,
-                "iterations": s["iterations"], "evals": evals,
-                "color": xp.where(ok[:, None], rgb, xp.broadcast_to(blank[:, None], rgb.shape))}
-
-    return render_surface
+    xp = backend.xp
+    stop_gradient = backend.stop_gradient
+    differentiable = stop_gradient is not None
+    given = theta is not None  # a caller's θ: the root finder uses it (and so no ray bounds)
+    if differentiable and theta is None:
+        theta = theta0(backend, scene, o)
+    const = stop_gradient if differentiable else (lambda a: a)
+    th_c = None if theta is None else const(theta)
+    s = backend.solve("render_surface", scene, const(o), const(d), t_min=t_min, t_max=t_max,
+                      theta=th_c if given else None, **knobs)
+    ok = s["status"] == CONV
+    o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
+    d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
+    t = xp.where(ok, s["t"], xp.zeros_like(s["t"]))
+    evals = s["evals"]
+    if differentiable:
+        t_hat = stop_gradient(t)
+        x_hat = stop_gradient(o_safe) + t_hat[:, None] * stop_gradient(d_safe)
+        g, _, c1 = backend.grad_hess(scene, x_hat, False, th_c)
+        gd = stop_gradient(xp.sum(g * d_safe, axis=-1))
+        gd = xp.where(ok & (gd != 0), gd, xp.ones_like(gd))
+        x0 = o_safe + t_hat[:, None] * d_safe  # carries ∂/∂o, ∂/∂d of φ(o + t̂ d)
+        t = t_hat - xp.where(ok, scene.value(x0, xp, theta) / gd, xp.zeros_like(gd))
+        evals = evals + xp.astype(ok, evals.dtype) * (c1 + 1)
+    x = o_safe + t[:, None] * d_safe
+    rgb = color.value(x, xp)
+    # CONVERGED: ρ at the hit; MISS: 0 (the background); any other status (BAD_INPUT,
+    # MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED): NaN, the status says why
+    status = xp.astype(xp.where(ok & ~xp.all(xp.isfinite(rgb), axis=1), NONF, s["status"]), xp.int32)
+    ok = status == CONV
+    miss = status == MISS
+    blank = xp.where(miss, xp.zeros_like(s["t"]), xp.full_like(s["t"], math.nan))
+    bad = status == BAD
+    return {"t": xp.where(bad, xp.full_like(s["t"], math.nan), s["t"]), "status": status,
+            "iterations": s["iterations"], "evals": evals,
+            "color": xp.where(ok[:, None], rgb, xp.broadcast_to(blank[:, None], rgb.shape))}
 
 
-def make_impls(solve, compact, grad_hess=None, stop_gradient=None):
-    """Every renderer bound to a backend; ``grad_hess``/``stop_gradient`` make ``render_surface``
-    differentiable through the hit (see :func:`make_surface_impl`)."""
-    from ..methods import DENSITIES, SAMPLERS
-
-    out = {"render_surface": make_surface_impl(solve, grad_hess, stop_gradient)}
-    for model in DENSITIES:
-        for sampler in SAMPLERS:
-            out[f"volume_{model}_{sampler}"] = make_volume_impl(model, sampler, compact)
-    return out
+IMPLS = {"render_surface": render_surface,
+         **{f"volume_{model}_{sampler}": make_volume_impl(model, sampler) for model in DENSITIES for sampler in SAMPLERS}}

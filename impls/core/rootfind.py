@@ -134,7 +134,7 @@ def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag):
     by up to L·ε|x|; φ's own evaluation rounds its intermediates, which for the fields here
     (distances to centres and planes, CSG min/max, affine layers) are bounded by |φ|/L, |x| and
     the scene's extent and offset ``scale`` (|centre| + radius of its bounding ball, see
-    :func:`impls.core.methods_root.make_root_finder`); 16 covers the few operations of each.
+    :func:`impls.core.methods_root.rounding_scale`); 16 covers the few operations of each.
     Without the |o| and ``scale`` terms an exact SDF far from the origin (a sphere of radius 1e6
     centred 1e6 away, seen from 3 units) is flagged: its φ carries ε·1e6 of rounding while
     |φ|, |t| ≈ 3.  The slack is a relative 1e-14 of those magnitudes, so an understated L is

@@ -15,9 +15,11 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jax import lax  # noqa: E402
+
 from ..base import ArrayBackend  # noqa: E402
 from ..protocol import Capabilities  # noqa: E402
-from . import gradients, param_grad, rendering, tracing  # noqa: E402
+from . import derivatives, driver  # noqa: E402
 
 
 def _devices() -> tuple[str, ...]:
@@ -33,24 +35,27 @@ def _devices() -> tuple[str, ...]:
 class JaxBackend(ArrayBackend):
     lib = "jax"
     xp = jnp
-    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
+    settings = driver.MaskedSettings()
+    compact = False  # masked blocks: early termination of volume rays is reported, not realised
+    stop_gradient = staticmethod(lax.stop_gradient)
+    fori_loop = staticmethod(lax.fori_loop)  # a long unroll does not become a long trace
 
-    def __init__(self, device: str = "cpu"):
+    def __init__(self, device: str = "cpu", settings: driver.MaskedSettings | None = None):
         self.capabilities = Capabilities(
             dtypes=("float64", "float32"),
             devices=_devices(),
             autodiff="both",
             jit=True,
-            notes=("methods run under jax.jit; fixed-shape masked loops: lax.map over chunks of "
-                   f"{tracing.CHUNK} rays, each compacted level by level into batches {tracing.RATIO}× smaller, one "
-                   f"lax.while_loop per stage and level; the chunks' stragglers after {tracing.TAIL_CAP} steps of "
-                   "the last level finished together",),
+            notes=("methods run under jax.jit; fixed-shape masked loops: lax.map over chunks of rays, each "
+                   "compacted level by level into smaller batches, one lax.while_loop per stage and level; the "
+                   "chunks' stragglers after a capped number of steps of the last level finished together "
+                   "(sizes: backend.settings, recorded with every result)",),
             expected_failures=(
                 ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
                  "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
             ),
         )
-        super().__init__(device)
+        super().__init__(device, settings)
         self.jax_device = jax.devices(device)[0]
 
     def asarray(self, a, dtype):
@@ -74,3 +79,16 @@ class JaxBackend(ArrayBackend):
         import jaxlib
 
         return {"jax": jax.__version__, "jaxlib": jaxlib.__version__}
+
+    def ray_eval(self, scene, theta=None):
+        return derivatives.ray_eval(scene, theta)
+
+    def grad_hess(self, scene, x, hess, theta=None):
+        return derivatives.grad_hess(scene, x, hess, theta)
+
+    def theta_jacobian(self, fun, theta):
+        return derivatives.theta_jacobian(fun, theta)
+
+    def run_loop(self, alg, o, d, ev):
+        st = self.settings
+        return driver.run_loop(alg, o, d, ev, chunk=st.chunk, ratio=st.ratio, last=st.last, tail_cap=st.tail_cap)

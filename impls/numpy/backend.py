@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..base import ArrayBackend
+from ..core.driver import CompactingSettings
 from ..protocol import Capabilities
-from . import gradients, param_grad, rendering, tracing
+from . import derivatives, driver
 
 
 class NumpyBackend(ArrayBackend):
@@ -22,7 +23,8 @@ class NumpyBackend(ArrayBackend):
                "(≈1e-8), ∂φ/∂θ and the IDR/unrolled Jacobians in θ with h = ε^(1/3)·max(1,|θ_i|)",
                "active-set loops: only rays still iterating are evaluated; early-terminated volume rays are dropped"),
     )
-    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
+    settings = CompactingSettings()
+    stop_gradient = None  # no autodiff: render_surface shades at the root finder's hit
 
     def asarray(self, a, dtype):
         return np.ascontiguousarray(a, dtype=np.dtype(dtype))
@@ -32,3 +34,15 @@ class NumpyBackend(ArrayBackend):
 
     def versions(self):
         return {"numpy": np.__version__}
+
+    def ray_eval(self, scene, theta=None):
+        return derivatives.ray_eval(scene, theta)
+
+    def grad_hess(self, scene, x, hess, theta=None):
+        return derivatives.grad_hess(scene, x, hess, theta)
+
+    def theta_jacobian(self, fun, theta):
+        return derivatives.theta_jacobian(fun, theta)
+
+    def run_loop(self, alg, o, d, ev):
+        return driver.run_loop(alg, o, d, ev, self.settings)

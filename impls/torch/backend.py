@@ -7,8 +7,9 @@ import numpy as np
 import torch
 
 from ..base import ArrayBackend
+from ..core.driver import CompactingSettings
 from ..protocol import Capabilities
-from . import gradients, param_grad, rendering, tracing
+from . import derivatives, driver
 
 
 def _devices() -> tuple[str, ...]:
@@ -72,9 +73,9 @@ xp_fast = _FastTorchNamespace()
 class TorchBackend(ArrayBackend):
     lib = "torch"
     xp = xp_fast
-    _impl = {**tracing.IMPLS, **gradients.IMPLS, **param_grad.IMPLS, **rendering.IMPLS}
+    settings = CompactingSettings()
 
-    def __init__(self, device: str = "cpu"):
+    def __init__(self, device: str = "cpu", settings: CompactingSettings | None = None):
         self.capabilities = Capabilities(
             dtypes=("float64", "float32"),
             devices=_devices(),
@@ -88,7 +89,7 @@ class TorchBackend(ArrayBackend):
                    "on a loaded 2-core machine torch's intra-op thread pool oversubscribes: set torch.set_num_threads(1) "
                    "(or OMP_NUM_THREADS=1) for timings — measured 40× slower otherwise"),
         )
-        super().__init__(device)
+        super().__init__(device, settings)
         self.torch_device = torch.device(device)
 
     def asarray(self, a, dtype):
@@ -103,3 +104,19 @@ class TorchBackend(ArrayBackend):
 
     def versions(self):
         return {"torch": torch.__version__, "torch_threads": str(torch.get_num_threads())}
+
+    @staticmethod
+    def stop_gradient(a):
+        return a.detach()
+
+    def ray_eval(self, scene, theta=None):
+        return derivatives.ray_eval(self.xp, scene, theta)
+
+    def grad_hess(self, scene, x, hess, theta=None):
+        return derivatives.grad_hess(self.xp, scene, x, hess, theta)
+
+    def theta_jacobian(self, fun, theta):
+        return derivatives.theta_jacobian(fun, theta)
+
+    def run_loop(self, alg, o, d, ev):
+        return driver.run_loop(self.xp, alg, o, d, ev, self.settings)

@@ -1,11 +1,32 @@
-"""∇φ and the Hessian on numpy by central differences (numpy has no autodiff; scenes give no
-analytic gradient), bound to the shared formulas of :mod:`impls.core.pointwise`."""
+"""Derivatives on numpy by central differences (numpy has no autodiff; scenes give no analytic
+gradient): dφ/dt along rays, ∇φ and the Hessian at points, Jacobians in θ."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..core import pointwise
+from ..core.param_grad import central_jacobian
+
+
+def ray_eval(scene, theta=None):
+    """``ev(o, d, t, deriv) -> (φ, dφ/dt, cost)`` for numpy.
+
+    dφ/dt = ⟨∇φ, d⟩ is the central difference (φ(t + h) − φ(t − h))/2h with h = ε^{1/3}·max(1, |t|)
+    (error O(h²|φ‴|) + O(ε|φ|/h), about 1e-10 relative in float64); it costs 3 evaluations per ray.
+    """
+
+    def ev(o, d, t, deriv):
+        x = o + t[:, None] * d
+        if not deriv:
+            return scene.value(x, np, theta), None, 1
+        eps = np.finfo(o.dtype).eps
+        h = np.cbrt(eps) * np.maximum(1.0, np.abs(t))
+        h = ((t + h) - t).astype(o.dtype)  # exactly representable step
+        h = np.where(h > 0, h, np.cbrt(eps))
+        f3 = scene.value(np.stack([x, x + h[:, None] * d, x - h[:, None] * d]), np, theta)
+        return f3[0], (f3[1] - f3[2]) / (2 * h), 3
+
+    return ev
 
 
 def _steps(x, power):
@@ -14,7 +35,7 @@ def _steps(x, power):
     return (eps**power * np.maximum(1.0, np.max(np.abs(x), axis=-1))).astype(x.dtype)
 
 
-def grad_hess(backend, scene, x, hess, theta=None):
+def grad_hess(scene, x, hess, theta=None):
     """Central differences.  ∇φ: h = ε^{1/3}·max(1, |x|) (error O(h²) + O(ε/h) ≈ 1e-11 relative);
     H: h = ε^{1/4}·max(1, |x|), diagonal (φ(x+he_i) − 2φ(x) + φ(x−he_i))/h² and off-diagonal
     (φ(++) − φ(+−) − φ(−+) + φ(−−))/4h² (error ≈ 1e-8 relative).  Cost: 6 evaluations per
@@ -46,4 +67,6 @@ def grad_hess(backend, scene, x, hess, theta=None):
     return g, H, 6 + 19
 
 
-IMPLS = pointwise.make_impls(grad_hess)
+def theta_jacobian(fun, theta):
+    """Central differences in θ, h_i = ε^{1/3}·max(1, |θ_i|) (:func:`impls.core.param_grad.central_jacobian`)."""
+    return central_jacobian(np, fun, np.asarray(theta, np.float64), lambda a: a.astype(theta.dtype))

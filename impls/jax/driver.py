@@ -1,4 +1,4 @@
-"""Ray root finders in jax (mirror of ``impls/numpy/tracing.py``), jit-compatible.
+"""The jax loop driver, jit-compatible.
 
 Fixed shapes, masked updates, compaction by levels (:func:`run_loop`): ``lax.map`` runs the
 rays in chunks of ``CHUNK``; within a chunk every stage of the algorithm is a
@@ -6,51 +6,19 @@ rays in chunks of ``CHUNK``; within a chunk every stage of the algorithm is a
 (``jnp.where`` on the status), and the batch shrinks by ``RATIO`` from level to level as rays
 finish (the rays still iterating are gathered with ``jnp.nonzero(size=…)``, a static size);
 each chunk's last level stops after ``TAIL_CAP`` steps and the stragglers of all chunks are
-finished together.  φ is evaluated once per step (:func:`computed_once`).  dφ/dt = ⟨∇φ, d⟩ by
-``jax.jvp`` (the same evaluation).
+finished together.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
 from ..core import rootfind
-from ..core.methods_root import make_root_finder, root_impls
-
-
-def computed_once(fn, t):
-    """``fn(t)``, computed once into buffers of its own.
-
-    XLA's CPU compiler fuses the producers of an array into each of its consumers, so φ along
-    the rays was recomputed inside every state update of a step (the march step: 6 fusions,
-    each re-evaluating most of φ; torus ∪ box, 25 ns per ray and step at 4096 rays, 9 ns with
-    φ computed once).  ``lax.optimization_barrier`` is removed before fusion on the CPU, so
-    ``fn`` runs as the taken branch of a conditional, whose results are always materialized.
-    The predicate is always true (t₀ is NaN or it is not); it is data-dependent only so that
-    XLA cannot fold the conditional away."""
-    if t.size == 0:
-        return fn(t)
-    t0 = t.reshape(-1)[0]
-
-    def never(t):
-        return jax.tree.map(lambda a: jnp.full(a.shape, jnp.nan, a.dtype), jax.eval_shape(fn, t))
-
-    return lax.cond(jnp.isnan(t0) | ~jnp.isnan(t0), fn, never, t)
-
-
-def ray_eval(backend, scene, theta=None):
-    def ev(o, d, t, deriv):
-        def phi(t):
-            return scene.value(o + t[:, None] * d, jnp, theta)
-
-        if not deriv:
-            return computed_once(phi, t), None, 1
-        f, df = computed_once(lambda t: jax.jvp(phi, (t,), (jnp.ones_like(t),)), t)
-        return f, df, 1
-
-    return ev
+from ..core.driver import _whole_at_least
 
 
 # Measured (bench/speed.py, torus ∪ box, 2^20 rays, hybrid_secant): a masked step costs about
@@ -64,6 +32,41 @@ CHUNK = 1 << 16
 RATIO = 2
 LAST = 64
 TAIL_CAP = 128
+# Ladder steps (impls.core.rootfind.MarchRefine.step_ladder) where the knob leaves the choice to
+# the driver: none.  The masked levels already run the stragglers in small batches, and there a
+# ladder iteration's K samples per row cost more than the loop steps they save: torus ∪ box,
+# 2^20 rays, 0.23 s without, 0.27–0.28 s with 16-sample ladders after 64 steps (0.25 s with
+# the stage present and never entered).
+LADDER = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class MaskedSettings:
+    """How the masked driver (:func:`run_loop`) runs, held by the jax backend (``backend.settings``)
+    and recorded with every result row (``driver_json``).  None of them changes a per-ray result
+    except ``ladder``, which is part of the algorithm.
+
+    chunk:    rays per ``lax.map`` chunk;  ratio: batch shrink factor from level to level;
+    last:     the smallest level's batch;  tail_cap: steps of a chunk's last level before its
+              stragglers join those of every chunk;
+    ladder:   samples per ladder step where the knob ``ladder`` is -1 (the driver's choice)."""
+
+    chunk: int = CHUNK
+    ratio: int = RATIO
+    last: int = LAST
+    tail_cap: int = TAIL_CAP
+    ladder: int = LADDER
+
+    kind = "masked"
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            _whole_at_least(type(self).__name__, f.name, getattr(self, f.name),
+                            0 if f.name == "ladder" else (2 if f.name == "ratio" else 1))
+
+    def record(self) -> dict:
+        """The settings as recorded with a result: ``{"driver": kind, field: value, …}``."""
+        return {"driver": self.kind, **dataclasses.asdict(self)}
 
 
 def level_sizes(m: int, ratio: int = RATIO, last: int = LAST) -> list[int]:
@@ -175,20 +178,3 @@ def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = 
         res, _ = _levels(alg, s, oc.reshape(-1, 3), dc.reshape(-1, 3), ev, level_sizes(idx.shape[0], ratio, last))
         out = {k: v.at[idx].set(res[k], mode="drop") for k, v in out.items()}
     return {k: v[:n] for k, v in out.items()}
-
-
-# Ladder steps (impls.core.rootfind.MarchRefine.step_ladder) where the knob leaves the choice to
-# the driver: none.  The masked levels already run the stragglers in small batches, and there a
-# ladder iteration's K samples per row cost more than the loop steps they save: torus ∪ box,
-# 2^20 rays, 0.23 s without, 0.27–0.28 s with 16-sample ladders after 64 steps (0.25 s with
-# the stage present and never entered).
-LADDER = 0
-
-
-def solve(method, backend, scene, o, d, *, t_min, t_max, theta=None, **knobs):
-    alg = make_root_finder(method, scene, t_min, t_max, knobs, theta, ladder=LADDER)
-    return run_loop(alg, o, d, ray_eval(backend, scene, theta))
-
-
-IMPLS = root_impls(solve, "jax")
-sphere_trace = IMPLS["sphere_trace"]
