@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from reference import Torus
-from reference.scene import unit
+from reference.arrays import unit
 
 TORUS = (1.0, 0.4)  # R, r of the torus used by claims 2, 3 and 12
 AXES = (1.0, 0.7, 0.5)  # semi-axes of the ellipsoid
