@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .results import write_atomic
 
 class NotApplicable(Exception):
     """bench cannot check this quantity on this case (the message says why): no colour field,
@@ -136,10 +137,13 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
                 cache[key] = (full, float(np.max(bound, initial=0.0)))
                 cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
                 if path is not None:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    tmp = path.with_suffix(".tmp.npz")
-                    np.savez(tmp, colors=cache[key][0], bound=cache[key][1])
-                    tmp.replace(path)
+                    colors_full, bound_max = cache[key]
+
+                    def save(tmp):
+                        with open(tmp, "wb") as f:  # a file, not a name: savez would append ".npz"
+                            np.savez(f, colors=colors_full, bound=bound_max)
+
+                    write_atomic(path, save)
         except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
             cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
         except Timeout:
