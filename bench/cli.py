@@ -6,7 +6,7 @@
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default]
     python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
-    python -m bench claims [--out DIR] [--full]
+    python -m bench claims [--out DIR] [--full] [--only ID ...]
     python -m bench cases [--tag grazing]
     python -m bench backends
     python -m bench report RUN_DIR
@@ -112,13 +112,14 @@ def _console():
     return Console(highlight=False, width=None if os.isatty(1) else 200)
 
 
-def run_claims_into(out: Path, *, quick: bool, console) -> str:
-    """Call the claims ledger (``bench.claims.run_claims``) into ``out``; never raises.  Returns
-    a one-line note for the report and the console ("" when it worked)."""
+def run_claims_into(out: Path, *, quick: bool, console, only: list[str] | None = None) -> str:
+    """Call the claims ledger (``bench.claims.run_claims``, the claims ``only`` or all) into
+    ``out``; never raises.  Returns a one-line note for the report and the console ("" when it
+    worked)."""
     try:
         from .claims import run_claims
 
-        df = run_claims(out, quick=quick)
+        df = run_claims(out, quick=quick, only=only)
         n = 0 if df is None else len(df)
         console.print(f"claims: {n} checked, ledger in {out / 'claims.csv'}")
         return ""
@@ -419,7 +420,10 @@ def cmd_compare(args) -> int:
 
 
 def cmd_claims(args) -> int:
-    from .results import write_json
+    """Check the lecture's claims (all, or ``--only`` these ids; ``--full``: the full grids) into
+    ``--out``: ``claims.csv``, one ``claim_<id>.png`` each, ``claims.md`` (the ledger as Markdown)
+    and the report; a one-line-per-claim summary on stdout."""
+    from .results import write_atomic, write_json
     from .runner import new_run_id
     from .environment import collect
 
@@ -429,14 +433,26 @@ def cmd_claims(args) -> int:
     held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
     if held:
         return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
+    if args.only:
+        from .claims import claim_ids
+
+        known = claim_ids()
+        unknown = [i for i in args.only if i not in known]
+        if unknown:
+            return _error(f"--only: unknown claim id(s) {', '.join(unknown)}; known ids are {', '.join(known)}")
     console = _console()
-    note = run_claims_into(out, quick=not args.full, console=console)
+    note = run_claims_into(out, quick=not args.full, console=console, only=args.only)
     if not (out / "environment.json").exists():
         write_json(out / "environment.json", {**collect(), "run_id": out.name, "suite": "claims"})
     if (out / "claims.csv").exists():
-        from .report import build_from_dir
+        from .claims.summary import markdown_section, terminal_summary
+        from .report import build_from_dir, read_claims
 
+        claims = read_claims(out)
+        md = markdown_section(claims)
+        write_atomic(out / "claims.md", lambda p: Path(p).write_text(md, encoding="utf-8"))
         build_from_dir(out)
+        console.print(terminal_summary(claims), markup=False)
         console.print(f"Report: {out / 'report.html'}")
     return 1 if note else 0
 
@@ -454,7 +470,7 @@ def cmd_baseline(args) -> int:
         if rc != 0:
             return rc
         out.mkdir(parents=True, exist_ok=True)
-        from .results import read_results
+        from .results import read_results, write_atomic
 
         df = read_results(Path(tmp) / "run")
         # wall-clock columns differ on every run: blank them so the committed file changes only
@@ -463,8 +479,7 @@ def cmd_baseline(args) -> int:
             df[col] = float("nan")
         df.to_csv(Path(tmp) / "run" / "results.csv", index=False)
         for name in ("results.csv", "environment.json"):
-            shutil.copyfile(Path(tmp) / "run" / name, out / (name + ".tmp"))
-            (out / (name + ".tmp")).replace(out / name)
+            write_atomic(out / name, lambda p, src=Path(tmp) / "run" / name: shutil.copyfile(src, p))
         stale = out / "results.parquet"
         if stale.exists():
             stale.unlink()
@@ -638,6 +653,7 @@ def main(argv: list[str] | None = None) -> int:
     cl = sub.add_parser("claims", help="check the lecture's claims; writes claims.csv, plots and a report")
     cl.add_argument("--out", help="output directory (default: reports/claims-<run-id>/)")
     cl.add_argument("--full", action="store_true", help="the full (slower) checks instead of the quick ones")
+    cl.add_argument("--only", nargs="+", metavar="ID", help="claim ids to check (default: all), e.g. --only 2 7")
     cl.set_defaults(fn=cmd_claims)
 
     bl = sub.add_parser("baseline", help="regenerate the accuracy baseline that CI compares against")

@@ -1,7 +1,8 @@
 """Accuracy of any method against the reference, generic over method families.
 
-(Where the reference answers come from — the case, the scene, the rendering integral, their
-caching and time limits — is :mod:`bench.references`; this module turns them into errors.)
+(The reference answers come from the case — ``Case.exact_*`` of :mod:`reference.cases`, cached
+on the case — and the rendering integral, with its time limit and disk cache, from
+:mod:`bench.references`; this module turns them into errors.)
 
 Every method returns a :class:`impls.protocol.RayResult`; what it is checked against depends on
 its family (:attr:`impls.methods.MethodSpec.family`) and on the per-ray outputs it declares
@@ -54,8 +55,13 @@ import numpy as np
 
 from impls.protocol import RayResult, Status
 
-from .references import (NotApplicable, color_field, density_model, exact_color, exact_curvatures, exact_dt_dtheta,
-                         exact_normals, exact_points, surface_color)
+from reference.cases import NoExactAnswer
+
+from .references import NotApplicable, color_field, density_model, exact_color
+
+#: what a quantity that cannot be checked raises: the case has no such exact answer, or bench
+#: cannot obtain it (a skipped row with the message as its reason)
+_SKIP = (NotApplicable, NoExactAnswer)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,11 +194,10 @@ _CURVATURE_OUTPUTS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = 
 }
 
 
-def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
-                          cache: dict | None = None) -> tuple[list[Quantity], list[dict]]:
-    """Quantities of a method evaluated at the exact hits (gradient, param_grad families)."""
-    _, hit = exact_points(case)
-    rays = hit & ~_declined(res)
+def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tuple[list[Quantity], list[dict]]:
+    """Quantities of a method evaluated at the exact hits (gradient, param_grad families); the
+    exact answers are the case's (cached on it)."""
+    rays = case.hit_mask & ~_declined(res)
     qs: list[Quantity] = []
     notes: list[dict] = []
     for name in outputs:
@@ -201,16 +206,16 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
         got = np.asarray(res.outputs[name], np.float64)
         try:
             if name == "normal":
-                qs.append(Quantity("normal_angle", "rad", got, exact_normals(case, cache), rays, angle=True))
+                qs.append(Quantity("normal_angle", "rad", got, case.exact_normals, rays, angle=True))
             elif name in _CURVATURE_OUTPUTS:
                 info = case.scene.info
                 if name == "curvature_laplacian" and not info.exact_sdf:
                     raise NotApplicable("Δφ equals κ1+κ2 only for exact SDFs (|∇φ| = 1); this scene is not one")
-                k1, k2 = exact_curvatures(case, cache)
+                k1, k2 = case.exact_curvatures
                 qs.append(Quantity(name, "1/scene units" if name != "gaussian_curvature" else "1/scene units²",
                                    got, _CURVATURE_OUTPUTS[name](k1, k2), rays))
             elif name == "dt_dtheta":
-                ex = exact_dt_dtheta(case, cache)
+                ex = case.exact_dt_dtheta
                 if got.shape != ex.shape:
                     raise ValueError(f"dt_dtheta has shape {got.shape}, the reference {ex.shape}")
                 qs.append(Quantity(name, "scene units per parameter unit", got, ex, rays))
@@ -222,14 +227,14 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...],
             else:
                 notes.append({"quantity": name, "skip": f"no reference for output {name!r} "
                                                         f"(bench.metrics knows none; case.exact_{name} does not exist)"})
-        except NotApplicable as exc:
+        except _SKIP as exc:
             notes.append({"quantity": "normal_angle" if name == "normal" else name, "skip": str(exc)})
     return qs, notes
 
 
 def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, outputs=()) -> list[dict]:
-    qs, notes = _pointwise_quantities(res, case, outputs, cache)
-    n_declined = int(np.sum(_declined(res) & exact_points(case)[1]))
+    qs, notes = _pointwise_quantities(res, case, outputs)
+    n_declined = int(np.sum(_declined(res) & case.hit_mask))
     rows = []
     for q in qs:
         if q.got.shape[0] != case.n_rays:
@@ -250,11 +255,11 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
     rows: list[dict] = []
     everywhere = ~_declined(res)
     refs = (("color_vs_integral", lambda: exact_color(case, spec, knobs, cache), everywhere),
-            ("color_vs_surface", lambda: (surface_color(case), 0.0), everywhere & exact_points(case)[1]))
+            ("color_vs_surface", lambda: (case.exact_surface_colors, 0.0), everywhere & case.hit_mask))
     for name, exact_fn, rays in refs:
         try:
             ex, bound = exact_fn()
-        except NotApplicable as exc:
+        except _SKIP as exc:
             rows.append({"quantity": name, "skip": str(exc)})
             continue
         if ex.shape != got.shape:

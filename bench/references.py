@@ -1,12 +1,14 @@
-"""The reference answers bench measures against, per case: exact normals, curvatures, dt/dθ,
-the continuous rendering integral and the surface colour.
+"""What bench adds to the case's own exact answers: the rendering integral under bench's limits.
 
-Each answer comes from the case (``Case.exact_*``, ``Case.color_field``: the reference
-package's own, cached, with its stated error bound) when it provides it, else from the scene's
-exact methods at the exact hits x* = o + t* d.  An answer the reference does not have is a
-:class:`NotApplicable` with the reason, which bench records as a skipped quantity.  Costly
-answers (the rendering integral, seconds to minutes per case and density model) are limited in
-time and cached on disk (:class:`ReferenceOptions`).
+The exact answers themselves (hit depth and points, normals, curvatures, dt/dθ, the surface
+colour ρ(x*)) come from the case, the one source of them (``Case.exact_*`` in
+:mod:`reference.cases`, cached on the case; a missing one is a
+:class:`reference.cases.NoExactAnswer`).  What is bench-specific lives here: the continuous
+rendering integral C = ∫ T σ ρ dt for a method's density model, a costly reference (seconds to
+minutes per case and density) computed on a strided subset of the rays
+(:func:`reference_rays`), limited in time and cached on disk (:class:`ReferenceOptions`); the
+density model a method's name or knobs select (:func:`density_model`); and
+:class:`NotApplicable`, how bench says a quantity it could not check is skipped, and why.
 """
 
 from __future__ import annotations
@@ -18,92 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .results import write_atomic
 
 class NotApplicable(Exception):
-    """The reference has no answer for this quantity on this case (the message says why)."""
-
-
-def exact_points(case) -> tuple[np.ndarray, np.ndarray]:
-    """Exact hit points x* = o + t* d (rows for misses are NaN) and the hit mask."""
-    t = np.asarray(case.exact_t, np.float64)
-    hit = np.isfinite(t)
-    x = case.origins + np.where(hit, t, np.nan)[:, None] * case.directions
-    return x, hit
-
-
-def _from_case_or_scene(case, attr: str, scene_method: str, what: str, cache: dict | None = None) -> np.ndarray:
-    """``case.<attr>`` when the reference provides it, else ``scene.<scene_method>`` at the exact
-    hits; :class:`NotApplicable` when neither knows the answer.  Memoised in ``cache`` (the
-    runner keeps one per case), failures included."""
-    if cache is None:
-        return _lookup(case, attr, scene_method, what)
-    key = ("exact", case.id, attr)
-    if key not in cache:
-        try:
-            cache[key] = _lookup(case, attr, scene_method, what)
-        except NotApplicable as exc:
-            cache[key] = exc
-    if isinstance(cache[key], NotApplicable):
-        raise cache[key]
-    return cache[key]
-
-
-def _lookup(case, attr: str, scene_method: str, what: str):
-    try:
-        val = getattr(case, attr)
-    except AttributeError:
-        val = None
-    except (NotImplementedError, ValueError) as exc:  # the reference says it has no such answer
-        raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
-    if val is not None:
-        return val
-    fn = getattr(case.scene, scene_method, None)
-    if fn is None:
-        raise NotApplicable(f"no exact {what} for {case.id}: neither case.{attr} nor scene.{scene_method} exists")
-    x, hit = exact_points(case)
-    try:
-        if scene_method == "hit_param_grad":
-            out = np.full((case.n_rays, case.scene.param_vector().size), np.nan)
-            if hit.any():
-                out[hit] = fn(case.origins[hit], case.directions[hit], case.exact_t[hit])
-            return out
-        if not hit.any():
-            raise NotApplicable(f"no ray of {case.id} hits the surface")
-        res = fn(x[hit])
-    except NotImplementedError as exc:
-        raise NotApplicable(f"no exact {what} for {case.id}: {exc}") from None
-    if isinstance(res, tuple):
-        return tuple(_scatter(r, hit) for r in res)
-    return _scatter(res, hit)
-
-
-def _scatter(vals: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    vals = np.asarray(vals, np.float64)
-    out = np.full((hit.size,) + vals.shape[1:], np.nan)
-    out[hit] = vals
-    return out
-
-
-def exact_normals(case, cache: dict | None = None) -> np.ndarray:
-    return np.asarray(_from_case_or_scene(case, "exact_normals", "normal_exact", "normals", cache), np.float64)
-
-
-def exact_curvatures(case, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(κ1, κ2) per ray; accepts the reference's tuple or an (n, 2) array."""
-    k = _from_case_or_scene(case, "exact_curvatures", "curvatures_exact", "curvatures", cache)
-    if isinstance(k, tuple):
-        return np.asarray(k[0], np.float64), np.asarray(k[1], np.float64)
-    k = np.asarray(k, np.float64)
-    if k.ndim == 2 and k.shape[1] >= 2:
-        return k[:, 0], k[:, 1]
-    raise NotApplicable(f"case.exact_curvatures of {case.id} has shape {k.shape}, expected (n, 2) or (κ1, κ2)")
-
-
-def exact_dt_dtheta(case, cache: dict | None = None) -> np.ndarray:
-    return np.asarray(_from_case_or_scene(case, "exact_dt_dtheta", "hit_param_grad", "dt/dθ", cache), np.float64)
-
-
-# -- per-ray error statistics -----------------------------------------------------------------
+    """bench cannot check this quantity on this case (the message says why): no colour field,
+    a suite that skips costly references, a rendering integral past its time limit.  (The case's
+    own missing answers are :class:`reference.cases.NoExactAnswer`; bench records both as a
+    skipped quantity.)"""
 
 
 def _rendering_module():
@@ -117,8 +40,8 @@ def _rendering_module():
 
 
 def color_field(case):
-    """The case's colour field ρ (``case.color_field``, else ``scene.color``)."""
-    field = getattr(case, "color_field", None) or getattr(case.scene, "color", None)
+    """The case's colour field ρ (``case.color_field``)."""
+    field = getattr(case, "color_field", None)
     if field is None:
         raise NotApplicable(f"{case.id} has no colour field ρ (case.color_field)")
     return field
@@ -214,10 +137,13 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
                 cache[key] = (full, float(np.max(bound, initial=0.0)))
                 cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
                 if path is not None:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    tmp = path.with_suffix(".tmp.npz")
-                    np.savez(tmp, colors=cache[key][0], bound=cache[key][1])
-                    tmp.replace(path)
+                    colors_full, bound_max = cache[key]
+
+                    def save(tmp):
+                        with open(tmp, "wb") as f:  # a file, not a name: savez would append ".npz"
+                            np.savez(f, colors=colors_full, bound=bound_max)
+
+                    write_atomic(path, save)
         except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
             cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
         except Timeout:
@@ -229,14 +155,3 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
     if isinstance(cache[key], NotApplicable):
         raise cache[key]
     return cache[key]
-
-
-def surface_color(case) -> np.ndarray:
-    """ρ(x*) at the exact first hit (NaN rows for misses)."""
-    field = color_field(case)
-    x, hit = exact_points(case)
-    out = np.full((case.n_rays, 3), np.nan)
-    if hit.any():
-        c = np.asarray(field.value(x[hit]) if hasattr(field, "value") else field(x[hit]), np.float64)
-        out[hit] = c.reshape(int(hit.sum()), -1)
-    return out

@@ -53,16 +53,24 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
     return df[COLUMNS + extra]
 
 
-#: what a temporary file of the atomic writers looks like: ``.<name>.<random>.tmp`` (here) and
-#: ``.<stem>.<random><suffix>.tmp`` (``bench.claims.atomic``); never a result, removed on resume
+#: what a temporary file of :func:`write_atomic` looks like: ``.<name>.<random>.tmp`` next to
+#: the file it becomes; never a result, removed on resume
 TEMP_GLOB = ".*.tmp"
 
 
-def _atomic_write(path: Path, write) -> None:
+def write_atomic(path: Path, write) -> None:
     """``write(tmp)`` into a fresh temporary file next to ``path``, then ``os.replace`` it onto
-    ``path``: a reader sees the old file or the new one, never half of one.  The temporary file
-    is created with mode 0666 less the process umask (0644 under umask 022), as ``open`` would
-    create ``path`` itself (``mkstemp``'s 0600 would make shared results unreadable)."""
+    ``path``: a reader sees the old file or the new one, never half of one.  The one atomic
+    writer of isobench (results, environment, reports, claims, cached references).
+
+    ``write`` receives the temporary path as a string and must write to exactly that path
+    (the name ends in ``.tmp``: pass the format explicitly where a writer infers it from the
+    suffix, e.g. ``savefig(tmp, format="png")``, and give ``np.savez`` an open file, since it
+    appends ``.npz`` to a name without it).  The temporary file is created with mode 0666 less
+    the process umask (0644 under umask 022), as ``open`` would create ``path`` itself
+    (``mkstemp``'s 0600 would make shared results unreadable).  Missing parent folders are
+    created."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
         tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
@@ -92,14 +100,14 @@ def remove_temporaries(out_dir: Path) -> list[Path]:
 
 
 def write_text(path: Path, text: str) -> None:
-    _atomic_write(Path(path), lambda p: Path(p).write_text(text, encoding="utf-8"))
+    write_atomic(Path(path), lambda p: Path(p).write_text(text, encoding="utf-8"))
 
 
 def write_results(df: pd.DataFrame, out_dir: Path) -> None:
     """Write ``results.parquet`` and ``results.csv`` atomically (temp file + rename)."""
     out_dir = Path(out_dir)
-    _atomic_write(out_dir / "results.parquet", lambda p: df.to_parquet(p, index=False))
-    _atomic_write(out_dir / "results.csv", lambda p: df.to_csv(p, index=False))
+    write_atomic(out_dir / "results.parquet", lambda p: df.to_parquet(p, index=False))
+    write_atomic(out_dir / "results.csv", lambda p: df.to_csv(p, index=False))
 
 
 def write_json(path: Path, obj) -> None:

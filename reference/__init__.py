@@ -9,7 +9,7 @@ Scenes: :class:`Sphere`, :class:`Plane`, :class:`Box`, :class:`Torus`, :class:`C
 (rigid placement); :class:`MLPField` (stored weights); :class:`CallableField` (user functions).
 """
 
-from .cases import Case, case_ids, catalog, get_case, register
+from .cases import Case, NoExactAnswer, case_ids, catalog, get_case, register
 from .csg import Complement, Difference, Intersection, Union
 from .implicits import AlgebraicSphere, Ellipsoid, Scaled
 from .mlp import MLPField
@@ -20,6 +20,6 @@ from .transform import Transform
 
 __all__ = [
     "AlgebraicSphere", "Box", "CallableField", "CappedCylinder", "Capsule", "Case", "Complement", "Difference",
-    "Ellipsoid", "Field", "Intersection", "MLPField", "Plane", "Scaled", "SceneInfo", "Sphere", "Torus",
+    "Ellipsoid", "Field", "Intersection", "MLPField", "NoExactAnswer", "Plane", "Scaled", "SceneInfo", "Sphere", "Torus",
     "Transform", "Union", "case_ids", "catalog", "crossings_numeric", "first_hit_numeric", "get_case", "register",
 ]

@@ -23,6 +23,12 @@ from .primitives import Sphere
 from .scene import Field
 
 
+class NoExactAnswer(ValueError):
+    """The reference has no exact answer for this quantity on this case: its scene states none
+    (a :class:`reference.scene.SceneInfo` flag is False) or a node does not implement it.  The
+    message names the case and why.  A ValueError, as the answers raised before this type."""
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Case:
     """A scene plus a ray family and the search interval [t_min, t_max] along each ray.
@@ -53,85 +59,155 @@ class Case:
         h.update(repr((self.t_min, self.t_max)).encode())
         return h.hexdigest()[:12]
 
-    @functools.cached_property
+    # -- exact answers ---------------------------------------------------------------------
+    #
+    # Every exact answer of the case is computed once and kept in one cache on the case
+    # (:meth:`_answer`), a missing answer (:class:`NoExactAnswer`) included; tests and bench's
+    # metrics read them from here.
+
+    def _answer(self, key, compute):
+        """``compute()`` memoised under ``key`` in the case's cache of exact answers.  A
+        :class:`NoExactAnswer` is remembered and raised again (not recomputed); other errors
+        (e.g. a scene without a Lipschitz bound for the numerical reference) are not cached."""
+        cache = self.__dict__.setdefault("_exact_cache", {})  # frozen dataclass: set in __dict__ directly
+        if key not in cache:
+            try:
+                cache[key] = compute()
+            except NoExactAnswer as exc:
+                cache[key] = exc
+        val = cache[key]
+        if isinstance(val, NoExactAnswer):
+            raise val.with_traceback(None)
+        return val
+
+    @property
     def exact_t(self) -> np.ndarray:
         """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss.  Closed form where the
         scene has exact hits, else the numerical reference (:mod:`reference.numerical`) whose
         bound is :attr:`exact_t_error_bound`."""
         return self._exact_t_and_bound[0]
 
-    @functools.cached_property
+    @property
     def exact_t_error_bound(self) -> float:
         """Largest bound on |exact_t − true depth| over the rays: 0 for closed forms (their
         float64 rounding is stated per answer in the README table), the numerical
         reference's bisection bound otherwise."""
         return self._exact_t_and_bound[1]
 
-    @functools.cached_property
+    @property
     def _exact_t_and_bound(self) -> tuple[np.ndarray, float]:
-        if self.scene.info.exact_hits:
-            t = self.scene.first_hit(self.origins, self.directions, self.t_min)
-            return np.where(t <= self.t_max, t, np.inf), 0.0
-        from .numerical import first_hit_numeric
+        def compute():
+            if self.scene.info.exact_hits:
+                t = self.scene.first_hit(self.origins, self.directions, self.t_min)
+                return np.where(t <= self.t_max, t, np.inf), 0.0
+            from .numerical import first_hit_numeric
 
-        t, err = first_hit_numeric(self.scene, self.origins, self.directions, self.t_min, self.t_max)
-        return t, float(np.max(err, initial=0.0))
+            t, err = first_hit_numeric(self.scene, self.origins, self.directions, self.t_min, self.t_max)
+            return t, float(np.max(err, initial=0.0))
 
-    @functools.cached_property
+        return self._answer("t", compute)
+
+    @property
     def hit_mask(self) -> np.ndarray:
-        return np.isfinite(self.exact_t)
+        """Rays with a first hit in (t_min, t_max] (finite :attr:`exact_t`), (n,) bool."""
+        return self._answer("hit_mask", lambda: np.isfinite(self.exact_t))
 
-    @functools.cached_property
+    @property
     def exact_points(self) -> np.ndarray:
-        """x* = o + t d at hits, NaN rows elsewhere, (n, 3)."""
-        x = np.full(self.origins.shape, np.nan)
-        m = self.hit_mask
-        x[m] = self.origins[m] + self.exact_t[m, None] * self.directions[m]
-        return x
+        """x* = o + t* d at hits, NaN rows elsewhere, (n, 3)."""
 
-    def _at_hits(self, what: str, fn, width: int | None):
-        if not getattr(self.scene.info, what):
-            raise ValueError(f"case {self.id}: scene {type(self.scene).__name__} has no {what.replace('_', ' ')}; "
-                             "check case.scene.info before asking")
-        m = self.hit_mask
-        out = np.full((self.n_rays,) if width is None else (self.n_rays, width), np.nan)
-        if m.any():
-            out[m] = fn(m)
-        return out
+        def compute():
+            x = np.full(self.origins.shape, np.nan)
+            m = self.hit_mask
+            x[m] = self.origins[m] + self.exact_t[m, None] * self.directions[m]
+            return x
 
-    @functools.cached_property
+        return self._answer("points", compute)
+
+    def _at_hits(self, what: str, flag: str, fn, tails: tuple[tuple[int, ...], ...]) -> tuple[np.ndarray, ...]:
+        """``fn(x*)`` at the exact hit points, each of its arrays (``fn`` returns one, or a tuple)
+        scattered to one row per ray with NaN rows at misses; ``tails`` are their shapes per point
+        (what an all-miss case returns, without calling ``fn``).  The scene must state
+        ``info.<flag>``; a node that still has no such answer (NotImplementedError) is a
+        :class:`NoExactAnswer` too."""
+        if not getattr(self.scene.info, flag):
+            raise NoExactAnswer(f"no exact {what} for {self.id}: scene {type(self.scene).__name__} states "
+                                f"{flag}=False (case.scene.info)")
+        m = self.hit_mask
+        if not m.any():
+            return tuple(np.full((self.n_rays,) + tail, np.nan) for tail in tails)
+        try:
+            vals = fn(self.exact_points[m])
+        except NotImplementedError as exc:
+            raise NoExactAnswer(f"no exact {what} for {self.id}: {exc}") from None
+        out = []
+        for v in vals if isinstance(vals, tuple) else (vals,):
+            v = np.asarray(v, np.float64)
+            full = np.full((self.n_rays,) + v.shape[1:], np.nan)
+            full[m] = v
+            out.append(full)
+        return tuple(out)
+
+    @property
     def exact_normals(self) -> np.ndarray:
-        """Outward unit normals at the hits (n, 3), NaN at misses."""
-        return self._at_hits("exact_normals", lambda m: self.scene.normal_exact(self.exact_points[m]), 3)
+        """Outward unit normals n = ∇φ/|∇φ| at the hits (n, 3), NaN at misses
+        (:meth:`reference.scene.Field.normal_exact`)."""
+        return self._answer("normals",
+                            lambda: self._at_hits("normals", "exact_normals", self.scene.normal_exact, ((3,),))[0])
 
-    @functools.cached_property
+    @property
     def exact_curvatures(self) -> tuple[np.ndarray, np.ndarray]:
         """(κ1, κ2) at the hits (κ1 ≥ κ2, convention of :mod:`reference.curvature`), NaN at
-        misses and where the surface has an edge."""
-        k1 = self._at_hits("exact_curvature", lambda m: self.scene.curvatures_exact(self.exact_points[m])[0], None)
-        k2 = self._at_hits("exact_curvature", lambda m: self.scene.curvatures_exact(self.exact_points[m])[1], None)
-        return k1, k2
+        misses and where the surface has an edge (:meth:`reference.scene.Field.curvatures_exact`)."""
+        return self._answer("curvatures", lambda: self._at_hits("curvatures", "exact_curvature",
+                                                                self.scene.curvatures_exact, ((), ())))
 
-    @functools.cached_property
+    @property
     def exact_dt_dtheta(self) -> np.ndarray:
-        """dt/dθ at the hits (n, P) in ``scene.param_vector()`` order, NaN rows at misses."""
-        if not self.scene.info.exact_hit_param_grad:
-            raise ValueError(f"case {self.id}: scene {type(self.scene).__name__} has no closed-form dt/dθ")
-        return self.scene.hit_param_grad(self.origins, self.directions, self.exact_t)
+        """dt/dθ at the hits (n, P) in ``scene.param_vector()`` order, NaN rows at misses:
+        implicit differentiation of φ(o + t(θ) d; θ) = 0 (:meth:`reference.scene.Field.hit_param_grad`)."""
+
+        def compute():
+            if not self.scene.info.exact_hit_param_grad:
+                raise NoExactAnswer(f"no exact dt/dθ for {self.id}: scene {type(self.scene).__name__} has no "
+                                    "closed-form dt/dθ (exact_hit_param_grad=False)")
+            try:
+                return self.scene.hit_param_grad(self.origins, self.directions, self.exact_t)
+            except NotImplementedError as exc:
+                raise NoExactAnswer(f"no exact dt/dθ for {self.id}: {exc}") from None
+
+        return self._answer("dt_dtheta", compute)
+
+    @property
+    def exact_surface_colors(self) -> np.ndarray:
+        """ρ(x*), the case's colour field at the exact first hit (n, 3), NaN rows at misses: the
+        limit a volume renderer approaches as its density sharpens."""
+
+        def compute():
+            field = self.color_field
+            m = self.hit_mask
+            out = np.full((self.n_rays, 3), np.nan)
+            if m.any():
+                x = self.exact_points[m]
+                c = np.asarray(field.value(x) if hasattr(field, "value") else field(x), np.float64)
+                out[m] = c.reshape(int(m.sum()), -1)
+            return out
+
+        return self._answer("surface_colors", compute)
 
     def exact_colors(self, model: str, sharpness: float):
         """The continuous volume-rendering reference of this case's rays with its colour field:
         ``(colors (n, 3), error_bound (n,), T(t_max) (n,))`` from
         :func:`reference.rendering.render_exact` on [max(t_min, 0), t_max]; cached per
         (model, sharpness).  Seconds per few tens of rays: ask for it on small cases."""
-        key = (model, float(sharpness))
-        cache = self.__dict__.setdefault("_colors_cache", {})
-        if key not in cache:
+
+        def compute():
             from .rendering import render_exact
 
-            cache[key] = render_exact(self.scene, self.color_field, model, sharpness, self.origins, self.directions,
-                                      max(self.t_min, 0.0), self.t_max, return_transmittance=True)
-        return cache[key]
+            return render_exact(self.scene, self.color_field, model, sharpness, self.origins, self.directions,
+                                max(self.t_min, 0.0), self.t_max, return_transmittance=True)
+
+        return self._answer(("colors", model, float(sharpness)), compute)
 
     @functools.cached_property
     def color_field(self):

@@ -17,7 +17,8 @@ from .primitives import _positive, _vec3
 from .quadric import ray_sphere_roots
 from . import intervals as iv
 from . import raybounds
-from .scene import Field, SceneInfo, _points, sum_last
+from .arrays import sum_last
+from .scene import Field, SceneInfo, _points
 
 
 def _info(lipschitz, domain, **kw):

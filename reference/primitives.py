@@ -21,9 +21,10 @@ import numpy as np
 
 from . import intervals as iv
 from . import raybounds
+from .arrays import const, max_last, norm, safe_norm, sum_last, unit
 from .quadric import ray_cylinder_roots, ray_sphere_roots, ray_slab
 from .quartic import ray_torus
-from .scene import Field, SceneInfo, _points, const, max_last, norm, safe_norm, sum_last, unit
+from .scene import Field, SceneInfo, _points
 
 
 def _vec3(name: str, v) -> np.ndarray:

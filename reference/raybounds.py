@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from .scene import const, norm, sum_last
+from .arrays import const, norm, sum_last
 
 
 def pad(xp: Any, o: Any, size: float) -> Any:

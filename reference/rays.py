@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import unit
+from .arrays import unit
 
 
 #: rows divided by their norm; one helper for the whole reference (``scene.unit``)

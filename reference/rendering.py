@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from .scene import Field, _points, const
+from .arrays import const
+from .scene import Field, _points
 
 MODELS = ("nerf", "unisurf", "neus", "volsdf")
 

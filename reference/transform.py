@@ -13,7 +13,8 @@ import dataclasses
 
 import numpy as np
 
-from .scene import Field, _points, const
+from .arrays import const
+from .scene import Field, _points
 
 
 class Transform(Field):

@@ -137,8 +137,8 @@ def test_resume_ignores_and_removes_temporaries_and_adds_up_sessions(tmp_path):
     assert env["complete"] == "false"
     first = json.loads(env["elapsed_sessions_s"])
     assert len(first) == 1
-    # what a SIGKILL during a write leaves: 0-byte temporaries of both atomic writers
-    for name in (".results.csv.1a2b3c4d.tmp", ".results.parquet.deadbeef.tmp", ".claims.x1y2z3.csv.tmp"):
+    # what a SIGKILL during a write leaves: 0-byte temporaries of the atomic writer (bench.results.write_atomic)
+    for name in (".results.csv.1a2b3c4d.tmp", ".results.parquet.deadbeef.tmp", ".claims.csv.x1y2z3.tmp"):
         (tmp_path / name).write_bytes(b"")
     assert len(read_results(tmp_path)) == len(df)  # a temporary is never read as results
     df2, env2 = _run(tmp_path, fakes.NoCompileSBackend(), resume=True)

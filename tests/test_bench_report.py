@@ -88,21 +88,29 @@ def test_claims_failure_is_a_visible_note_not_a_crash(tmp_path, monkeypatch):
     assert "claims failed" in (tmp_path / "report.md").read_text()
 
 
-def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch):
+def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch, capsys):
     seen = {}
 
     def fake(out_dir, *, quick=True, only=None):
-        seen["quick"] = quick
-        df = pd.DataFrame([{"id": "c1", "statement": "s", "equation": "(1)", "how_checked": "h", "verdict": "holds",
-                            "key_numbers": "k", "plot": ""}])
+        seen.update(quick=quick, only=only)
+        df = pd.DataFrame([{"id": "7", "statement": "s", "equation": "(1)", "how_checked": "h", "verdict": "holds",
+                            "key_numbers": "{}", "plot": "", "seconds": 0.5, "counterexample": "", "message": ""}],
+                          columns=bench.claims.COLUMNS)
         out_dir.mkdir(parents=True, exist_ok=True)
         df.to_csv(out_dir / "claims.csv", index=False)
         return df
 
     monkeypatch.setattr(bench.claims, "run_claims", fake)
-    assert cli.main(["claims", "--out", str(tmp_path / "cl"), "--full"]) == 0
-    assert seen == {"quick": False}
+    assert cli.main(["claims", "--out", str(tmp_path / "cl"), "--full", "--only", "7"]) == 0
+    assert seen == {"quick": False, "only": ["7"]}
     assert "Claims ledger" in (tmp_path / "cl" / "report.html").read_text()
+    assert "### Claim 7: holds" in (tmp_path / "cl" / "claims.md").read_text()  # the ledger as Markdown
+    assert any(line.split()[:2] == ["7", "holds"] for line in capsys.readouterr().out.splitlines())
+    # an unknown id is a usage error naming the argument, before anything runs
+    seen.clear()
+    assert cli.main(["claims", "--out", str(tmp_path / "cl2"), "--only", "7", "no-such-claim"]) == 2
+    assert "--only: unknown claim id(s) no-such-claim" in capsys.readouterr().err
+    assert seen == {} and not (tmp_path / "cl2").exists()
 
 
 def test_knob_labels_show_only_what_differs_from_the_defaults():

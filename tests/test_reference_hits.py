@@ -256,3 +256,48 @@ def test_stability_cases_are_one_per_adversarial_family_and_tags_do_not_change_v
     assert sorted(fams) == sorted(ADVERSARIAL_FAMILIES)
     c = reps[0]
     assert dataclasses.replace(c, tags=()).version == c.version
+
+
+def test_case_answers_come_once_from_the_case_and_missing_ones_are_remembered():
+    # The case is the one source of its exact answers: each scene method runs once per case,
+    # a missing answer is a NoExactAnswer naming the case (also remembered, not recomputed),
+    # and a case whose rays all miss has NaN answers of the right shapes.
+    from reference import Case, NoExactAnswer, rays
+
+    calls = {"normal": 0, "curv": 0}
+
+    class Counting(Sphere):
+        def normal_exact(self, x):
+            calls["normal"] += 1
+            return super().normal_exact(x)
+
+        def curvatures_exact(self, x):
+            calls["curv"] += 1
+            raise NotImplementedError("planted: no curvature here")
+
+    o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), up=(0, 1, 0), fov_deg=40, width=8, height=8)
+    case = Case(id="counting", scene=Counting(), origins=o, directions=d)
+    n1 = case.exact_normals
+    assert case.exact_normals is n1 and calls["normal"] == 1
+    hit = case.hit_mask
+    assert hit.any() and not hit.all()
+    np.testing.assert_array_equal(np.isnan(n1).any(axis=1), ~hit)
+    np.testing.assert_allclose(n1[hit], normalize(case.exact_points[hit]), rtol=0, atol=4 * EPS)
+    for _ in range(2):
+        with pytest.raises(NoExactAnswer, match="no exact curvatures for counting: planted"):
+            case.exact_curvatures
+    assert calls["curv"] == 1
+    sphere = get_case("sphere.camera.64x64")
+    k1, k2 = sphere.exact_curvatures
+    assert np.all(k1[sphere.hit_mask] == 1.0) and np.all(k2[sphere.hit_mask] == 1.0)
+
+    away = Case(id="away", scene=Sphere(), origins=o, directions=-d)  # every ray looks away from the sphere
+    assert not away.hit_mask.any()
+    assert away.exact_normals.shape == (o.shape[0], 3) and np.isnan(away.exact_normals).all()
+    k1, k2 = away.exact_curvatures
+    assert k1.shape == k2.shape == (o.shape[0],) and np.isnan(k1).all() and np.isnan(k2).all()
+    assert away.exact_dt_dtheta.shape == (o.shape[0], 4) and np.isnan(away.exact_dt_dtheta).all()
+
+    mlp = get_case("mlp.camera.32x32")  # a scene that states it has no curvature: asked before any hit
+    with pytest.raises(NoExactAnswer, match="mlp.camera.32x32: scene MLPField states exact_curvature=False"):
+        mlp.exact_curvatures

@@ -17,10 +17,10 @@ import time
 import traceback
 from pathlib import Path
 
-from .atomic import write_atomic
+from ..results import write_atomic
 from .ledger import LEDGER, CheckContext, Claim, Evidence, Ledger, Trial, Verdict, decide, format_numbers, numbers_json
 
-__all__ = ["run_claims", "Claim", "Evidence", "Trial", "Verdict", "Ledger", "LEDGER", "CheckContext", "decide",
+__all__ = ["run_claims", "claim_ids", "Claim", "Evidence", "Trial", "Verdict", "Ledger", "LEDGER", "CheckContext", "decide",
            "COLUMNS"]
 
 #: claim modules, in report order; each registers its claims on import
@@ -94,6 +94,12 @@ def run_one(claim: Claim, out_dir: Path, ctx: CheckContext) -> dict:
             pass
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
+
+
+def claim_ids() -> list[str]:
+    """The ids of the lecture's claims, in report order (what ``only`` accepts)."""
+    _load(LEDGER)
+    return LEDGER.ids()
 
 
 def write_csv_atomic(df, path: Path) -> None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from reference import AlgebraicSphere, Box, CallableField, Ellipsoid, Scaled, Sphere
-from reference.scene import unit
+from reference.arrays import unit
 
 from .adapters import label
 from .figures import figure

@@ -21,7 +21,7 @@ from reference import Sphere
 
 from .figures import figure
 from .ledger import LEDGER, Evidence, Trial
-from .scenes import sphere_dt_truth
+from .scenes import implicit_and_trick, sphere_dt_truth
 from .stats import fit_power
 
 RTOL = 1e-6
@@ -48,25 +48,6 @@ def hit_to_tolerance(f, o, d, lo, hi, tau):
         lo = np.where(~done & (v > 0), t, lo)
         hi = np.where(~done & (v <= 0), t, hi)
     return t
-
-
-def implicit_and_trick(scene, o, d, t):
-    """dt/dθ by eq. 8 and by the forward trick t(θ) = t0 − σ(x0;θ)/⟨∇σ(x0;θ0), v⟩ (torch autograd)."""
-    import array_api_compat.torch as xp
-    import torch
-
-    theta0 = torch.tensor(scene.param_vector(), dtype=torch.float64)
-    x0 = torch.tensor(o + t[:, None] * d, dtype=torch.float64, requires_grad=True)
-    v = torch.tensor(d, dtype=torch.float64)
-    phi = scene.value(x0, xp, theta0)
-    (gx,) = torch.autograd.grad(phi.sum(), x0)  # rows independent: per-point ∂σ/∂x0
-    gv = (gx * v).sum(-1)
-    x0c = x0.detach()
-    jac = torch.autograd.functional.jacobian(lambda th: scene.value(x0c, xp, th), theta0)  # (n, P)
-    implicit = -jac / gv[:, None]
-    t0 = torch.tensor(t, dtype=torch.float64)
-    trick = torch.autograd.functional.jacobian(lambda th: t0 - scene.value(x0c, xp, th) / gv.detach(), theta0)
-    return implicit.numpy(), trick.numpy()
 
 
 @LEDGER.claim(

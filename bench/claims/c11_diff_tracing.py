@@ -24,8 +24,7 @@ import numpy as np
 
 from reference import Sphere
 
-from .c07_implicit_dt import implicit_and_trick
-from .scenes import sphere_dt_truth
+from .scenes import implicit_and_trick, sphere_dt_truth
 from .figures import figure
 from .ledger import LEDGER, Trial
 

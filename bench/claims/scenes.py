@@ -1,7 +1,8 @@
 """Scenes and exact geometry shared by several claims (one place, no claim imports another's
 private helpers): the torus and ellipsoid the claims use, points on their surfaces from a
-parametrisation (not from φ), exact normals and closest points, and the closed-form hit-depth
-derivative of the unit sphere.
+parametrisation (not from φ), exact normals and closest points, the closed-form hit-depth
+derivative of the unit sphere, and the hit-depth derivative of any scene by eq. 8 and by the
+forward trick (claims 7 and 11).
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from reference import Torus
-from reference.scene import unit
+from reference.arrays import unit
 
 TORUS = (1.0, 0.4)  # R, r of the torus used by claims 2, 3 and 12
 AXES = (1.0, 0.7, 0.5)  # semi-axes of the ellipsoid
@@ -71,3 +72,25 @@ def sphere_dt_truth(b, r=1.0):
     dt/dc = (−b/s, 0, −1) and dt/dr = −r/s with s = √(r² − b²); |⟨n, d⟩| = s/r."""
     s = np.sqrt((r - b) * (r + b))
     return np.stack([-b / s, np.zeros_like(b), -np.ones_like(b), -r / s], -1), s / r
+
+
+def implicit_and_trick(scene, o, d, t):
+    """dt/dθ at the points x0 = o + t d of rays with directions v = d, two ways (torch autograd,
+    float64): eq. 8, −(∂σ/∂θ)/⟨∇ₓσ(x0), v⟩, and the forward trick, the θ-derivative of
+    t(θ) = t0 − σ(x0; θ)/⟨∇ₓσ(x0; θ0), v⟩ with the denominator held fixed.  Returns
+    ``(implicit, trick)``, each (n, P) in ``scene.param_vector()`` order."""
+    import array_api_compat.torch as xp
+    import torch
+
+    theta0 = torch.tensor(scene.param_vector(), dtype=torch.float64)
+    x0 = torch.tensor(o + t[:, None] * d, dtype=torch.float64, requires_grad=True)
+    v = torch.tensor(d, dtype=torch.float64)
+    phi = scene.value(x0, xp, theta0)
+    (gx,) = torch.autograd.grad(phi.sum(), x0)  # rows independent: per-point ∂σ/∂x0
+    gv = (gx * v).sum(-1)
+    x0c = x0.detach()
+    jac = torch.autograd.functional.jacobian(lambda th: scene.value(x0c, xp, th), theta0)  # (n, P)
+    implicit = -jac / gv[:, None]
+    t0 = torch.tensor(t, dtype=torch.float64)
+    trick = torch.autograd.functional.jacobian(lambda th: t0 - scene.value(x0c, xp, th) / gv.detach(), theta0)
+    return implicit.numpy(), trick.numpy()
