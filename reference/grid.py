@@ -71,10 +71,8 @@ By default θ is empty.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import math
-from typing import Any
 
 import numpy as np
 
