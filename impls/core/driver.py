@@ -17,7 +17,7 @@ Why it looks the way it does (all measured on 2^20 rays, see ``bench/speed.py``)
   box, numpy, 1.26 s → 1.15 s.  A block's rays that finish at the start (outside the ray
   bounds, ``alg.start``) are dropped the same way before φ is evaluated (``alg.init`` runs on
   the others only), and rays handed on to a later stage are gathered into that stage's
-  bucket; state entries that are one array are moved once.  Rows are gathered with ``take``
+  bucket.  Rows are gathered with ``take``
   (numpy's ``Oc[:, sel]`` on a (3, 2^16) array is 5× slower) and moved row by row.
 * **Carry only what is read.**  A stage's rows carry only the state entries its step reads
   (``alg.reads``): every step writes ``status`` and ``phase`` afresh, and a refining ray
@@ -172,11 +172,9 @@ def _reads(alg, k: int):
 def _take(take, s: dict, gidx, Oc, Dc, sel, keys=None):
     """The rows ``sel`` (indices) of every array (of the state entries ``keys``; None: all),
     gathered with ``take`` (numpy: 5× faster than ``Oc[:, sel]`` on (3, 2^16) arrays, 1.4× on
-    vectors).  State entries that are one array (a step's ``p = t``) are gathered once and stay
-    one array."""
-    got: dict = {}
-    new = {k: got[id(v)] if id(v) in got else got.setdefault(id(v), take(v, sel, 0)) for k, v in s.items()
-           if keys is None or k in keys}
+    vectors).  Every entry is gathered on its own, also where a step stored one array under two
+    names (a marching step's ``b`` and ``t`` on a crossing): the copies are then distinct."""
+    new = {k: take(v, sel, 0) for k, v in s.items() if keys is None or k in keys}
     return new, take(gidx, sel, 0), take(Oc, sel, 1), take(Dc, sel, 1)
 
 
@@ -186,19 +184,18 @@ def _drop(xp, move, s: dict, gidx, Oc, Dc, leave, k: int, keys=None):
     to its first m − k rows; state entries not in ``keys`` (None: all are kept) are dropped.
     Cost O(k) per array instead of the O(m) of gathering the kept rows; the order of the rays
     changes, which no per-ray result depends on.  Every array here is owned by the loop (stage
-    entry and hand-off gather copies); entries that are one array are moved once and stay one
-    array (distinct arrays sharing memory would be moved twice, with the same result: holes and
-    sources are disjoint).  ``move(v, holes, src)`` does v[holes] = v[src]."""
+    entry and hand-off gather copies).  Entries are moved one by one; two entries holding one
+    array (``init`` starts the bracket and the secant's previous point at t) are moved twice
+    with the same result, since holes and sources are disjoint rows.  ``move(v, holes, src)``
+    does v[holes] = v[src]."""
     kept = gidx.shape[0] - k
     holes = _nonzero(xp, leave[:kept])
     src = _nonzero(xp, ~leave[kept:]) + kept
     if keys is not None:
         s = {key: v for key, v in s.items() if key in keys}
-    arrays = {id(v): v for v in s.values()}
-    for v in (*arrays.values(), gidx, *Oc, *Dc):  # row by row: numpy's 2-D Oc[:, holes] is 3× slower
+    for v in (*s.values(), gidx, *Oc, *Dc):  # row by row: numpy's 2-D Oc[:, holes] is 3× slower
         move(v, holes, src)
-    cut = {i: v[:kept] for i, v in arrays.items()}
-    return {k: cut[id(v)] for k, v in s.items()}, gidx[:kept], Oc[:, :kept], Dc[:, :kept]
+    return {key: v[:kept] for key, v in s.items()}, gidx[:kept], Oc[:, :kept], Dc[:, :kept]
 
 
 def _write(xp, take, out: dict, s: dict, gidx, rows) -> None:

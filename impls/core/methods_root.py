@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from .rootfind import MarchRefine, SphereTrace
+from .rootfind import REFINERS, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
 
 
 def lipschitz_step(scene) -> float:
@@ -66,14 +66,15 @@ def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=Non
 def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
     """``hybrid_secant``'s (and ``render_surface``'s) algorithm from its validated knobs; the largest
     forced step is at least the smallest (``overstep`` below ``min_step`` means no forced-step range)."""
-    return MarchRefine(refine="secant", min_step=knobs["min_step"], inv_lip=lipschitz_step(scene), xtol=knobs["xtol"],
-                       max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
-                       overstep=max(knobs["overstep"], knobs["min_step"]), bounds=search_bounds(scene, knobs, theta),
-                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
-                       extrapolate=knobs["extrapolate"], reach=knobs["reach"],
-                       # a bound stated on a domain only (the algebraic sphere's on |x| ≤ R) is not
-                       # checked past the ray bounds
-                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene))
+    rule = CertifiedStep(inv_lip=lipschitz_step(scene), min_step=knobs["min_step"],
+                         overstep=max(knobs["overstep"], knobs["min_step"]), extrapolate=knobs["extrapolate"],
+                         reach=knobs["reach"],
+                         # a bound stated on a domain only (the algebraic sphere's on |x| ≤ R) is not
+                         # checked past the ray bounds
+                         probe=getattr(scene.info, "domain", None) is None)
+    return MarchRefine(rule=rule, refiner=REFINERS["secant"](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
+                       t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
+                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene))
 
 
 def march_builder(refine: str):
@@ -81,10 +82,10 @@ def march_builder(refine: str):
 
     def build_march(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
         bounds = search_bounds(scene, knobs, theta)
-        return MarchRefine(refine=refine, min_step=knobs["step"], inv_lip=None, xtol=knobs["xtol"],
-                           max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max, bounds=bounds,
-                           ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], extrapolate=0.0,
-                           scale=rounding_scale(scene), check_inv_lip=marching_check(scene, bounds, theta))
+        return MarchRefine(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
+                           refiner=REFINERS[refine](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
+                           t_min=t_min, t_max=t_max, bounds=bounds, ladder=_ladder(knobs, ladder),
+                           ladder_after=knobs["ladder_after"], scale=rounding_scale(scene))
 
     build_march.__name__ = f"build_march_{refine}"
     return build_march

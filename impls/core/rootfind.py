@@ -254,6 +254,234 @@ class SphereTrace(_Search):
 
 
 # -- marching to a sign change, then refinement ------------------------------------------------
+#
+# A marching root finder is a record of three pieces: a step rule (how far a marching step goes
+# and whether it stands), a refiner (how a bracket shrinks) and the ladder setting.  Each piece
+# says which state entries it holds between steps (``holds``), so that the stages' reads are
+# derived, not listed (:meth:`MarchRefine.reads`).
+
+
+@dataclasses.dataclass(frozen=True)
+class ConstantStep:
+    """Constant marching step h = ``step`` (DVR, UNISURF).  A surface crossed twice within one
+    step (a feature thinner than the step) is not seen — marching's documented limit.  Every
+    step stands; where the scene declares a bound L (``check_inv_lip`` = 1/L), every step checks
+    it (:func:`lipschitz_violated`)."""
+
+    step: float
+    check_inv_lip: float | None = None
+
+    @property
+    def min_step(self) -> float:
+        return self.step
+
+    @property
+    def check(self) -> float | None:
+        """1/L of the bound the marching steps check (None: no check)."""
+        return self.check_inv_lip
+
+    def holds(self, stage: str) -> frozenset[str]:
+        return frozenset()
+
+    def init(self, xp, t) -> dict:
+        return {}
+
+    def size(self, xp, s, t, f):
+        """(|φ|/L or None, the step h) of a marching step from (t, f)."""
+        return None, self.step
+
+    def end(self, xp, t, h, hi, t_max):
+        """Where the step from t ends: t + h, clamped to the ray's end ``hi``."""
+        return xp.minimum(t + h, hi)
+
+    def judge(self, xp, s, cross, r, f_n, h, t_n):
+        """(stands, new state entries) of a step: a constant step always stands."""
+        return None, {}
+
+    def ladder_size(self, xp, s, t, f):
+        return None, xp.full_like(t, self.step)
+
+    def ladder_certified(self, xp, r, F, T, Tp, hi, h):
+        return None
+
+    def ladder_adapt(self, xp, s, stopped, cross_e, e0, k) -> dict:
+        return {}
+
+
+@dataclasses.dataclass(frozen=True)
+class CertifiedStep:
+    """IDR-style hybrid step h = max(|φ|/L, Δ) with a per-ray forced step Δ (state ``dl``) in
+    [``min_step``, ``overstep``], standing only when certified free of surface by overlapping
+    unbounding spheres (Keinert et al. 2014), when it crosses, or when it is no longer than
+    ``min_step``; an optional extrapolation towards the zero of the secant through the last two
+    points (``extrapolate``, within ``reach``); a leaving step is evaluated where it ends
+    (``probe``, within t_max).  Every step checks the bound L = 1/``inv_lip`` it relies on."""
+
+    inv_lip: float
+    min_step: float
+    overstep: float | None = None  # largest forced step Δ (None: = min_step)
+    extrapolate: float = 0.0  # forced step ≥ this × the secant's distance to the zero (0: off)
+    reach: float = 0.0  # largest extrapolated step
+    probe: bool = False  # evaluate leaving steps where they end, within t_max (L holds there)
+
+    @property
+    def check(self) -> float:
+        return self.inv_lip
+
+    @property
+    def cap(self) -> float:
+        """Largest forced step beyond |φ|/L."""
+        return max(self.overstep or self.min_step, self.min_step)
+
+    def holds(self, stage: str) -> frozenset[str]:
+        return frozenset({"dl"} | ({"p", "fp"} if stage == "step_march" and self.extrapolate else set()))
+
+    def radius(self, xp, f):
+        """|φ|/L, the radius of the unbounding sphere (no multiplication for L = 1, an SDF's)."""
+        return xp.abs(f) if self.inv_lip == 1.0 else xp.abs(f) * self.inv_lip
+
+    def init(self, xp, t) -> dict:
+        return {"dl": xp.full_like(t, self.cap)}
+
+    def size(self, xp, s, t, f):
+        r = self.radius(xp, f)
+        h = xp.maximum(r, s["dl"])
+        if self.extrapolate:
+            # the secant through the last two points predicts the zero a shallow approach is heading
+            # for (sphere tracing closes in on it only geometrically); aim a little beyond it, within
+            # reach, so that the step crosses.  With p < t, x > 0 exactly when |φ| decreased
+            # without a sign change (or stayed the same: x = reach, a step judged like any
+            # other); x is 0 or NaN where p = t (after a rejection, at the start) and negative on a
+            # receding ray, and h stays.
+            with _quiet(xp):
+                x = xp.minimum(self.extrapolate * (f * (t - s["p"]) / (s["fp"] - f)), self.reach)
+            h = xp.where(x > h, x, h)
+        return r, h
+
+    def end(self, xp, t, h, hi, t_max):
+        t_n = xp.minimum(t + h, hi)
+        if self.probe:
+            # a leaving step is evaluated where it ends (within t_max: φ is defined past the ray bound,
+            # and bounded by L where the scene states no domain), so that its slope is checked too
+            t_n = xp.where(t + h > hi, xp.minimum(t + h, t_max), t_n)
+        return t_n
+
+    def judge(self, xp, s, cross, r, f_n, h, t_n):
+        # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
+        # passes; h ≥ t_n − t, so a step clamped at t_max is judged conservatively), a crossing,
+        # or a step no longer than min_step.  A rejected step stays where it was.
+        # (a step past every finite depth needs no certificate: nothing lies beyond it)
+        ok = cross | (r + self.radius(xp, f_n) >= h) | (h <= self.min_step) | ~xp.isfinite(t_n)
+        return ok, {"dl": xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self.cap)}
+
+    def ladder_size(self, xp, s, t, f):
+        r = self.radius(xp, f)
+        return r, xp.maximum(r, s["dl"])
+
+    def ladder_certified(self, xp, r, F, T, Tp, hi, h):
+        # as a single step, judged on the requested spacing h, except pairs ending at hi, which
+        # are shorter (the samples past hi all sit at hi: pairs of length 0)
+        R = self.radius(xp, F)
+        spacing = xp.where(T >= hi[:, None], T - Tp, h[:, None])
+        return (xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None]
+
+    def ladder_adapt(self, xp, s, stopped, cross_e, e0, k) -> dict:
+        grow = xp.where(~stopped, 2 * s["dl"], xp.where(~cross_e & (e0 < k // 2), 0.5 * s["dl"], s["dl"]))
+        return {"dl": xp.clip(grow, self.min_step, self.cap)}
+
+
+class Bisect:
+    """Bisection of the bracket [a, b]: the midpoint (linear convergence, ratio 1/2)."""
+
+    deriv = False
+
+    def holds(self, stage: str) -> frozenset[str]:
+        return frozenset()
+
+    def propose(self, xp, s, t, f, a, b, mid, i2, xtol):
+        return mid
+
+    def report(self, xp, c, f_c, t, f, na, nb, conv):
+        return c
+
+    def on_bracket(self, xp, width) -> dict:
+        return {}
+
+    def after(self, xp, s, i2, a, b, df_c) -> dict:
+        return {}
+
+
+class _OneSided:
+    """A refiner whose iterates close in from one side (secant, Newton), safeguarded."""
+
+    deriv = False
+
+    def holds(self, stage: str) -> frozenset[str]:
+        return frozenset({"wq"} if stage == "step_refine" else set())
+
+    def _iterate(self, xp, s, t, f):  # pragma: no cover - each refiner has its own
+        raise NotImplementedError
+
+    def propose(self, xp, s, t, f, a, b, mid, i2, xtol):
+        with _quiet(xp):  # f = fp or φ' = 0 give inf/NaN: replaced by the midpoint below
+            c = self._iterate(xp, s, t, f)
+        # t is an end of the bracket.  Near a root secant and Newton close in from one side and the
+        # far end stays put, so no bracket would ever certify them: a step shorter than xtol/2 is
+        # lengthened by xtol/4 beyond the predicted root, whose evaluation then closes the bracket
+        # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise)
+        h = 0.5 * xtol
+        step = xp.abs(c - t)
+        lift = step + 0.5 * h  # (both branches arrays: a where on two Python floats would be float64)
+        c = xp.where(step < h, xp.where(t - a <= b - t, t + lift, t - lift), c)
+        # safeguards (rtsafe, Numerical Recipes §9.4; Brent): bisect where the iterate leaves the
+        # closed bracket (or is NaN), and where the bracket did not halve over the last three steps
+        # (checked every third iteration), so a multiple root or a poor derivative costs at most
+        # three times bisection's steps (every second iteration forced bisections on healthy
+        # one-sided Newton runs: sphere, 128² rays, 14.4 → 35.5 evaluations per ray; every third: 16.2)
+        slow = i2 & (b - a > 0.5 * s["wq"])
+        return xp.where((c >= a) & (c <= b) & ~slow, c, mid)
+
+    def report(self, xp, c, f_c, t, f, na, nb, conv):
+        # report the zero of the chord through the last two iterates, kept in the certified bracket:
+        # after the lengthened step they are the bracket's ends, and it is far more accurate than c
+        with _quiet(xp):
+            z = c - f_c * (c - t) / (f_c - f)
+        z = xp.minimum(xp.maximum(z, na), nb)
+        return xp.where(conv & (f_c != 0) & (z == z), z, c)
+
+    def on_bracket(self, xp, width) -> dict:
+        return {"wq": 4.0 * width}  # refinement's "width at the last check": no forced bisection at first
+
+    def after(self, xp, s, i2, a, b, df_c) -> dict:
+        return {"wq": xp.where(i2, b - a, s["wq"])}
+
+
+class Secant(_OneSided):
+    """Secant on the last two iterates (order (1+√5)/2 near a simple root)."""
+
+    def holds(self, stage: str) -> frozenset[str]:
+        return super().holds(stage) | ({"p", "fp"} if stage == "step_refine" else frozenset())
+
+    def _iterate(self, xp, s, t, f):
+        return t - f * (t - s["p"]) / (f - s["fp"])
+
+
+class Newton(_OneSided):
+    """Newton t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2); φ' is evaluated with φ at every point."""
+
+    deriv = True
+
+    def holds(self, stage: str) -> frozenset[str]:
+        return super().holds(stage) | {"df"}
+
+    def _iterate(self, xp, s, t, f):
+        return t - f / s["df"]
+
+    def after(self, xp, s, i2, a, b, df_c) -> dict:
+        return {**super().after(xp, s, i2, a, b, df_c), "df": df_c}
+
+
+REFINERS = {"bisect": Bisect, "secant": Secant, "newton": Newton}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -264,11 +492,12 @@ class MarchRefine(_Search):
 
     Marching (DVR, UNISURF): samples t_{k+1} = t_k + h_k from t_min, the last one clamped to
     t_max (both clipped to the scene's ray bounds when ``bounds`` is set: :func:`clip_to_bounds`).
-    Constant step (``inv_lip`` None, the ``march_*`` methods): h_k = ``min_step``; a surface
+    The step h_k is the step rule's (``rule``).  :class:`ConstantStep` (the ``march_*`` methods):
+    h_k = ``step``; a surface
     crossed twice within one step (a feature thinner than the step) is not seen — that
     is marching's documented limit.
 
-    IDR-style hybrid (``inv_lip`` = 1/L set): h_k = max(r_k, Δ_k) with r_k = |φ(t_k)|/L, the
+    :class:`CertifiedStep` (IDR-style hybrid): h_k = max(r_k, Δ_k) with r_k = |φ(t_k)|/L, the
     sphere-tracing step, and Δ_k a per-ray forced step in [``min_step``, ``overstep``].  The
     forced step lets grazing rays (where sphere tracing converges only linearly) cross the
     surface in a few steps.  A step longer than r_k is *certified* free of surface when the
@@ -284,22 +513,19 @@ class MarchRefine(_Search):
     surface (at angle θ sphere tracing shrinks its steps by about 1 − sin θ each) then crosses
     as soon as the predicted crossing is within reach; the step is judged like any other
     (accepted only if it crosses or is certified), so what can be missed does not change, and
-    ``reach`` only bounds what a rejected step wastes.  (Torus ∪ box, 512² rays, evaluations
-    per ray: reach 0.01 → 5.83, 0.03 → 5.59, 0.1 → 5.52, unbounded → 5.56: fewer marching
-    steps, 3.43 → 2.3 per hit, against longer brackets to refine and more rejected steps on
-    near misses.)
+    ``reach`` only bounds what a rejected step wastes (docs/methods.md has the measured trade-off).
 
     Ladder steps (``ladder`` = K > 1): after ``ladder_after`` marching steps a ray marches
     K steps per iteration — K samples at a common spacing evaluated together, the pairs judged
     in order as single steps are (:meth:`step_ladder`).  The rays that need them (grazing rays;
     constant-step marching over long empty stretches) need hundreds to thousands of steps, and
-    a loop step on few rays costs its per-call overhead whatever their number: torus ∪ box,
-    2^20 rays, the longest ray went from 1917 iterations to 180 (numpy).  Every sample counts in
-    ``evals``.
+    a loop step on few rays costs its per-call overhead whatever their number.  Every sample
+    counts in ``evals``.
 
-    Refinement of the bracket [a, b] (φ(a)φ(b) < 0), one evaluation per iteration:
-    ``bisect`` (midpoint; linear, ratio 1/2); ``secant`` on the last two iterates (order
-    (1+√5)/2 near a simple root); ``newton`` t ← t − φ/φ' with φ' = ⟨∇φ, d⟩ (order 2).
+    Refinement of the bracket [a, b] (φ(a)φ(b) < 0) by the ``refiner``, one evaluation per
+    iteration: :class:`Bisect` (midpoint; linear, ratio 1/2), :class:`Secant` on the last two
+    iterates (order (1+√5)/2 near a simple root), :class:`Newton` t ← t − φ/φ' with
+    φ' = ⟨∇φ, d⟩ (order 2).
     Safeguards (Brent; rtsafe, Numerical Recipes §9.4): an iterate outside the bracket, or one
     proposed when the bracket did not halve over the last three steps, is replaced by the
     midpoint, so every variant converges at worst at a third of bisection's rate; a step shorter
@@ -311,30 +537,23 @@ class MarchRefine(_Search):
     zero of the chord through the last two iterates (secant, Newton), which after a lengthened
     step are the bracket's ends.  A marching step whose sign change spans ≤ ``xtol`` is
     converged at once.  Every marching and ladder step of the hybrid, and of constant-step
-    marching where the scene declares a bound (``check_inv_lip``), checks it: a step whose ends
+    marching where the scene declares a bound (``ConstantStep.check_inv_lip``), checks it: a step whose ends
     differ by more than L·h (beyond rounding, :func:`lipschitz_violated`) ends the ray with
     LIPSCHITZ_VIOLATED (t = NaN); a hybrid step leaving the ray bounds is evaluated where it
     ends (within ``t_max``) so that a step over thin surface under a false L is seen.
     ``max_steps`` bounds marching plus refinement steps.
     """
 
-    refine: str  # "bisect" | "secant" | "newton"
-    min_step: float
-    inv_lip: float | None
+    rule: ConstantStep | CertifiedStep
+    refiner: Bisect | Secant | Newton
     xtol: float
     max_steps: int
     t_min: float
     t_max: float
-    overstep: float | None = None  # hybrid only: largest forced step Δ (None: = min_step)
     bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
     # off by default, the plain algorithm; the methods' defaults are their knobs' (impls.methods)
     ladder: int = 0  # samples per ladder step (≤ 1: no ladder stage)
     ladder_after: int = 0  # marching steps before a ray goes on in ladder steps
-    extrapolate: float = 0.0  # hybrid only: forced step ≥ this × the secant's distance to the zero (0: off)
-    reach: float = 0.0  # hybrid only: largest extrapolated step
-    probe: bool = False  # hybrid only: evaluate leaving steps where they end, within t_max (L holds there)
-    # constant step only: 1/L of a bound the scene declares, checked on every marching step (None: no check)
-    check_inv_lip: float | None = None
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
 
     @property
@@ -345,29 +564,17 @@ class MarchRefine(_Search):
 
     @property
     def deriv(self) -> bool:
-        return self.refine == "newton"
-
-    @property
-    def _hybrid(self) -> bool:
-        return self.inv_lip is not None
-
-    @property
-    def _check(self) -> float | None:
-        """1/L of the bound the marching steps check (the hybrid's own; constant steps: the
-        scene's declared one, if any)."""
-        return self.inv_lip if self._hybrid else self.check_inv_lip
+        return self.refiner.deriv
 
     def reads(self, stage: str) -> frozenset[str]:
         """The state entries the step of ``stage`` reads, all that a compacting driver carries
-        for it (:mod:`impls.core.driver`).  ``status`` and ``phase`` are not among them: every
-        step writes them afresh."""
-        keys = {"t", "f", "iterations", "evals"} | ({"df"} if self.deriv else set())
+        for it (:mod:`impls.core.driver`): the iterate, its counters and, for marching, the ray's
+        end, for refinement the bracket, plus what the step rule and the refiner hold.
+        ``status`` and ``phase`` are not among them: every step writes them afresh."""
+        keys = frozenset({"t", "f", "iterations", "evals"}) | self.refiner.holds(stage)
         if stage == "step_refine":
-            return frozenset(keys | {"p", "fp", "a", "b", "fa"} | ({"wq"} if self.refine != "bisect" else set()))
-        keys |= {"hi"} | ({"dl"} if self._hybrid else set())
-        if stage == "step_march" and self._hybrid and self.extrapolate:
-            keys |= {"p", "fp"}
-        return frozenset(keys)
+            return keys | {"a", "b", "fa"}
+        return keys | {"hi"} | self.rule.holds(stage)
 
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
@@ -377,9 +584,8 @@ class MarchRefine(_Search):
              "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32), "evals": xp.astype(status == IN, xp.int32) * cost}
         if self.deriv:
             s["df"] = df
-        if self._hybrid:
-            s["dl"] = xp.full_like(t, self._cap)
-        if self.refine != "bisect":
+        s.update(self.rule.init(xp, t))
+        if not isinstance(self.refiner, Bisect):
             s["wq"] = xp.full_like(t, math.inf)  # bracket width at the last check (set on a crossing)
         s["status"] = _init_status(xp, status, f, f == 0)
         return s
@@ -392,26 +598,9 @@ class MarchRefine(_Search):
 
     def step_march(self, xp, s, o, d, ev):
         t, f, hi = s["t"], s["f"], s["hi"]
-        if self._hybrid:
-            r = self._radius(xp, f)
-            h = xp.maximum(r, s["dl"])
-            if self.extrapolate:
-                # the secant through the last two points predicts the zero a shallow approach is heading
-                # for (sphere tracing closes in on it only geometrically); aim a little beyond it, within
-                # reach, so that the step crosses.  With p < t, x > 0 exactly when |φ| decreased
-                # without a sign change (or stayed the same: x = reach, a step judged like any
-                # other); x is 0 or NaN where p = t (after a rejection, at the start) and negative on a
-                # receding ray, and h stays.
-                with _quiet(xp):
-                    x = xp.minimum(self.extrapolate * (f * (t - s["p"]) / (s["fp"] - f)), self.reach)
-                h = xp.where(x > h, x, h)
-        else:
-            h = self.min_step
-        t_n = xp.minimum(t + h, hi)
-        if self._hybrid and self.probe:
-            # a leaving step is evaluated where it ends (within t_max: φ is defined past the ray bound,
-            # and bounded by L where the scene states no domain), so that its slope is checked too
-            t_n = xp.where(t + h > hi, xp.minimum(t + h, self.t_max), t_n)
+        rule = self.rule
+        r, h = rule.size(xp, s, t, f)
+        t_n = rule.end(xp, t, h, hi, self.t_max)
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
         zero = f_n == 0
         fin = xp.isfinite(f_n)
@@ -422,16 +611,10 @@ class MarchRefine(_Search):
         conv = cross & (zero | (t_n - t <= self.xtol))
         nonf = ~fin & xp.isfinite(t_n)
         # the step's two ends are evaluated: a slope above the declared L shows it is false here
-        lipv = None if self._check is None else lipschitz_violated(xp, f, f_n, t, t_n, self._check,
-                                                                   _magnitude(xp, o, self.scale))
-        new = {}
-        if self._hybrid:
-            # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
-            # passes; h ≥ t_n − t, so a step clamped at t_max is judged conservatively), a crossing,
-            # or a step no longer than min_step.  A rejected step stays where it was.
-            # (a step past every finite depth needs no certificate: nothing lies beyond it)
-            ok = cross | (r + self._radius(xp, f_n) >= h) | (h <= self.min_step) | ~xp.isfinite(t_n)
-            new["dl"] = xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self._cap)
+        lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check,
+                                                                  _magnitude(xp, o, self.scale))
+        ok, new = rule.judge(xp, s, cross, r, f_n, h, t_n)
+        if ok is not None:  # a step that does not stand: the ray stays where it was
             miss = miss & ok
             t_n, f_n = xp.where(ok, t_n, t), xp.where(ok, f_n, f)
             if self.deriv:
@@ -442,31 +625,20 @@ class MarchRefine(_Search):
         # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
         phase = xp.astype(cross | (iters >= self.ladder_after), xp.int32) + to_refine if self.ladder > 1 else to_refine
-        # on a crossing the bracket is [a, b] = [t, t_n] and the secant starts from (p, t) = (t, t_n):
-        # b and the new t are one array (t_n on those rows; the driver then moves one array, not
-        # two); for other rows a, b are overwritten before they are used
+        # on a crossing the bracket is [a, b] = [t, t_n] and the secant starts from (p, t) = (t, t_n);
+        # for other rows a, b are overwritten before they are used
         new.update(t=t_n, f=f_n, p=t, fp=f, a=t, fa=f, b=t_n, phase=phase, status=status, iterations=iters,
                    evals=s["evals"] + cost)
-        if self.refine != "bisect":
-            new["wq"] = 4.0 * (t_n - t)  # refinement's "width at the last check": no forced bisection at first
+        new.update(self.refiner.on_bracket(xp, t_n - t))
         if self.deriv:
             new["df"] = df_n
         return _typed(xp, dict(s, **new), s)
 
-    def _radius(self, xp, f):
-        """|φ|/L, the radius of the unbounding sphere (no multiplication for L = 1, an SDF's)."""
-        return xp.abs(f) if self.inv_lip == 1.0 else xp.abs(f) * self.inv_lip
-
-    @property
-    def _cap(self) -> float:
-        """Largest forced step (hybrid) beyond |φ|/L."""
-        return max(self.overstep or self.min_step, self.min_step)
-
     def step_ladder(self, xp, s, o, d, ev):
         """``ladder`` marching steps in one iteration, for rays still marching after
         ``ladder_after`` steps (grazing rays: a near miss at distance δ from a surface of radius
-        of curvature ρ costs about (π/2)√(2ρ/δ) certified steps, 1900 at δ = 5e-7 in the torus ∪
-        box benchmark, each a loop step whose cost is per-call overhead once few rays are left).
+        of curvature ρ costs about (π/2)√(2ρ/δ) certified steps, each a loop step whose cost is
+        per-call overhead once few rays are left).
 
         Samples t_j = t + j·h, j = 1 … K (clamped to ``hi``), with h = max(|φ(t)|/L, Δ) (hybrid)
         or the constant step, are evaluated together; the pairs (t_{j−1}, t_j) are then judged
@@ -480,11 +652,8 @@ class MarchRefine(_Search):
         one that stops in its first half, within [``min_step``, ``overstep``]."""
         t, f, hi = s["t"], s["f"], s["hi"]
         m, k = t.shape[0], self.ladder
-        if self._hybrid:
-            r = self._radius(xp, f)
-            h = xp.maximum(r, s["dl"])
-        else:
-            h = xp.full_like(t, self.min_step)
+        rule = self.rule
+        r, h = rule.ladder_size(xp, s, t, f)
         j = xp.asarray(np.arange(1, k + 1), dtype=t.dtype, device=_device(t))
         T = xp.minimum(t[:, None] + h[:, None] * j[None, :], hi[:, None])
         F, DF, cost = ev(_repeat_rays(xp, o, k), _repeat_rays(xp, d, k), xp.reshape(T, (m * k,)), self.deriv)
@@ -494,15 +663,11 @@ class MarchRefine(_Search):
         cross = (F == 0) | ((F > 0) != (Fp > 0))
         finite = xp.isfinite(F)
         event = cross | ~finite
-        if self._hybrid:
-            # as in step_march, judged on the requested spacing h, except pairs ending at hi, which
-            # are shorter (the samples past hi all sit at hi: pairs of length 0)
-            R = self._radius(xp, F)
-            spacing = xp.where(T >= hi[:, None], T - Tp, h[:, None])
-            certified = (xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None]
+        certified = rule.ladder_certified(xp, r, F, T, Tp, hi, h)
+        if certified is not None:
             event = event | ~certified
-        if self._check is not None:
-            violated = lipschitz_violated(xp, Fp, F, Tp, T, self._check, _magnitude(xp, o, self.scale)[:, None])
+        if rule.check is not None:
+            violated = lipschitz_violated(xp, Fp, F, Tp, T, rule.check, _magnitude(xp, o, self.scale)[:, None])
             event = event | violated
         stopped = xp.any(event, axis=1)
         first = xp.argmax(xp.astype(event, xp.int8), axis=1)
@@ -514,7 +679,7 @@ class MarchRefine(_Search):
         Te, Fe, Tpe, Fpe = at(T), at(F), at(Tp), at(Fp)
         cross_e = stopped & at(cross)
         nonf = stopped & ~at(finite) & xp.isfinite(Te)
-        lipv = stopped & at(violated) if self._check is not None else None
+        lipv = stopped & at(violated) if rule.check is not None else None
         onto = cross_e | ~stopped  # the ray moves onto sample e; otherwise it stays at e's start
         miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te)
         conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
@@ -526,12 +691,8 @@ class MarchRefine(_Search):
         new = dict(t=t_new, f=f_new, p=Tpe, fp=Fpe, a=Tpe, fa=Fpe, b=t_new,  # b = Te where crossed
                    phase=xp.astype(cross_e, xp.int32) + 1, status=status, iterations=iters,
                    evals=s["evals"] + cost * k)
-        if self.refine != "bisect":
-            new["wq"] = 4.0 * (Te - Tpe)
-        if self._hybrid:
-            e0 = e[:, 0]
-            grow = xp.where(~stopped, 2 * s["dl"], xp.where(~cross_e & (e0 < k // 2), 0.5 * s["dl"], s["dl"]))
-            new["dl"] = xp.clip(grow, self.min_step, self._cap)
+        new.update(self.refiner.on_bracket(xp, Te - Tpe))
+        new.update(rule.ladder_adapt(xp, s, stopped, cross_e, e[:, 0], k))
         if self.deriv:
             DF = xp.reshape(DF, (m, k))
             new["df"] = xp.where(onto, at(DF), at(xp.concat([s["df"][:, None], DF[:, :-1]], axis=1)))
@@ -541,26 +702,7 @@ class MarchRefine(_Search):
         t, f, a, b = s["t"], s["f"], s["a"], s["b"]
         mid = 0.5 * (a + b)
         i2 = s["iterations"] % 3 == 0  # a check of the bracket's progress (see the safeguards)
-        if self.refine == "bisect":
-            c = mid
-        else:
-            with _quiet(xp):  # f = fp or φ' = 0 give inf/NaN: replaced by the midpoint below
-                c = t - f / s["df"] if self.refine == "newton" else t - f * (t - s["p"]) / (f - s["fp"])
-            # t is an end of the bracket.  Near a root secant and Newton close in from one side and the
-            # far end stays put, so no bracket would ever certify them: a step shorter than xtol/2 is
-            # lengthened by xtol/4 beyond the predicted root, whose evaluation then closes the bracket
-            # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise)
-            h = 0.5 * self.xtol
-            step = xp.abs(c - t)
-            lift = step + 0.5 * h  # (both branches arrays: a where on two Python floats would be float64)
-            c = xp.where(step < h, xp.where(t - a <= b - t, t + lift, t - lift), c)
-            # safeguards (rtsafe, Numerical Recipes §9.4; Brent): bisect where the iterate leaves the
-            # closed bracket (or is NaN), and where the bracket did not halve over the last three steps
-            # (checked every third iteration), so a multiple root or a poor derivative costs at most
-            # three times bisection's steps (every second iteration forced bisections on healthy
-            # one-sided Newton runs: sphere, 128² rays, 14.4 → 35.5 evaluations per ray; every third: 16.2)
-            slow = i2 & (b - a > 0.5 * s["wq"])
-            c = xp.where((c >= a) & (c <= b) & ~slow, c, mid)
+        c = self.refiner.propose(xp, s, t, f, a, b, mid, i2, self.xtol)
         f_c, df_c, cost = ev(o, d, c, self.deriv)
         # fa is φ at the bracket's first end when it was formed: a moves only to points of φ's sign
         # there, so that sign (all that is used) never changes and fa, fb need no updates
@@ -571,21 +713,11 @@ class MarchRefine(_Search):
         # are adjacent floats (the midpoint rounds to an end: no float lies between them)
         nmid = 0.5 * (na + nb)
         conv = (f_c == 0) | (nb - na <= self.xtol) | (nmid <= na) | (nmid >= nb)
-        t_out = c
-        if self.refine != "bisect":
-            # report the zero of the chord through the last two iterates, kept in the certified bracket:
-            # after the lengthened step they are the bracket's ends, and it is far more accurate than c
-            with _quiet(xp):
-                z = c - f_c * (c - t) / (f_c - f)
-            z = xp.minimum(xp.maximum(z, na), nb)
-            t_out = xp.where(conv & (f_c != 0) & (z == z), z, c)
+        t_out = self.refiner.report(xp, c, f_c, t, f, na, nb, conv)
         iters = s["iterations"] + 1
         status = _verdict(xp, ~xp.isfinite(f_c), conv, iters >= self.max_steps)
         new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, status=status, iterations=iters, evals=s["evals"] + cost)
-        if self.refine != "bisect":
-            new["wq"] = xp.where(i2, b - a, s["wq"])
-        if self.deriv:
-            new["df"] = df_c
+        new.update(self.refiner.after(xp, s, i2, a, b, df_c))
         return _typed(xp, dict(s, **new), s)
 
 
