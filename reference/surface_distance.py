@@ -246,7 +246,7 @@ def surface_samples(scene: Field, spacing: float, max_points: int = 4_000_000) -
       lies in a kept cell whose centre g has |g − y| ≤ s√3/2, and the closest point p(g) has
       |p(g) − g| ≤ |g − y|, so |p(g) − y| ≤ s√3 ≤ spacing: certified for exact SDFs.  For the
       fallback it is an estimate: the foot point along ∇φ is not the closest point, and the
-      band uses the slope min(L, 2 |∇φ(g)|) instead of L (a declared L far above the slope
+      band uses the slope min(L, 1.25 |∇φ(g)|) instead of L (a declared L far above the slope
       near the surface would multiply the samples by L/|∇φ|).
 
     ValueError if more than ``max_points`` samples would be needed (raise ``spacing``)."""
@@ -283,8 +283,8 @@ def surface_samples(scene: Field, spacing: float, max_points: int = 4_000_000) -
         if method != "exact_sdf":
             # a declared L far above |∇φ| near the surface (|x|² − 1: L = 13, |∇φ| ≈ 2) would keep a
             # band L/|∇φ| times too wide; the fallback's cover is an estimate anyway, so the band
-            # uses min(L, 2 |∇φ(centre)|)
-            slope = np.minimum(L, 2 * np.linalg.norm(_grad_fd(scene, cells, 1e-7 * radius), axis=1))
+            # uses min(L, 1.25 |∇φ(centre)|) (the first-order distance |φ|/|∇φ| with a margin)
+            slope = np.minimum(L, 1.25 * np.linalg.norm(_grad_fd(scene, cells, 1e-7 * radius), axis=1))
         keep = ~(np.abs(phi) > slope * s * math.sqrt(3.0) / 2)  # NaN φ: kept (cannot exclude)
         cells, phi = cells[keep], phi[keep]
         if s <= target:
