@@ -121,7 +121,7 @@ def default_cases() -> list:
     try:
         from reference.mesh_cases import mesh_cases
 
-        cases += [c for c in mesh_cases() if c.id.split(".")[-1].startswith("camera")]
+        cases += [c for c in mesh_cases() if ".camera." in c.id]
     except ImportError:  # pragma: no cover - branch without meshes
         pass
     seen, out = set(), []
