@@ -245,6 +245,14 @@ def get_case(case_id: str) -> Case:
     return case
 
 
+def register_group(ids, build: Callable[[], list[Case]]) -> None:
+    """Register cases built together (a stored mesh loaded once for all of its cases): ``build()``
+    returns them all, and runs at most once, when the first of ``ids`` is asked for."""
+    built = functools.cache(lambda: {c.id: c for c in build()})
+    for cid in ids:
+        register(cid)(lambda cid=cid: built()[cid])
+
+
 def case_ids() -> list[str]:
     return sorted(_FACTORIES)
 
@@ -267,6 +275,7 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
 # Tags say what a case exercises and needs: the scene's own kind, ``sdf`` (exact SDF),
 # ``lipschitz`` (a Lipschitz bound exists), ``csg``, ``transform``, ``grazing``, ``tangent``,
 # ``inside``, ``surface``, ``far``, ``scale``, ``thin``, ``parallel``, ``understated``,
+# ``wall`` (through a mesh's thin wall), ``edge`` (grazing a mesh's edges), ``mesh``, ``grid``,
 # ``camera``, ``mlp``, ``numerical`` (no closed-form hits), ``quick`` (the CI suite) and
 # ``stability`` (the one representative case per adversarial family that the stability plan
 # runs).  Tags are not part of a case's version.
@@ -274,7 +283,8 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
 #: the adversarial ray families (the stability matrix's columns), most specific first: a case
 #: belongs to the first of these among its tags (``box.parallel`` is also ``grazing``, but its
 #: family is ``parallel``)
-ADVERSARIAL_FAMILIES = ("understated", "tangent", "parallel", "thin", "scale", "far", "surface", "inside", "grazing")
+ADVERSARIAL_FAMILIES = ("understated", "tangent", "parallel", "wall", "thin", "scale", "far", "surface", "inside", "edge",
+                        "grazing")
 
 
 def adversarial_family(tags) -> str | None:

@@ -77,6 +77,7 @@ import math
 import numpy as np
 
 from . import raybounds
+from .cases import register_group
 from .scene import Field, SceneInfo, _points, const, safe_norm
 
 EPS = np.finfo(np.float64).eps
@@ -527,8 +528,12 @@ def _tangent_offsets(grid: GridSDF, centre_dirs, lateral, s_hit: float, s_miss: 
     return lo
 
 
+#: the ids :func:`grid_cases` builds, registered in the catalog at import
+GRID_CASE_IDS = ("grid.torus32.camera.32x32", "grid.torus64.camera.32x32", "grid.torus64.grazing.1e-6")
+
+
 def grid_cases():
-    """Grid-SDF cases (not registered: the catalog's owner adds them): a torus (R = 1, r = 0.25)
+    """Grid-SDF cases: a torus (R = 1, r = 0.25)
     sampled on 32³ and 64³ grids over [−1.4, 1.4]³ (every boundary sample ≥ 0.15 > 0: closed),
     seen by a camera, and rays grazing the 64³ grid's own surface in the equatorial plane."""
     from . import rays as _rays
@@ -562,4 +567,6 @@ def grid_cases():
     return out
 
 
-__all__ = ["GridSDF", "grid_cases", "grid_from_field"]
+register_group(GRID_CASE_IDS, grid_cases)
+
+__all__ = ["GRID_CASE_IDS", "GridSDF", "grid_cases", "grid_from_field"]

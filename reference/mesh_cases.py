@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from . import rays as _rays
-from .cases import Case, _cam, _scene_tags
+from .cases import Case, _cam, _scene_tags, register_group
 from .mesh import MeshSDF
 
 
@@ -83,15 +83,21 @@ def _blob_inside():
     return o, d
 
 
+#: the ids :func:`mesh_cases` builds, registered in the catalog without building them
+MESH_CASE_IDS = ("mesh.torus.camera.32x32", "mesh.fin.camera.32x32", "mesh.fin.thin", "mesh.fin.parallel",
+                 "mesh.blob.camera.32x32", "mesh.blob.inside",
+                 *(f"mesh.{name}.grazing.1e-{k}" for k in (3, 6, 9) for name in ("torus", "fin", "blob")))
+
+
 def mesh_cases() -> list[Case]:
-    """The mesh cases (not registered in the catalog; the lead wires them in)."""
+    """The mesh cases, registered in the catalog (:data:`MESH_CASE_IDS`)."""
     torus, fin, blob = (stored_mesh(k) for k in ("torus", "fin", "blob"))
     out = [
         _case("mesh.torus.camera.32x32", torus, *_cam(32, eye=(0.0, -2.5, 1.8)), ("camera",),
               "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 32×32 camera"),
         _case("mesh.fin.camera.32x32", fin, *_cam(32, eye=(1.6, -1.9, 1.5)), ("camera", "thin"),
               "a block with a 0.008-thick wall (sharp edges), 32×32 camera"),
-        _case("mesh.fin.thin", fin, *_fin_thin(), ("thin",),
+        _case("mesh.fin.thin", fin, *_fin_thin(), ("thin", "wall", "stability"),
               "rays through the 0.008-thick wall, a quarter along its normal, the rest oblique"),
         _case("mesh.fin.parallel", fin, *_fin_parallel(), ("parallel", "grazing"),
               "rays parallel to the wall's faces, 1e-9 outside (miss the wall) or inside (hit its end or top)"),
@@ -102,8 +108,21 @@ def mesh_cases() -> list[Case]:
     ]
     for k in (3, 6, 9):
         for name, mesh in (("torus", torus), ("fin", fin), ("blob", blob)):
+            # the fin's (68 faces) 1e-6 edge rays stand for the family in the stability matrix
+            stab = ("stability",) if (name, k) == ("fin", 6) else ()
             out.append(_case(f"mesh.{name}.grazing.1e-{k}", mesh,
-                             *edge_grazing_rays(mesh, 256, 10.0**-k, seed=110 + k), ("grazing",),
+                             *edge_grazing_rays(mesh, 256, 10.0**-k, seed=110 + k), ("grazing", "edge") + stab,
                              f"rays perpendicular to random convex edges passing 1e-{k} × size outside (even rays) "
                              "or inside (odd rays) the edge"))
     return out
+
+
+def _register() -> None:
+    # the mesh scenes need libigl and trimesh (the ``mesh`` extra); without them the catalog has no mesh cases
+    import importlib.util
+
+    if all(importlib.util.find_spec(m) is not None for m in ("igl", "trimesh")):
+        register_group(MESH_CASE_IDS, mesh_cases)
+
+
+_register()

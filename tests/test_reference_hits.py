@@ -30,6 +30,10 @@ def test_hits_lie_on_the_surface(cid):
     size = 1.0 + np.max(np.abs(case.scene.param_vector()), initial=0.0)
     bound = 16 * EPS * (np.linalg.norm(case.origins[m], axis=1) + case.exact_t[m] + size)
     dist = np.abs(phi) / np.linalg.norm(grad, axis=1)
+    # a mesh's φ (libigl's closest point) rounds by more near skinny faces: its own stated tolerance
+    surface_tol = getattr(case.scene, "_surface_tol", None)
+    if surface_tol is not None:
+        bound = np.maximum(bound, surface_tol(x))
     assert np.all(dist <= bound), f"worst {np.max(dist / bound):.3g} × bound"
 
 
