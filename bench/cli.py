@@ -555,6 +555,36 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_extract(args) -> int:
+    from reference.cases import catalog
+
+    from . import extraction, runner
+    from .results import to_frame, write_atomic, write_results
+
+    run_id = runner.new_run_id()
+    out = Path(args.out) if args.out else DEFAULT_REPORTS / f"extract-{run_id}"
+    if out.exists() and any(out.iterdir()):
+        return _error(f"--out: {out} is not empty; results are never overwritten, pass another --out")
+    if args.case:
+        cases = catalog(args.case)
+        if not cases:
+            return _error(f"--case: no case matches {args.case!r}; `python -m bench cases` lists them")
+    else:
+        cases = None
+    resolutions = tuple(args.resolution or (16, 32, 64, 128))
+    rows = extraction.run_extraction(cases, resolutions=resolutions, repeats=args.repeats, run_id=run_id,
+                                     progress=lambda line: print(line, flush=True))
+    out.mkdir(parents=True, exist_ok=True)
+    df = to_frame(rows)
+    write_results(df, out)
+    image = extraction.plot(df, out / "extraction.png")
+    md = extraction.markdown_section(df, image=image.name if image else None)
+    write_atomic(out / "extraction.md", lambda tmp: Path(tmp).write_text(md, encoding="utf-8"))
+    print(md)
+    print(f"wrote {out / 'results.csv'}, {out / 'extraction.md'}" + (f", {image}" if image else ""))
+    return 0
+
+
 def cmd_speed(args) -> int:
     from . import environment, speed
     from impls import METHODS, registry
@@ -667,6 +697,16 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--tag", action="append", help="only cases with these tags")
     k.add_argument("--cases", action="append", help="also list your own cases: package.module:attribute (see run --cases)")
     k.set_defaults(fn=cmd_cases)
+
+    ex = sub.add_parser("extract", help="marching cubes (scikit-image) at several grid resolutions, scored by "
+                        "Hausdorff and Chamfer distance to the exact surface, with time (bench/extraction.py)")
+    ex.add_argument("--case", help="glob(s) on case ids, comma-separated (default: one case per distinct scene and "
+                    "the mesh cameras)")
+    ex.add_argument("--resolution", type=_int_at_least(4), action="append",
+                    help="grid points per axis, repeatable (default 16, 32, 64, 128)")
+    ex.add_argument("--repeats", type=_int_at_least(1), default=3, help="timed repeats per configuration (default 3)")
+    ex.add_argument("--out", help="output directory (default: reports/extract-<run-id>/); never overwritten")
+    ex.set_defaults(fn=cmd_extract)
 
     b = sub.add_parser("backends", help="list backends and what they can do")
     b.set_defaults(fn=cmd_backends)

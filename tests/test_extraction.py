@@ -151,3 +151,19 @@ def test_bad_input():
         run_extraction([], repeats=0)
     out = extract(get_case("plane.camera.32x32").scene, 8, bounds=((-1, -1, -1), (1, 1, 1)))
     assert out["faces"].shape[0] > 0 and np.allclose(out["vertices"][:, 2], 0.0, atol=1e-12)
+
+
+def test_extract_command_writes_results_section_and_plot(tmp_path):
+    """``python -m bench extract``: rows, the report section and the plot, atomically, in --out;
+    an --out that already holds files is refused (nothing is overwritten)."""
+    from bench.cli import main
+    from bench.results import read_results
+
+    out = tmp_path / "ex"
+    assert main(["extract", "--case", "sphere.grazing.1e-6", "--resolution", "8", "--resolution", "16",
+                 "--repeats", "1", "--out", str(out)]) == 0
+    df = read_results(out)
+    assert set(df["quantity"]) == {"hausdorff", "chamfer"} and set(df["knob"]) == {"resolution=8", "resolution=16"}
+    assert (out / "extraction.md").read_text().startswith("## Surface extraction")
+    assert (out / "extraction.png").stat().st_size > 0
+    assert main(["extract", "--case", "sphere.grazing.1e-6", "--out", str(out)]) == 2
