@@ -65,7 +65,8 @@ def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=Non
 
 def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
     """``hybrid_secant``'s (and ``render_surface``'s) algorithm from its validated knobs; the largest
-    forced step is at least the smallest (``overstep`` below ``min_step`` means no forced-step range)."""
+    forced step is at least the smallest (``overstep`` below ``min_step`` means no forced-step
+    range: the plain IDR march), clamped here only."""
     rule = CertifiedStep(inv_lip=lipschitz_step(scene), min_step=knobs["min_step"],
                          overstep=max(knobs["overstep"], knobs["min_step"]), extrapolate=knobs["extrapolate"],
                          reach=knobs["reach"],

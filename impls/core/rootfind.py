@@ -319,10 +319,14 @@ class CertifiedStep:
 
     inv_lip: float
     min_step: float
-    overstep: float | None = None  # largest forced step Δ (None: = min_step)
+    overstep: float  # largest forced step Δ beyond |φ|/L, ≥ min_step (overstep = min_step: the plain IDR march)
     extrapolate: float = 0.0  # forced step ≥ this × the secant's distance to the zero (0: off)
     reach: float = 0.0  # largest extrapolated step
     probe: bool = False  # evaluate leaving steps where they end, within t_max (L holds there)
+
+    def __post_init__(self):
+        if not self.overstep >= self.min_step:
+            raise ValueError(f"CertifiedStep: overstep={self.overstep!r} must be ≥ min_step={self.min_step!r}")
 
     @property
     def check(self) -> float:
@@ -331,7 +335,7 @@ class CertifiedStep:
     @property
     def cap(self) -> float:
         """Largest forced step beyond |φ|/L."""
-        return max(self.overstep or self.min_step, self.min_step)
+        return self.overstep
 
     def holds(self, stage: str) -> frozenset[str]:
         return frozenset({"dl"} | ({"p", "fp"} if stage == "step_march" and self.extrapolate else set()))
