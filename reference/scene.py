@@ -198,6 +198,18 @@ class Field:
     def _eval(self, x: Any, xp: Any, cursor: ParamCursor) -> Any:  # pragma: no cover
         raise NotImplementedError
 
+    # -- rounding ----------------------------------------------------------------------------
+    @property
+    def rounding_gain(self) -> float:
+        """How many times the generic rounding of φ this node's evaluation may carry (≥ 1).
+
+        The Lipschitz check (:func:`impls.core.rootfind.lipschitz_violated`) allows φ a rounding
+        of 16ε per unit of the magnitudes involved (|x|, |φ|, the scene's extent), which covers
+        distances to centres and planes, CSG min/max and affine layers.  A node whose φ rounds
+        worse states how much worse here; a scene's gain is the largest of its nodes'
+        (:func:`impls.core.methods_root.rounding_gain`).  Default 1."""
+        return 1.0
+
     # -- bounds ------------------------------------------------------------------------------
     def bounding_sphere(self) -> tuple[np.ndarray, float] | None:
         """A ball ``(centre (3,), radius)`` that contains every point where φ ≤ 0, or ``None``

@@ -40,6 +40,14 @@ def rounding_scale(scene) -> float:
     return v if math.isfinite(v) else 0.0
 
 
+def rounding_gain(scene) -> float:
+    """The largest :attr:`reference.scene.Field.rounding_gain` of the scene's nodes (≥ 1): the
+    factor on the Lipschitz check's rounding slack for fields whose φ rounds worse than the
+    generic bound (a mesh's closest point near skinny faces)."""
+    gains = [float(getattr(n, "rounding_gain", 1.0)) for n in scene.walk()] if hasattr(scene, "walk") else []
+    return max([1.0, *(g for g in gains if math.isfinite(g))])
+
+
 def marching_check(scene, bounds, theta) -> float | None:
     """1/L for constant-step marching to check on its steps, or None: the scene declares a bound
     L, φ is evaluated at the stored parameters (the bound is theirs) and, for a bound stated on
@@ -60,7 +68,7 @@ def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=Non
     """``sphere_trace``'s algorithm from its validated knobs (:meth:`impls.methods.MethodSpec.validate`)."""
     return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
                        omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
-                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene))
+                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene), gain=rounding_gain(scene))
 
 
 def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
@@ -75,7 +83,7 @@ def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, 
                          probe=getattr(scene.info, "domain", None) is None)
     return MarchRefine(rule=rule, refiner=REFINERS["secant"](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
                        t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
-                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene))
+                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene))
 
 
 def march_builder(refine: str):
@@ -86,7 +94,7 @@ def march_builder(refine: str):
         return MarchRefine(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
                            refiner=REFINERS[refine](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
                            t_min=t_min, t_max=t_max, bounds=bounds, ladder=_ladder(knobs, ladder),
-                           ladder_after=knobs["ladder_after"], scale=rounding_scale(scene))
+                           ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene))
 
     build_march.__name__ = f"build_march_{refine}"
     return build_march

@@ -123,7 +123,7 @@ def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None):
     return status + IN
 
 
-def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag):
+def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag, gain: float = 1.0):
     """Rays whose step from (t0, f0) to (t1, f1) shows |f1 − f0| > L·|t1 − t0|: the declared
     Lipschitz bound L = 1/``inv_lip`` is false on that ray, so no step computed from it is safe.
 
@@ -139,8 +139,9 @@ def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag):
     centred 1e6 away, seen from 3 units) is flagged: its φ carries ε·1e6 of rounding while
     |φ|, |t| ≈ 3.  The slack is a relative 1e-14 of those magnitudes, so an understated L is
     still seen on any step longer than that.  A NaN anywhere compares false (left to
-    NON_FINITE)."""
-    eps = 16.0 * float(np.finfo(np.dtype(str(t0.dtype).rpartition(".")[2])).eps)
+    NON_FINITE).  ``gain`` (≥ 1) multiplies the slack for fields whose φ rounds worse than
+    that (:func:`impls.core.methods_root.rounding_gain`: a mesh with skinny faces)."""
+    eps = 16.0 * gain * float(np.finfo(np.dtype(str(t0.dtype).rpartition(".")[2])).eps)
     a0, a1 = xp.abs(f0), xp.abs(f1)
     at = xp.abs(t0) + xp.abs(t1) + mag
     if inv_lip != 1.0:
@@ -213,6 +214,7 @@ class SphereTrace(_Search):
     bounds: Any = None  # the scene whose ray_bounds clip the search (None: all of [t_min, t_max])
     probe: bool = False  # evaluate leaving steps where they end, within t_max (the scene's L holds there)
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
+    gain: float = 1.0  # the scene's rounding gain, on that slack (lipschitz_violated)
 
     stages = ("step",)
 
@@ -245,7 +247,7 @@ class SphereTrace(_Search):
         # accept a point only if its unbounding sphere overlaps the previous one (Keinert et al.)
         ok = ~((om > 1) & (xp.abs(f_new) * self.inv_lip + r_prev < t_new - t_prev))
         # the step's two ends are evaluated: a slope above L shows the declared bound is false
-        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, _magnitude(xp, o, self.scale))
+        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, _magnitude(xp, o, self.scale), self.gain)
         # (a ray that left has no depth to lose to a non-finite φ: it is a MISS, or flagged)
         status = _verdict(xp, ~xp.isfinite(f_new) & ~out, (xp.abs(f_new) <= self.tol) & ok, iters >= self.max_steps,
                           miss=out, lipv=lipv)
@@ -559,6 +561,7 @@ class MarchRefine(_Search):
     ladder: int = 0  # samples per ladder step (≤ 1: no ladder stage)
     ladder_after: int = 0  # marching steps before a ray goes on in ladder steps
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
+    gain: float = 1.0  # the scene's rounding gain, on that slack (lipschitz_violated)
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -616,7 +619,7 @@ class MarchRefine(_Search):
         nonf = ~fin & xp.isfinite(t_n)
         # the step's two ends are evaluated: a slope above the declared L shows it is false here
         lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check,
-                                                                  _magnitude(xp, o, self.scale))
+                                                                  _magnitude(xp, o, self.scale), self.gain)
         ok, new = rule.judge(xp, s, cross, r, f_n, h, t_n)
         if ok is not None:  # a step that does not stand: the ray stays where it was
             miss = miss & ok
@@ -671,7 +674,7 @@ class MarchRefine(_Search):
         if certified is not None:
             event = event | ~certified
         if rule.check is not None:
-            violated = lipschitz_violated(xp, Fp, F, Tp, T, rule.check, _magnitude(xp, o, self.scale)[:, None])
+            violated = lipschitz_violated(xp, Fp, F, Tp, T, rule.check, _magnitude(xp, o, self.scale)[:, None], self.gain)
             event = event | violated
         stopped = xp.any(event, axis=1)
         first = xp.argmax(xp.astype(event, xp.int8), axis=1)
