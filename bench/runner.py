@@ -13,6 +13,7 @@ already in the run directory are kept, the others are run under the same run id.
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import datetime as _dt
 import json
 import secrets
@@ -352,7 +353,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
     given; fewest rays first with ``suite.small_cases_first``, one per scene family in turn with
     ``suite.diverse_cases``), its knob sweep on the first ``suite.sweep_cases`` of them and its
-    default knobs on the rest (secondary dtypes: see ``Suite.secondary_dtype_cases``); a case it does not apply to gets one configuration (default knobs), which the
+    default knobs on the rest (plus, beyond ``max_cases``, every applicable case matching
+    the method's ``suite.always_cases``, at default knobs; secondary dtypes: see ``Suite.secondary_dtype_cases``); a case it does not apply to gets one configuration (default knobs), which the
     runner records as skipped with the reason.  Order: every default-knob configuration first
     (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
@@ -388,7 +390,9 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
             lead = suite.lead_cases.get(spec.family, suite.lead_cases.get("*", ()))
             usable = _one_per_family(usable, lead, shift=names.index(method) if suite.rotate_families else 0)
         if not explicit and suite.max_cases is not None:
-            usable = usable[:suite.max_cases]
+            globs = suite.always_cases.get(spec.name, suite.always_cases.get(spec.family, ()))
+            extra = [c for c in usable[suite.max_cases:] if any(fnmatch.fnmatchcase(c.id, g) for g in globs)]
+            usable = usable[:suite.max_cases] + extra
         for rank, case in enumerate(usable):
             swept = explicit or suite.sweep_cases is None or rank < suite.sweep_cases
             for k, knobs in enumerate(sweep if swept else sweep[:1]):

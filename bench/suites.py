@@ -75,6 +75,10 @@ class Suite:
     rotate_families: bool = True
     #: method family → case ids the suite does not plan for it (too costly for its purpose)
     exclude_cases: dict = dataclasses.field(default_factory=dict)
+    #: method name or family → case-id globs it also runs on, at default knobs, wherever it
+    #: applies, beyond ``max_cases`` (the workload scenes a suite must cover); a method's own
+    #: name takes precedence over its family
+    always_cases: dict = dataclasses.field(default_factory=dict)
     #: the suite run after this one as its stability stage (accuracy only, into ``stability/``
     #: under the run directory; :func:`bench.stability.run_stage`), or None
     stability: str | None = None
@@ -162,13 +166,21 @@ def _root_methods() -> tuple[str, ...]:
     return tuple(name for name, spec in METHODS.items() if spec.family == "root")
 
 
+#: the workload scenes (meshes, grid SDFs, the trained neural SDF) on every root finder, the surface
+#: renderer and the gradients where they apply.  Not the volume renderers: their reference, the
+#: rendering integral, costs 0.1–1 s per ray on these fields (``--case 'mesh.*'`` runs them).
+_WORKLOAD_GLOBS = ("mesh.*", "grid.*", "neural.*")
+_WORKLOADS = {"root": _WORKLOAD_GLOBS, "render_surface": _WORKLOAD_GLOBS, "gradient": _WORKLOAD_GLOBS,
+              "param_grad": _WORKLOAD_GLOBS}
+
 SUITES = {
     # quick: CI and the README's first command, a showcase: every method on the same four scene
     # kinds where they apply (sphere grazing rays, torus, CSG torus ∪ box, the MLP; the next quick
     # cases where one does not), its main dial at 3 settings on the first (a short time-versus-error
     # curve per method and backend) and defaults on the others, float64, 0.05 s and ≥ 3 samples of
     # timing each; volume renderers against ρ(x*) only (the rendering integral costs ~10 s to
-    # minutes per case); then the stability stage (below).
+    # minutes per case); then the stability stage (below).  The workload scenes tagged "quick" (the
+    # torus mesh, the neural SDF) run on every root finder and the surface renderer.
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
                    min_time_s=0.05, main_dial_only=True, max_cases=4, sweep_cases=1, min_repeats=3, budget_s=None,
                    expensive_references=False, small_cases_first=True, diverse_cases=True, rotate_families=False,
@@ -177,14 +189,16 @@ SUITES = {
                                # dt/dθ of the MLP's 350 weights costs 40 s a configuration on jax
                                "param_grad": ("sphere.grazing.1e-6", "torus.camera.32x32", "csg.union.camera.32x32",
                                               "box.camera.32x32")},
-                   exclude_cases={"param_grad": ("mlp.camera.32x32",)}, stability="stability.quick"),
+                   exclude_cases={"param_grad": ("mlp.camera.32x32",)}, stability="stability.quick",
+                   always_cases=_WORKLOADS),
     # full: < 15 min on 2 cores.  Each method on 3 applicable cases from different scene
     # families, float64; its main dial swept over the full range (every decade of a tolerance,
     # 7 budgets) on the first, with the continuous rendering integral as the volume renderers'
     # reference; float32 at default knobs on the first case (the precision floor).  0.05 s and
     # ≥ 3 samples of timing each.  Defaults everywhere are measured before any sweep point.  No
     # time budget: every run covers its whole plan (a --budget is a guard against a hang).  Every case of the catalog is
-    # still run by some method; ``--case '*'`` runs a method on all of its cases.
+    # still run by some method; ``--case '*'`` runs a method on all of its cases.  The workload
+    # scenes (meshes, grid SDFs, the neural SDF) run on every applicable method at default knobs.
     # stability: every root finder at default knobs, float64 and float32, on the one representative
     # case per adversarial ray family (catalog tag "stability"), accuracy only (one call per
     # configuration): the report's stability matrix.  The quick suite runs it as a stage of its
@@ -204,7 +218,8 @@ SUITES = {
                              backend_methods={"jax": ("sphere_trace", "hybrid_secant")}),
     "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
                   min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=1, max_cases=3,
-                  diverse_cases=True, secondary_dtype_cases=1, budget_s=None),
+                  diverse_cases=True, secondary_dtype_cases=1, budget_s=None,
+                  always_cases=_WORKLOADS),
 }
 
 

@@ -93,7 +93,7 @@ def mesh_cases() -> list[Case]:
     """The mesh cases, registered in the catalog (:data:`MESH_CASE_IDS`)."""
     torus, fin, blob = (stored_mesh(k) for k in ("torus", "fin", "blob"))
     out = [
-        _case("mesh.torus.camera.32x32", torus, *_cam(32, eye=(0.0, -2.5, 1.8)), ("camera",),
+        _case("mesh.torus.camera.32x32", torus, *_cam(32, eye=(0.0, -2.5, 1.8)), ("camera", "quick"),
               "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 32×32 camera"),
         _case("mesh.fin.camera.32x32", fin, *_cam(32, eye=(1.6, -1.9, 1.5)), ("camera", "thin"),
               "a block with a 0.008-thick wall (sharp edges), 32×32 camera"),

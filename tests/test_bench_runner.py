@@ -397,3 +397,33 @@ def test_reference_rays_are_evenly_strided_and_include_both_ends():
     idx = reference_rays(4096, 32)
     assert len(idx) == 32 and idx[0] == 0 and idx[-1] == 4095 and np.all(np.diff(idx) > 0)
     assert np.ptp(np.diff(idx)) <= 1  # even spacing
+
+
+@pytest.mark.parametrize("suite_name", ["quick", "full"])
+def test_workload_scenes_run_on_every_applicable_method(suite_name):
+    """The suites' ``always_cases``: every mesh, grid and neural case the suite selects runs on
+    every root finder, the surface renderer and the gradients where they apply (beyond
+    ``max_cases``), at default knobs; the volume renderers are not planned on them."""
+    import fnmatch
+
+    from bench.suites import get_suite
+    from reference import catalog
+
+    suite = get_suite(suite_name)
+    cfgs = runner.plan(suite, ["numpy"], None, None, None)
+    planned = {(c.case.id, c.method) for c in cfgs}
+    workloads = [c for c in runner.select_cases(suite, None)
+                 if any(fnmatch.fnmatchcase(c.id, g) for g in ("mesh.*", "grid.*", "neural.*"))]
+    assert workloads, "the suite selects no workload case"
+    if suite_name == "quick":
+        assert any(c.id.startswith("mesh.") for c in workloads)
+    for spec in METHODS.values():
+        for case in workloads:
+            if spec.family in ("root", "gradient", "param_grad") or spec.name == "render_surface":
+                assert (case.id, spec.name) in planned, (case.id, spec.name)
+                if runner.applies(spec, case) is None:
+                    knobs = [c.knobs for c in cfgs if c.case.id == case.id and c.method == spec.name]
+                    assert knobs == [suite.sweep_for(spec)[0]]  # default knobs only
+            elif spec.family == "render":
+                assert (case.id, spec.name) not in planned or case.id in suite.lead_cases.get("render", ())
+    assert len(catalog("mesh.*")) >= 3
