@@ -102,6 +102,65 @@ def test_phi_matches_brute_force(name):
 
 
 @pytest.mark.parametrize("name", SHAPES)
+def test_sign_near_edges_and_vertices_matches_the_exact_winding_number(name):
+    """The pseudonormal sign (closest point on an edge or a vertex) against libigl's exact
+    winding number, at points 1e-2 … 1e-9 × size from random vertices and edge points, where
+    the face-normal test does not decide."""
+    import igl
+
+    mesh = stored_mesh(name)
+    rng = np.random.default_rng(5)
+    V, F = mesh.vertices, mesh.faces
+    f = rng.integers(0, len(F), 400)
+    s = rng.uniform(0, 1, 400)
+    corner = V[F[f, 0]]
+    edge = (1 - s)[:, None] * V[F[f, 0]] + s[:, None] * V[F[f, 1]]
+    base = np.concatenate([corner, edge])
+    scale = mesh.size * 10.0 ** -rng.integers(2, 10, len(base))
+    x = base + scale[:, None] * unit_rows(rng.normal(size=(len(base), 3)))
+    phi, c, _ = mesh.closest(x)
+    keep = np.abs(phi) > 1e-12 * mesh.size  # the sign of a point on the surface is moot
+    inside = igl.winding_number(V, F, x[keep]) > 0.5
+    assert np.array_equal(phi[keep] < 0, inside), int(np.sum((phi[keep] < 0) != inside))
+    assert keep.sum() > 700
+
+
+def test_sign_at_sharp_edges_where_the_closest_face_normal_is_wrong():
+    """A regular tetrahedron (exterior angle between face normals 109.5°): outside points whose
+    closest point is on an edge and whose x − c is more than 90° from the face libigl names
+    (so ⟨x − c, n_f⟩ < 0 would call them inside).  The edge pseudonormal gets them right."""
+    import igl
+
+    V = np.array([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]])
+    F = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    mesh = MeshSDF(V, F, name="tetra")
+    rng = np.random.default_rng(6)
+    # points beyond each edge, in the normal cone of the two faces sharing it
+    e = rng.integers(0, 3, 600)
+    f = rng.integers(0, 4, 600)
+    a, b = V[F[f, e]], V[F[f, (e + 1) % 3]]
+    s = rng.uniform(0.1, 0.9, 600)[:, None]
+    p = (1 - s) * a + s * b
+    n = mesh.face_normals
+    n1 = n[f]
+    # the other face on edge (a, b)
+    other = np.array([[k for k in range(4) if k != fi and {F[fi, ei], F[fi, (ei + 1) % 3]} <= set(F[k])][0]
+                      for fi, ei in zip(f, e)])
+    n2 = n[other]
+    w = rng.uniform(0.02, 0.98, 600)[:, None]
+    x = p + 10.0 ** -rng.integers(1, 8, 600)[:, None] * unit_rows(w * n1 + (1 - w) * n2)
+    phi, c, face = mesh.closest(x)
+    assert np.all(phi > 0)
+    assert np.array_equal(phi < 0, igl.winding_number(V, F, x) > 0.5)
+    wrong_by_face = np.einsum("ij,ij->i", x - c, mesh.face_normals[face]) < 0
+    assert wrong_by_face.sum() > 50  # the face-normal test alone would fail here
+
+
+def unit_rows(v):
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("name", SHAPES)
 def test_gradient_normals_closest_points(name):
     mesh = stored_mesh(name)
     rng = np.random.default_rng(3)
