@@ -184,12 +184,23 @@ class MeshSDF(Field):
 
     # -- φ on the host -------------------------------------------------------------------
     def closest(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(φ (n,), closest points c (n, 3), closest face (n,))`` at points ``x`` (n, 3), float64."""
+        """``(φ (n,), closest points c (n, 3), closest face (n,))`` at points ``x`` (n, 3), float64.
+        A point with a NaN coordinate gets φ = NaN, one with an infinite coordinate φ = +inf (both
+        with c = NaN, face −1), without a tree query: the masked drivers evaluate finished rays
+        where their depth went (t = ∞ for a miss), and the AABB query visits every box for them."""
         import igl
 
         x = np.ascontiguousarray(_points(x))
         if x.shape[0] == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
+        finite = np.isfinite(x).all(axis=1)
+        if not finite.all():
+            phi = np.where(np.isnan(x).any(axis=1), np.nan, np.inf)
+            c = np.full_like(x, np.nan)
+            face = np.full(x.shape[0], -1, np.int64)
+            if finite.any():
+                phi[finite], c[finite], face[finite] = self.closest(x[finite])
+            return phi, c, face
         d2, face, c = self._tree.squared_distance(self.vertices, self.faces, x)
         dist = np.sqrt(d2)
         v = x - c

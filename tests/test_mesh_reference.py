@@ -156,6 +156,15 @@ def test_sign_at_sharp_edges_where_the_closest_face_normal_is_wrong():
     assert wrong_by_face.sum() > 50  # the face-normal test alone would fail here
 
 
+def test_non_finite_points_skip_the_tree():
+    mesh = stored_mesh("fin")
+    x = np.array([[0.0, 0, 5], [np.inf, 0, 0], [np.nan, 0, 0], [0.1, 0.1, 0.1], [-np.inf, np.nan, 1]])
+    phi, c, face = mesh.closest(x)
+    assert phi[0] > 0 and phi[1] == np.inf and np.isnan(phi[2]) and np.isnan(phi[4])
+    assert np.all(face[1:3] == -1) and np.isnan(c[1]).all() and face[3] >= 0
+    np.testing.assert_array_equal(phi[[0, 3]], mesh.closest(x[[0, 3]])[0])
+
+
 def unit_rows(v):
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
