@@ -3,6 +3,8 @@
     python -m bench run --suite quick [--backend numpy,jax:cpu] [--method sphere_trace] [--case 'sphere.*']
                         [--dtype float64] [--out DIR] [--resume] [--threads 1] [--allocator tuned|default]
                         [--accuracy-only] [--no-claims] [--no-stability] [--budget S] [--timeout S]
+                        [--cluster local:N | --scheduler ADDRESS]
+    python -m bench spread RUN_DIR [--workers 1 2 64] [--overhead-s S] [--central-s S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default]
     python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
@@ -162,7 +164,8 @@ class _ProgressLines:
         self._last = now
         pct = 100 * i // max(n, 1)
         self.line(f"configurations {i}/{n} ({pct}%): {counts.get('ok', 0)} ok, {counts.get('skipped', 0)} skipped, "
-                  f"{counts.get('failed', 0)} failed" + ("" if what == "done" else f"; next: {what[:80]}"))
+                  f"{counts.get('failed', 0)} failed" + ("" if what == "done" else f"; last: {what[6:86]}"
+                                                          if what.startswith("last:") else f"; next: {what[:80]}"))
 
 
 def _first_screen_lines(df, env: dict, out: Path) -> list[str]:
@@ -216,7 +219,7 @@ def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list
     return (1 if errors else 0), errors
 
 
-def run_stability_into(out: Path, suite, backends: dict, args, console) -> str:
+def run_stability_into(out: Path, suite, backends: dict, args, console, executor=None) -> str:
     """The suite's stability stage (:func:`bench.stability.run_stage`) into ``out/stability``;
     never raises.  Returns "" or a note saying why it did not complete."""
     import time
@@ -230,7 +233,7 @@ def run_stability_into(out: Path, suite, backends: dict, args, console) -> str:
 
         ok = {b: v for b, v in backends.items() if not isinstance(v, Unavailable)}
         df = run_stage(suite, ok, out / STABILITY_DIR, timeout_s=args.timeout, resume=args.resume,
-                       env_extra={"threads": str(args.threads)})
+                       env_extra={"threads": str(args.threads)}, executor=executor)
     except Exception as exc:  # the stage must not cost the run its report
         note = f"stability stage failed: {type(exc).__name__}: {exc}"
         console.print(f"[red]{note}[/]")
@@ -239,7 +242,42 @@ def run_stability_into(out: Path, suite, backends: dict, args, console) -> str:
     return ""
 
 
+def _start_executor(args, lines):
+    """The :class:`bench.cluster.ClusterExecutor` of ``--cluster``/``--scheduler`` (started), None
+    without them, or an error message."""
+    if not (args.cluster or args.scheduler):
+        return None, ""
+    if args.cluster and args.scheduler:
+        return None, "--cluster and --scheduler: give one (local:N starts a cluster, --scheduler uses an existing one)"
+    try:
+        from .cluster import ClusterExecutor, parse_local
+    except ImportError as exc:
+        return None, (f"--cluster/--scheduler need dask.distributed ({exc}); install it with "
+                      "pip install -c constraints.txt -e '.[cluster]'")
+    try:
+        executor = ClusterExecutor(local=parse_local(args.cluster) if args.cluster else None, scheduler=args.scheduler,
+                                   threads=args.threads, allocator=args.allocator,
+                                   case_specs=tuple(_split(args.cases) or ()), accuracy_only=args.accuracy_only)
+        executor.start()
+    except ValueError as exc:
+        return None, str(exc)
+    rec = executor.env_record()
+    lines.line(f"cluster: {rec['cluster']} ({executor._capacity(fresh=True)} worker threads, started in "
+               f"{rec['cluster.start_s']} s; {float(rec.get('cluster.central_s', 'nan')) * 1e3:.1f} ms central cost "
+               "per task)")
+    return executor, ""
+
+
 def cmd_run(args) -> int:
+    held: list = []  # the cluster executor, once started: closed whatever happens
+    try:
+        return _cmd_run(args, held)
+    finally:
+        for executor in held:
+            executor.close()
+
+
+def _cmd_run(args, held: list) -> int:
     from .environment import configure_threads
 
     configure_threads(args.threads)  # before any array library is imported
@@ -301,6 +339,10 @@ def cmd_run(args) -> int:
     budget = suite.budget_s if args.budget is None else (args.budget or None)
     live = console.is_terminal and not args.no_progress
     lines = _ProgressLines(periodic=not live and not args.no_progress)
+    executor, msg = _start_executor(args, lines)
+    if msg:
+        return _error(msg)
+    held += [executor] if executor else []
     lines.line(f"run {'(resumed) ' if args.resume else ''}suite {suite.name}: {len(cases)} cases, backends "
                f"{', '.join(backends)}; budget {'none' if budget is None else f'{budget:g} s'}; out {out}")
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
@@ -316,13 +358,14 @@ def cmd_run(args) -> int:
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
                             resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=budget,
                             rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
-                            else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout)
+                            else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout,
+                            executor=executor)
         except ValueError as exc:
             return _error(str(exc))
     env = json.loads((out / "environment.json").read_text())
     if suite.stability and not (args.no_stability or args.case or args.method or args.dtype):
         lines.line(f"stability: root finders × dtypes on one case per adversarial ray family ({suite.stability})")
-        note = run_stability_into(out, get_suite(suite.stability), backends, args, console)
+        note = run_stability_into(out, get_suite(suite.stability), backends, args, console, executor)
         env["stability"] = note or "ran"
         write_json(out / "environment.json", env)
     if not args.no_claims:
@@ -367,6 +410,8 @@ def _incomplete(name: str, df, env: dict | None) -> str:
 
 
 def cmd_compare(args) -> int:
+    import pandas as pd
+
     from . import compare as cmp
     from .results import read_results, write_text
 
@@ -377,14 +422,16 @@ def cmd_compare(args) -> int:
     except ValueError as exc:
         return _error(f"BASE/NEW: {exc}; pass two run directories (or their results.parquet/.csv)")
     eb, en = _run_env(args.base), _run_env(args.new)
-    same_machine = True
-    if eb is not None and en is not None:
-        from .environment import machine_key
+    from .environment import machine_key
 
-        same_machine = machine_key(eb) == machine_key(en)
+    # each row's machine: its own key (a cluster run's rows record their worker's), else its run's
+    for df, env in ((base, eb), (new, en)):
+        own = df["machine_key"].fillna("").astype(str) if "machine_key" in df else None
+        if env is not None:
+            df["machine_key"] = machine_key(env) if own is None else own.where(own != "", machine_key(env))
     try:
         res = cmp.compare(base, new, factor=args.factor, alpha=args.alpha, rtol=args.rtol, atol_eps=args.atol_eps,
-                          same_machine=same_machine)
+                          same_machine=True)  # the rows' machine keys decide (same_row_machine)
     except ValueError as exc:
         return _error(str(exc))
     console = _console()
@@ -399,7 +446,9 @@ def cmd_compare(args) -> int:
                             "error_new", "timing", "time_ratio", "p_value", "note"] if c in worse.columns]
         console.print(escape(worse[cols].to_string(index=False)))
     console.print(f"accuracy: {counts['accuracy']}")
-    console.print(f"timing:   {counts['timing']}" + ("" if same_machine else " (different machines: timing not compared)"))
+    differ = int((res.get("note", pd.Series(dtype=str)).fillna("") == "timing measured on different machines").sum())
+    console.print(f"timing:   {counts['timing']}" + (f" ({differ} rows measured on different machines: timing not "
+                                                      "compared)" if differ else ""))
     # a comparison gates only what it compares: a NEW side that lost rows or did not finish, or
     # a BASE that did not, is a failure, never a pass on fewer rows
     problems = [p for p in (_incomplete("NEW", new, en), _incomplete("BASE", base, eb)) if p]
@@ -555,6 +604,19 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_spread(args) -> int:
+    from . import spread
+
+    run_dir = Path(args.run_dir)
+    if not (run_dir / "environment.json").exists():
+        return _error(f"RUN_DIR: {run_dir} holds no environment.json; pass the --out directory of a `bench run`")
+    try:
+        print(spread.text(run_dir, tuple(args.workers or spread.WORKERS), args.overhead_s, args.central_s))
+    except (ValueError, FileNotFoundError) as exc:
+        return _error(f"RUN_DIR: {exc}")
+    return 0
+
+
 def cmd_extract(args) -> int:
     from reference.cases import catalog
 
@@ -661,6 +723,11 @@ def main(argv: list[str] | None = None) -> int:
                    "and that density is not retried in this run (default 30, 0: none)")
     r.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
                    "rendering integral) instead of reusing reports/.refcache/")
+    r.add_argument("--cluster", metavar="local:N", help="run the configurations as tasks on a dask LocalCluster of N "
+                   "single-threaded worker processes (bench/cluster.py; N × --threads ≤ cores unless --accuracy-only); "
+                   "results, resume and the report are those of a run in one process, each row records its worker")
+    r.add_argument("--scheduler", metavar="ADDRESS", help="run the configurations on an existing dask cluster "
+                   "(e.g. tcp://host:8786); its workers need this isobench and, for timing, --nthreads 1")
     r.add_argument("--no-progress", action="store_true", help="no live progress bar and no periodic progress lines "
                    "(stage lines and the summary still print; without it, progress is a live bar on a terminal and "
                    "plain lines when piped)")
@@ -707,6 +774,17 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--repeats", type=_int_at_least(1), default=3, help="timed repeats per configuration (default 3)")
     ex.add_argument("--out", help="output directory (default: reports/extract-<run-id>/); never overwritten")
     ex.set_defaults(fn=cmd_extract)
+
+    sp_ = sub.add_parser("spread", help="how a run was spread over processes (workers, machine keys, tasks per "
+                         "worker, wall and task time) and its projected wall time on more workers (bench/spread.py)")
+    sp_.add_argument("run_dir")
+    sp_.add_argument("--workers", type=_int_at_least(1), nargs="+", help="worker counts to project (default 1 2 4 8 16 "
+                     "32 64)")
+    sp_.add_argument("--overhead-s", type=_seconds, help="per-task overhead o in seconds (default: the run's measured "
+                     "value; a single-process run has none)")
+    sp_.add_argument("--central-s", type=_seconds, help="central (scheduler and client) seconds per task c (default: the "
+                     "run's measured value)")
+    sp_.set_defaults(fn=cmd_spread)
 
     b = sub.add_parser("backends", help="list backends and what they can do")
     b.set_defaults(fn=cmd_backends)

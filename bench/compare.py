@@ -4,7 +4,9 @@ Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantit
 
 * ``not comparable``: the case versions differ (the case changed), or either side was not
   measured because its run's time budget ran out; for timing also when the
-  machines differ (``environment.machine_key``) or either side has no samples.  A row on one
+  machines differ (``environment.machine_key``: the rows' own ``machine_key`` where both rows
+  record one — a cluster run's rows record their worker's — else the runs') or either side has
+  no samples.  A row on one
   side only is ``missing`` (in BASE only) or ``new`` (in NEW only).
 * accuracy (deterministic, no statistics): ``worse`` when the new max error exceeds
   ``base·(1 + rtol) + atol`` with ``atol = atol_eps · eps(dtype)`` (so float32 rows get a
@@ -93,6 +95,15 @@ def _num(v, default=np.nan) -> float:
     return f
 
 
+def same_row_machine(b: pd.Series, n: pd.Series) -> bool:
+    """False when both rows record a machine key and the keys differ (timings measured on
+    different machines); True otherwise (the runs' keys decide, :func:`compare`'s
+    ``same_machine``)."""
+    kb, kn = (str(x.get("machine_key") or "") for x in (b, n))
+    kb, kn = ("" if k == "nan" else k for k in (kb, kn))
+    return not (kb and kn) or kb == kn
+
+
 def accuracy_verdict(b: pd.Series, n: pd.Series, rtol: float = 0.1, atol_eps: float = ATOL_EPS) -> str:
     if b["outcome"] != "ok":
         return "same" if n["outcome"] == b["outcome"] else ("better" if n["outcome"] == "ok" else "not comparable")
@@ -145,12 +156,15 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
                          "note": "not measured: over the run's time budget"})
             continue
         acc = accuracy_verdict(b, n, rtol, atol_eps)
-        if same_machine and b["outcome"] == "ok" and n["outcome"] == "ok":
+        machines = same_machine and same_row_machine(b, n)
+        if machines and b["outcome"] == "ok" and n["outcome"] == "ok":
             tv, ratio, p = timing_verdict(_samples(b.get("time_samples_s")), _samples(n.get("time_samples_s")),
                                           factor, alpha)
         else:
             tv, ratio, p = "not comparable", float("nan"), float("nan")
         note = "" if acc != "worse" or n["outcome"] == "ok" else f"now {n['outcome']}: {n.get('reason', '')}"
+        if not machines and not note:
+            note = "timing measured on different machines"
         rows.append({**key, "accuracy": acc, "error_base": b.get("error_max"), "error_new": n.get("error_max"),
                      "timing": tv, "time_ratio": ratio, "p_value": p, "note": note})
     return pd.DataFrame(rows)

@@ -95,6 +95,19 @@ def reference_rays(n: int, max_rays: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, max_rays).round().astype(np.int64))
 
 
+def integral_key(case, spec, knobs: dict, opts: ReferenceOptions) -> tuple | None:
+    """The cache key of the rendering integral :func:`exact_color` computes for a method with
+    ``knobs`` on ``case`` — ``("render_exact", case id, density model, sharpness)`` — or None when
+    it computes none (a surface renderer, no sharpness knob, no colour field, a suite without
+    costly references).  What :mod:`bench.cluster` plans its shared reference tasks by."""
+    if getattr(spec, "family", None) != "render" or not opts.expensive or "sharpness" not in knobs:
+        return None
+    if getattr(case, "color_field", None) is None:
+        return None
+    model = density_model(spec, knobs)
+    return None if model is None else ("render_exact", case.id, model, float(knobs["sharpness"]))
+
+
 def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float]:
     """C = ∫ T σ ρ dt by ``reference.rendering.render_exact`` for the method's density model and
     sharpness over [t_min, t_max] of the case; (colours (n, 3), its largest error bound).  Cached

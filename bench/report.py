@@ -20,7 +20,10 @@ Sections, in reading order:
    with the fitted rate p of error ∝ knob^(−p) (least squares on the finite, non-zero errors).
 5. *Support matrix* (backend × method: configurations ran / skipped / failed) and the reasons.
 6. *Claims ledger* when the run directory has ``claims.csv`` (plots inlined).
-7. *Environment*.
+7. *How the run was spread* (:mod:`bench.spread`): processes or dask workers, machine keys,
+   configurations and task seconds per worker, wall time, the sum of task times, and the
+   projected wall time on 64 workers.
+8. *Environment*.
 """
 
 from __future__ import annotations
@@ -460,6 +463,10 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             md += [f"![claim {r.get('id', '')}]({r['plot']})" for _, r in claims.iterrows()
                    if str(r.get("plot", "")) and (out_dir / str(r["plot"])).is_file()]
             md += [""]
+    spread_lines, spread_workers = spread_section(df, env)
+    if spread_lines:
+        cells = spread_workers.astype(str).replace(r"\|", r"\\|", regex=True)  # a machine key's '|' is not a column
+        md += ["## How the run was spread", "", *[f"- {x}" for x in spread_lines], "", md_table(cells), ""]
     md += ["## Environment", "", md_table(env_df), ""]
     write_text(out_dir / "report.md", "\n".join(md))
 
@@ -523,11 +530,49 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             parts += [f"<p class='warn'>{e(claims_note)}</p>"]
         if claims is not None:
             parts += [_claims_html(claims, out_dir)]
+    if spread_lines:
+        parts += ["<h2>How the run was spread</h2><ul>", *[f"<li>{e(x)}</li>" for x in spread_lines], "</ul>",
+                  table(spread_workers)]
     parts += ["<h2>Environment</h2>", table(env_df), "</body></html>"]
     write_text(out_dir / "report.html", "\n".join(parts))
 
 
 STABILITY_DIR = "stability"
+
+
+def spread_section(df: pd.DataFrame, env: dict) -> tuple[list[str], pd.DataFrame]:
+    """Lines and the per-worker table of "How the run was spread" (:mod:`bench.spread`); none for
+    a results set without configurations.  Never raises (a section, not a reason to lose the report)."""
+    from . import spread
+
+    try:
+        if not len(df) or "task_s" not in df:
+            return [], pd.DataFrame()
+        s = spread.summary(df, env)
+        lines = [f"{s['cluster']}: {s['configurations']} configurations on {s['processes that ran configurations']} "
+                 f"process(es), at most {s['workers at once']} at once; machine keys: "
+                 f"{'; '.join(s['machine keys']) or 'not recorded'}",
+                 f"wall {s['wall s']:.1f} s for the configurations; task times sum to {s['task s (sum)']:.1f} s"
+                 + (f" plus {s['reference tasks']} shared reference task(s), {s['reference task s (sum)']:.1f} s"
+                    if s["reference tasks"] else "")
+                 + (f"; parallel efficiency {s['parallel efficiency']:.0%}" if np.isfinite(s["parallel efficiency"])
+                    else "")]
+        if np.isfinite(s["overhead s per task (mean)"]):
+            lines.append(f"per-task overhead (latency seen by the client − time on the worker): mean "
+                         f"{s['overhead s per task (mean)'] * 1e3:.1f} ms, median "
+                         f"{s['overhead s per task (median)'] * 1e3:.1f} ms; central cost "
+                         f"{s['central s per task'] * 1e3:.2f} ms per task; workers that died: {s['workers died']}; "
+                         f"configurations that killed their worker: {s['killed-worker failures']}")
+        proj, _ = spread.project(df, env, workers=(64,))
+        if len(proj):
+            r = proj.iloc[0]
+            lines.append(f"projected on 64 such workers: {r['projected wall s']:.1f} s (limited by {r['limited by']}; "
+                         "`python -m bench spread RUN_DIR` gives the model and its assumptions)")
+        if s["configurations without task time"]:
+            lines.append(f"{s['configurations without task time']} configurations have no recorded task time")
+        return lines, spread.per_worker(df)
+    except Exception as exc:  # noqa: BLE001
+        return [f"(unavailable: {type(exc).__name__}: {exc})"], pd.DataFrame()
 
 
 def _default_knobs(df: pd.DataFrame) -> pd.DataFrame:

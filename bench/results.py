@@ -9,7 +9,12 @@ Schema history: 1 — the skeleton (depth only); 2 — ``family``, ``quantity``,
 ``error_rel_max``, ``error_ulps_max``, ``n_checked``, ``n_declined``, ``loops``, ``rounds``,
 ``error_iterate_median``, ``reference_error_bound``, ``timing_note``; ``driver_json`` (the
 backend's loop-driver settings, :func:`bench.environment.driver_record`; added without a version
-bump: readers treat it as optional).
+bump: readers treat it as optional); ``machine_key`` (:func:`bench.environment.machine_key` of the
+process that measured the row: timings are comparable only between equal keys), ``worker`` and
+``worker_pid`` (the dask worker's address and process id; empty in a single-process run) and
+``task_s`` (wall seconds of the whole configuration on its process, closed-form unit and
+reference answers included: what :mod:`bench.cluster`'s spread and projection read), added the
+same way.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ COLUMNS = [
     "n_false_hit", "n_false_miss", "evals_per_ray", "evals_p99", "evals_max", "iterations_max",
     "first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_samples_s", "time_ratio_cf", "n_samples",
     "loops", "rounds", "error_iterate_median", "reference_error_bound", "reference_s", "knobs_json", "timing_note", "traceback", "driver_json",
+    "machine_key", "worker", "worker_pid", "task_s",
 ]
 #: the reason of a configuration skipped because its run's time budget ran out (prefix)
 OVER_BUDGET = "over the run's time budget"

@@ -68,6 +68,11 @@ def closed_form_time(case: Case, policy: TimingPolicy) -> float:
     return timing.median_s
 
 
+class Interrupted(RuntimeError):
+    """An executor (:mod:`bench.cluster`) could not finish the plan (its cluster went away): the
+    run keeps what finished, is marked incomplete with this message, and ``--resume`` finishes it."""
+
+
 class BackendFault(ValueError):
     """A backend broke the :class:`impls.protocol.Backend` contract (a wrong type, shape, dtype or
     status code, a missing attribute, a method that raised): its configuration is a failed row
@@ -307,6 +312,34 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
     return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
 
 
+def over_budget_message(budget_s: float | None) -> str:
+    """The reason of a configuration the run's ``--budget`` left unmeasured (prefix :data:`OVER_BUDGET`)."""
+    return f"{OVER_BUDGET} ({budget_s or 0:g} s); finish with --resume and a larger --budget (or none)"
+
+
+def run_budgeted(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: Callable[[], float],
+                 cache: dict, budget_s: float | None, left: float | None) -> tuple[list[dict], bool]:
+    """One configuration under the run's budget, the same wherever it runs (this process, or a
+    dask worker of :mod:`bench.cluster`): ``left`` seconds of ``budget_s`` remain (None: no
+    budget).  Returns (rows, over): with no budget left, one skipped :data:`OVER_BUDGET` row; else
+    :func:`run_one` limited to the smaller of ``policy.timeout_s`` and ``left``, and a run the
+    budget interrupted is such a row too ("interrupted in flight").  ``cf_time()`` gives the
+    closed-form unit; it is called only when the configuration runs."""
+    over_msg = over_budget_message(budget_s)
+    if left is not None and left <= 0:
+        return [{**_base_row(run_id, cfg, backend), "outcome": "skipped", "reason": over_msg}], True
+    cf = cf_time()
+    limit = (policy.timeout_s, "--timeout")
+    if left is not None and (not policy.timeout_s or left < policy.timeout_s):
+        limit = (max(left, 1e-3), f"the run's --budget of {budget_s:g} s")
+    got = run_one(run_id, cfg, backend, policy, cf, cache, limit=limit)
+    if limit[1] != "--timeout" and any(str(r.get("reason", "")).startswith("Timeout:") for r in got):
+        # interrupted by the budget, not by its own limit: not measured, like those after it
+        return [{**_base_row(run_id, cfg, backend), "outcome": "skipped",
+                 "reason": over_msg + " (interrupted in flight)"}], True
+    return got, False
+
+
 def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str:
     """Timing samples of one more round for ``cfg`` (prepared afresh, compile excluded), or the
     error message when this round failed."""
@@ -476,7 +509,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         run_id: str | None = None, progress: Callable[..., None] | None = None,
         resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
         budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None,
-        reference_timeout_s: float = 30.0) -> "Any":
+        reference_timeout_s: float = 30.0, executor: Any = None) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
@@ -497,6 +530,11 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     from a resumed session included in ``done``).
     ``elapsed_s`` in environment.json is the sum over the run's sessions (``elapsed_sessions_s``),
     kept up to date at every flush so a killed session's time is not lost.
+    ``executor`` (None: this process, one configuration after the other): runs the configurations
+    elsewhere, e.g. :class:`bench.cluster.ClusterExecutor` on a dask cluster; planning, resume,
+    the rows kept, the files written and the budget's rules are the same, and this process stays
+    the one writer of the run directory.  Each row records ``machine_key`` (and ``task_s``, the
+    configuration's wall seconds on its process).
     """
     if rounds < 1:
         raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
@@ -561,8 +599,10 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
             counts[outcome_of(g)] += 1
     n_total, n_before = len(todo) + sum(counts.values()), sum(counts.values())
     cf_cache: dict[str, float] = {}
-    ref_cache: dict = {"_options": ReferenceOptions(expensive=suite.expensive_references, timeout_s=reference_timeout_s,
-                                                    disk=reference_cache_dir)}
+    ref_options = ReferenceOptions(expensive=suite.expensive_references, timeout_s=reference_timeout_s,
+                                   disk=reference_cache_dir)
+    ref_cache: dict = {"_options": ref_options}
+    here = environment.machine_key(env)
 
     def flush():
         write_results(to_frame(rows), out_dir)
@@ -572,9 +612,42 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
 
     last_write = time.monotonic()
     current_case = None
-    over_msg = f"{OVER_BUDGET} ({budget_s or 0:g} s); finish with --resume and a larger --budget (or none)"
     n_over = 0
-    for i, cfg in enumerate(todo):
+    interrupted = ""
+
+    def cf_time(case: Case) -> float:
+        if case.id not in cf_cache and not policy.accuracy_only:
+            cf_cache[case.id] = closed_form_time(case, policy)
+        return cf_cache.get(case.id, float("nan"))
+
+    if executor is not None:
+        kept = len(rows)
+        finished: list[tuple[int, list[dict]]] = []  # (index in todo, rows): completion order
+        if progress:
+            progress(n_before, n_total, "submitting", dict(counts))
+        deadline = None if budget_s is None else time.time() + budget_s - (time.monotonic() - started)
+        try:
+            for j, got, over in executor.execute(run_id, todo, backends, policy, ref_options, budget_s, deadline):
+                finished.append((j, got))
+                rows.extend(got)
+                counts[outcome_of(got)] += 1
+                n_over += over
+                if progress:
+                    cfg = todo[j]
+                    progress(n_before + len(finished), n_total, f"last: {cfg.case.id} {cfg.backend_id} {cfg.method} "
+                             f"{knob_string(cfg.knobs)}", dict(counts))
+                if time.monotonic() - last_write > executor.flush_interval(flush_s):
+                    last_write = flush()
+        except Interrupted as exc:
+            interrupted = f"{exc}; {len(todo) - len(finished)} configurations not run: finish with --resume"
+        # plan order, as a run in one process writes them (completion order is the cluster's)
+        rows[kept:] = [r for _, got in sorted(finished, key=lambda jg: jg[0]) for r in got]
+        cf_samples: dict = executor.closed_form_samples()
+        if rounds > 1 and not policy.accuracy_only and not interrupted:
+            executor.retime_rounds(rows, todo, rounds, run_id, policy, progress, dict(counts))
+            write_results(to_frame(rows), out_dir)
+        env.update(executor.env_record(env))
+    for i, cfg in enumerate(todo if executor is None else ()):
         if cfg.case.id != current_case:
             current_case = cfg.case.id
             if rows:
@@ -583,29 +656,19 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
             progress(n_before + i, n_total, f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}",
                      dict(counts))
         left = None if budget_s is None else budget_s - (time.monotonic() - started)
-        if left is not None and left <= 0:
-            rows.append({**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped", "reason": over_msg})
-            counts["skipped"] += 1
-            n_over += 1
-            continue
-        if cfg.case.id not in cf_cache and not policy.accuracy_only:
-            cf_cache[cfg.case.id] = closed_form_time(cfg.case, policy)
-        limit = (policy.timeout_s, "--timeout")
-        if left is not None and (not policy.timeout_s or left < policy.timeout_s):
-            limit = (max(left, 1e-3), f"the run's --budget of {budget_s:g} s")
-        got = run_one(run_id, cfg, backends[cfg.backend_id], policy, cf_cache.get(cfg.case.id, float("nan")),
-                      ref_cache, limit=limit)
-        if limit[1] != "--timeout" and any(str(r.get("reason", "")).startswith("Timeout:") for r in got):
-            # interrupted by the budget, not by its own limit: not measured, like those after it
-            got = [{**_base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
-                    "reason": over_msg + " (interrupted in flight)"}]
-            n_over += 1
+        t0 = time.perf_counter()
+        got, over = run_budgeted(run_id, cfg, backends[cfg.backend_id], policy, lambda: cf_time(cfg.case), ref_cache,
+                                 budget_s, left)
+        task_s = time.perf_counter() - t0
+        got = [{**r, "machine_key": here, "task_s": task_s} for r in got]
+        n_over += over
         rows.extend(got)
         counts[outcome_of(got)] += 1
         if time.monotonic() - last_write > flush_s:
             last_write = flush()
-    cf_samples = {cid: [t] for cid, t in cf_cache.items()}
-    if rounds > 1 and not policy.accuracy_only:
+    if executor is None:
+        cf_samples = {cid: [t] for cid, t in cf_cache.items()}
+    if rounds > 1 and not policy.accuracy_only and executor is None:
         index: dict[tuple, list[int]] = {}
         for j, r in enumerate(rows):
             if r.get("outcome") == "ok" and r.get("run_id") == run_id:
@@ -627,7 +690,10 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     for cid, ts in cf_samples.items():
         env[f"closed_form_s.{cid}"] = repr(float(np.median(ts)))
     env["rounds"] = str(rounds)
-    if n_over:
+    if interrupted:
+        env["complete"] = "false"
+        env["incomplete_reason"] = interrupted
+    elif n_over:
         env["complete"] = "false"
         env["incomplete_reason"] = (f"{n_over} of {n_total} configurations not measured: {OVER_BUDGET} "
                                     f"({budget_s or 0:g} s); finish with --resume and a larger --budget (or none)")

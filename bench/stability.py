@@ -299,10 +299,11 @@ def stage_methods(suite, backend_id: str) -> list[str] | None:
 
 
 def run_stage(suite, backends: dict, out_dir, *, timeout_s: float = 120.0, resume: bool = False,
-              progress=None, env_extra: dict | None = None) -> pd.DataFrame:
+              progress=None, env_extra: dict | None = None, executor=None) -> pd.DataFrame:
     """Run ``suite`` (a stability plan) accuracy only into ``out_dir``, backend by backend with
     :func:`stage_dtypes` each (the runner's resume mode appends each backend's rows to the same
-    run); returns the frame.  ``resume``: finish a stage ``out_dir`` already holds."""
+    run); returns the frame.  ``resume``: finish a stage ``out_dir`` already holds.  ``executor``:
+    where the configurations run (:func:`bench.runner.run`'s; None: this process)."""
     from pathlib import Path
 
     from .runner import run
@@ -314,5 +315,5 @@ def run_stage(suite, backends: dict, out_dir, *, timeout_s: float = 120.0, resum
     for i, (bid, backend) in enumerate(backends.items()):
         again = (resume or i > 0) and (out_dir / "environment.json").exists()
         df = run(suite, {bid: backend}, out_dir, dtypes=stage_dtypes(suite, bid), methods=stage_methods(suite, bid),
-                 policy=policy, progress=progress, resume=again, env_extra=env_extra)
+                 policy=policy, progress=progress, resume=again, env_extra=env_extra, executor=executor)
     return df if df is not None else pd.DataFrame()

@@ -13,12 +13,15 @@ Protocol (after pyperf and pytest-benchmark):
    ``sync(out)`` before the clock stops (device work is finished, not merely queued).
 
 Reported: every sample, their median and interquartile range, ``loops``.
-A hard limit on the whole configuration (:func:`time_limit`) turns a hang into a ``timeout`` row.
+A hard limit on the whole configuration (:func:`time_limit`) turns a hang into a ``timeout`` row,
+in the main thread (a signal) and in any other thread (a watchdog: a dask worker runs its
+configurations in a thread, :mod:`bench.cluster`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import math
 import signal
@@ -144,9 +147,18 @@ def time_limit(seconds: float | None, what: str = "--timeout"):
     firing every second past the deadline, so user code that catches the exception and goes on
     is interrupted again.  Limits nest: the timer is set to the nearest deadline, and the
     exception raised is that of the limit that passed (an outer one may pass inside an inner
-    block; it is raised again on leaving the inner block if the inner block swallowed it)."""
-    if not seconds or threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
+    block; it is raised again on leaving the inner block if the inner block swallowed it).
+
+    Off the main thread (a dask worker's task thread), a watchdog thread raises the exception in
+    the limited thread instead (:func:`_thread_limit`): the same between-bytecodes semantics and
+    the same re-firing, except that a ``time.sleep`` or a blocking wait is not cut short (it
+    raises when it returns)."""
+    if not seconds:
         yield
+        return
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
+        with _thread_limit(seconds, what):
+            yield
         return
     entry = (time.monotonic() + seconds, f"ran past the time limit of {seconds:g} s ({what})")
     outermost = not _limits
@@ -161,3 +173,66 @@ def time_limit(seconds: float | None, what: str = "--timeout"):
         if outermost:
             signal.signal(signal.SIGALRM, signal.SIG_DFL if old is None else old)
         _arm()
+
+
+class _AsyncTimeout(Timeout):
+    """The :class:`Timeout` a watchdog raises in a limited thread (``PyThreadState_SetAsyncExc``
+    raises a class, not an instance: the message is looked up in the thread that receives it,
+    the earliest of its limits that has passed)."""
+
+    def __init__(self, *args):
+        if not args:
+            now = time.monotonic()
+            passed = sorted(e for e in getattr(_thread_limits, "stack", []) if e[0] <= now + 1e-3)
+            args = (passed[0][1] if passed else "ran past its time limit",)
+        super().__init__(*args)
+
+
+_thread_limits = threading.local()  # .stack: (deadline, message) of this thread's active limits
+
+
+def _set_async_exc(ident: int, exc) -> None:
+    """Raise ``exc`` (a class) in thread ``ident`` at its next bytecode; None clears a pending one.
+    CPython's ``PyThreadState_SetAsyncExc``: the one way to interrupt Python code in a thread
+    other than the main one (signals are delivered to the main thread only)."""
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(ident), ctypes.py_object(exc) if exc else None)
+
+
+@contextlib.contextmanager
+def _thread_limit(seconds: float, what: str):
+    """:func:`time_limit` for a thread that is not the main one: a daemon watchdog thread waits
+    for the deadline, then raises :class:`_AsyncTimeout` in this thread, again every second until
+    the block is left.  Leaving the block stops the watchdog under a lock and clears an exception
+    sent but not yet raised, so none lands after the block."""
+    ident = threading.get_ident()
+    entry = (time.monotonic() + seconds, f"ran past the time limit of {seconds:g} s ({what})")
+    stack = _thread_limits.__dict__.setdefault("stack", [])
+    stack.append(entry)
+    left, lock, inside = threading.Event(), threading.Lock(), [True]
+
+    def watch():
+        if left.wait(max(entry[0] - time.monotonic(), 0.0)):
+            return
+        while True:
+            with lock:
+                if not inside[0]:
+                    return
+                _set_async_exc(ident, _AsyncTimeout)
+            if left.wait(1.0):
+                return
+
+    watchdog = threading.Thread(target=watch, name="isobench-time-limit", daemon=True)
+    try:
+        watchdog.start()  # inside the try: a tiny limit may pass while the watchdog starts
+        yield
+    finally:
+        while True:  # an exception landing during this clean-up means the block ended late: clean up again
+            try:
+                with lock:
+                    inside[0] = False
+                    _set_async_exc(ident, None)
+                break
+            except _AsyncTimeout:
+                continue
+        left.set()
+        stack.remove(entry)
