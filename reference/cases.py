@@ -102,7 +102,10 @@ class Case:
                 return np.where(t <= self.t_max, t, np.inf), 0.0
             from .numerical import first_hit_numeric
 
-            t, err = first_hit_numeric(self.scene, self.origins, self.directions, self.t_min, self.t_max)
+            # a planted lie about L (DeclaredLipschitz) is not what certifies the truth: its child's
+            # own bound does (the lie itself is flagged by the reference: see the understated cases)
+            truth = self.scene.child if isinstance(self.scene, DeclaredLipschitz) else self.scene
+            t, err = first_hit_numeric(truth, self.origins, self.directions, self.t_min, self.t_max)
             return t, float(np.max(err, initial=0.0))
 
         return self._answer("t", compute)
@@ -276,7 +279,7 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
 # ``lipschitz`` (a Lipschitz bound exists), ``csg``, ``transform``, ``grazing``, ``tangent``,
 # ``inside``, ``surface``, ``far``, ``scale``, ``thin``, ``parallel``, ``understated``,
 # ``wall`` (through a mesh's thin wall), ``edge`` (grazing a mesh's edges), ``mesh``, ``grid``,
-# ``camera``, ``mlp``, ``numerical`` (no closed-form hits), ``quick`` (the CI suite) and
+# ``camera``, ``mlp``, ``neural``, ``numerical`` (no closed-form hits), ``quick`` (the CI suite) and
 # ``stability`` (the one representative case per adversarial family that the stability plan
 # runs).  Tags are not part of a case's version.
 
@@ -299,8 +302,9 @@ class DeclaredLipschitz(Field):
     the child's own (true) bound: the same values, the same surface and the same closed-form
     answers (delegated to the child), only the claim about its slope differs.  With ``declared``
     below the true L it is a *lie* that a method trusting L (step φ/L) tunnels through, and the
-    truth does not depend on L: hits come from the child's closed form, not from a numerical
-    reference that would trust the declared bound."""
+    truth does not depend on L: hits come from the child's closed form, or, for a child without
+    one, from the numerical reference certified by the child's own bound (:attr:`Case.exact_t`),
+    not from one that would trust the declared bound."""
 
     child: Field = None
     declared: float = 1.0

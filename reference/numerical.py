@@ -15,6 +15,9 @@ one:
    |φ(b) − φ(a)| > L (b − a) (beyond rounding, :func:`lipschitz_violated`) shows that the
    declared L is false on that ray; the ray is then *flagged*: t = NaN with an infinite error
    bound, since no certification that used L can stand there.
+5. A bound stated on a domain only (``SceneInfo.domain``: the algebraic sphere's on |x| ≤ R,
+   a neural SDF's on a box) is used, and checked, only inside the scene's ray bounds, which such
+   a scene keeps inside its domain (outside them φ > 0, so nothing is missed there).
 
 Error bound per ray: the final bracket width (the float64 φ changes sign inside it; ≤ 2 ulp of
 t), i.e. the depth is exact for the field *as evaluated in float64*; how far that root is from
@@ -54,13 +57,14 @@ def _bisect(scene, o, d, rows, lo, hi, f_lo):
     return lo, hi
 
 
-def lipschitz_violated(f0, f1, t0, t1, L: float, mag):
+def lipschitz_violated(f0, f1, t0, t1, L: float, mag, gain: float = 1.0):
     """Pairs whose slope |f1 − f0|/|t1 − t0| exceeds ``L`` beyond rounding: the allowance is
-    16ε((|f0| + |f1|)/L + |t0| + |t1| + ``mag``) on top of |t1 − t0|, ``mag`` = |o|₁ plus the
-    scene's offset and extent (:func:`_magnitude`): the rounding of the point o + t d and of φ's
-    intermediates.  The root finders use the same rule (:func:`impls.core.rootfind.lipschitz_violated`,
-    where the reasoning is spelled out)."""
-    eps = 16.0 * np.finfo(np.float64).eps
+    16ε·``gain``·((|f0| + |f1|)/L + |t0| + |t1| + ``mag``) on top of |t1 − t0|, ``mag`` = |o|₁ plus
+    the scene's offset and extent (:func:`_magnitude`): the rounding of the point o + t d and of
+    φ's intermediates; ``gain`` ≥ 1 the scene's :attr:`reference.scene.Field.rounding_gain`.  The
+    root finders use the same rule (:func:`impls.core.rootfind.lipschitz_violated`, where the
+    reasoning is spelled out)."""
+    eps = 16.0 * gain * np.finfo(np.float64).eps
     a0, a1 = np.abs(f0), np.abs(f1)
     return np.abs(f1 - f0) / L > np.abs(t1 - t0) + eps * ((a0 + a1) / L + np.abs(t0) + np.abs(t1) + mag)
 
@@ -72,27 +76,31 @@ def _magnitude(scene, o):
     return np.sum(np.abs(o), axis=1) + (extra if math.isfinite(extra) else 0.0)
 
 
-def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossings):
-    """Brackets of sign changes per ray, the rays with an unresolved possible tangency, and the
-    rays on which the Lipschitz bound was seen to be false (step 4 of the module doc)."""
+def _scan(scene, o, d, t0, t1, n_samples, lipschitz, min_width, all_crossings):
+    """Brackets of sign changes per ray on [t0ᵢ, t1ᵢ] (per-ray arrays), the rays with an
+    unresolved possible tangency, and the rays on which the Lipschitz bound was seen to be false
+    (step 4 of the module doc).  Rays with t0ᵢ > t1ᵢ are not sampled (no brackets)."""
     n = o.shape[0]
-    ts = np.linspace(t_min, t_max, n_samples)
-    f = np.asarray(scene.value(o[:, None, :] + ts[None, :, None] * d[:, None, :]), np.float64)
-    if not np.all(np.isfinite(f)):
+    live = t0 <= t1
+    ts = np.linspace(np.where(live, t0, 0.0), np.where(live, t1, 0.0), n_samples, axis=1)  # (n, n_samples)
+    f = np.asarray(scene.value(o[:, None, :] + ts[:, :, None] * d[:, None, :]), np.float64)
+    if not np.all(np.isfinite(f[live])):
         raise ValueError("the field returned non-finite values on the rays; check the scene and [t_min, t_max]")
-    change = (f[:, 1:] > 0) != (f[:, :-1] > 0)
+    change = ((f[:, 1:] > 0) != (f[:, :-1] > 0)) & live[:, None]
     brackets = [[] for _ in range(n)]  # (a, b, f(a)) per ray
     for i, j in zip(*np.nonzero(change)):
-        brackets[i].append((ts[j], ts[j + 1], f[i, j]))
+        brackets[i].append((ts[i, j], ts[i, j + 1], f[i, j]))
     unresolved = np.zeros(n, bool)
     violated = np.zeros(n, bool)
     if lipschitz is not None:
         L = float(lipschitz)
         mag = _magnitude(scene, o)
-        violated |= np.any(lipschitz_violated(f[:, :-1], f[:, 1:], ts[:-1], ts[1:], L, mag[:, None]), axis=1)
-        unc = (~change) & (np.abs(f[:, 1:]) + np.abs(f[:, :-1]) <= L * (ts[1] - ts[0]))
+        gain = _rounding_gain(scene)
+        violated |= live & np.any(lipschitz_violated(f[:, :-1], f[:, 1:], ts[:, :-1], ts[:, 1:], L, mag[:, None], gain),
+                                  axis=1)
+        unc = (~change) & live[:, None] & (np.abs(f[:, 1:]) + np.abs(f[:, :-1]) <= L * (ts[:, 1:] - ts[:, :-1]))
         rows, cols = np.nonzero(unc)
-        pend = (rows, ts[cols], ts[cols + 1], f[rows, cols], f[rows, cols + 1])
+        pend = (rows, ts[rows, cols], ts[rows, cols + 1], f[rows, cols], f[rows, cols + 1])
         while pend[0].size:
             r, a, b, fa, fb = pend
             first = np.array([min((x[0] for x in brackets[k]), default=np.inf) for k in range(n)])
@@ -102,7 +110,8 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
                 break
             m = a + (b - a) / 2
             fm = _phi_along(scene, o, d, r, m)
-            violated[r[lipschitz_violated(fa, fm, a, m, L, mag[r]) | lipschitz_violated(fm, fb, m, b, L, mag[r])]] = True
+            violated[r[lipschitz_violated(fa, fm, a, m, L, mag[r], gain)
+                       | lipschitz_violated(fm, fb, m, b, L, mag[r], gain)]] = True
             nxt = []
             for lo, hi, flo, fhi in ((a, m, fa, fm), (m, b, fm, fb)):
                 sc = (flo > 0) != (fhi > 0)
@@ -115,6 +124,28 @@ def _scan(scene, o, d, t_min, t_max, n_samples, lipschitz, min_width, all_crossi
                 nxt.append((r[s], lo[s], hi[s], flo[s], fhi[s]))
             pend = tuple(np.concatenate([x[i] for x in nxt]) for i in range(5))
     return brackets, unresolved, violated
+
+
+def _search_range(scene, o, d, t_min, t_max, L):
+    """Per-ray search interval: [t_min, t_max], clipped to the scene's ray bounds
+    (:meth:`reference.scene.Field.ray_bounds`, outside which φ > 0) when its Lipschitz bound L is
+    stated on a domain only (``SceneInfo.domain``) — the bound is then not relied on, nor
+    checked, outside the ray bounds, which such a scene keeps inside its domain.  A ray whose
+    bounds are the whole line keeps [t_min, t_max]."""
+    n = o.shape[0]
+    t0, t1 = np.full(n, float(t_min)), np.full(n, float(t_max))
+    if L is None or scene.info.domain is None:
+        return t0, t1
+    lo, hi = (np.asarray(v, np.float64) for v in scene.ray_bounds(np, o, d))
+    whole = np.isneginf(lo) & np.isposinf(hi)
+    return np.where(whole, t0, np.maximum(t0, lo)), np.where(whole, t1, np.minimum(t1, hi))
+
+
+def _rounding_gain(scene) -> float:
+    """The largest ``rounding_gain`` of the scene's nodes (≥ 1), as the root finders take it
+    (:func:`impls.core.methods_root.rounding_gain`)."""
+    gains = [float(getattr(node, "rounding_gain", 1.0)) for node in scene.walk()]
+    return max([1.0, *(g for g in gains if math.isfinite(g))])
 
 
 def _check(scene, o, d, t_min, t_max, n_samples):
@@ -138,7 +169,8 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
     o, d = _check(scene, o, d, t_min, t_max, n_samples)
     L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
     min_width = 1e-12 * max(1.0, abs(t_max)) if min_width is None else float(min_width)
-    brackets, unresolved, violated = _scan(scene, o, d, t_min, t_max, int(n_samples), L, min_width, False)
+    t0, t1 = _search_range(scene, o, d, t_min, t_max, L)
+    brackets, unresolved, violated = _scan(scene, o, d, t0, t1, int(n_samples), L, min_width, False)
     n = o.shape[0]
     t = np.full(n, np.inf)
     err = np.zeros(n)
@@ -160,7 +192,8 @@ def crossings_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
     width; the same certification as :func:`first_hit_numeric`."""
     o, d = _check(scene, o, d, t_min, t_max, n_samples)
     L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
-    brackets, _, violated = _scan(scene, o, d, t_min, t_max, int(n_samples), L, 1e-12 * max(1.0, abs(t_max)), True)
+    t0, t1 = _search_range(scene, o, d, t_min, t_max, L)
+    brackets, _, violated = _scan(scene, o, d, t0, t1, int(n_samples), L, 1e-12 * max(1.0, abs(t_max)), True)
     rows = np.array([k for k in range(o.shape[0]) for _ in brackets[k]], dtype=int)
     flat = [b for k in range(o.shape[0]) for b in brackets[k]]
     out = [np.zeros(0) for _ in range(o.shape[0])]

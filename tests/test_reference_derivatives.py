@@ -77,8 +77,11 @@ def _mp_grad_hess(scene, x, h=mpmath.mpf("1e-15")):
     return g, H
 
 
+# neural.blob.camera.16x16.Llocal is left out: the same network and the same hits as
+# neural.blob.camera.16x16 (only the declared Lipschitz bound differs), and its 50-digit
+# evaluation costs ~20 s a case.
 CURV_CASES = [c.id for c in catalog() if c.scene.info.exact_curvature and "camera" in c.tags
-              and "scale" not in c.tags and "thin" not in c.tags]
+              and "scale" not in c.tags and "thin" not in c.tags and c.id != "neural.blob.camera.16x16.Llocal"]
 
 
 @pytest.mark.parametrize("cid", CURV_CASES)
@@ -145,8 +148,12 @@ def test_closest_point_refuses_non_sdfs():
         SCENES["algsphere"].closest_point_exact(np.zeros((1, 3)))
 
 
+# The neural SDF's cases are left out: differencing all 4481 of its weights means ~18 000 numerical
+# hits (tens of minutes); tests/test_neural_reference.py checks its dt/dθ on a sample of weights
+# from every layer against differences of independently bracketed hits.
 DT_CASES = [c.id for c in catalog() if c.scene.info.exact_hit_param_grad and c.scene.param_vector().size
-            and ("camera" in c.tags or "inside" in c.tags) and "scale" not in c.tags and "thin" not in c.tags]
+            and ("camera" in c.tags or "inside" in c.tags) and "scale" not in c.tags and "thin" not in c.tags
+            and "neural" not in c.tags]
 
 
 @pytest.mark.parametrize("cid", DT_CASES)

@@ -1,0 +1,115 @@
+"""Cases on the stored neural SDF (:mod:`reference.neural`), for the catalog to register.
+
+Ids ``neural.blob.<family>``; the scene is :class:`reference.neural.NeuralSDF` (the softplus MLP
+fitted to the ``blob`` mesh) with its spectral Lipschitz bound, or, where the id ends in
+``.Llocal``, the tighter bound certified on its box (:mod:`reference.neural`).  Exact first hits come from the certified
+numerical reference (:func:`reference.numerical.first_hit_numeric`).  The network is loaded once
+for all of its cases (:func:`reference.cases.register_group`).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from . import rays as _rays
+from .cases import Case, DeclaredLipschitz, _cam, _scene_tags, register_group
+from .neural import NeuralSDF
+
+#: the factor of the measured slope that the ``understated`` case declares as its Lipschitz bound
+UNDERSTATED_FACTOR = 0.5
+
+
+@functools.cache
+def stored_network(lipschitz: str = "spectral") -> NeuralSDF:
+    """The stored network with Lipschitz mode ``lipschitz``, one instance per mode and process."""
+    return NeuralSDF(lipschitz=lipschitz)
+
+
+def surface_points(net: NeuralSDF, n: int, seed: int) -> np.ndarray:
+    """``n`` points on the network's zero set: the first crossing of rays from the centre of its
+    surface box in seeded uniform directions (certified numerical reference, local bound)."""
+    from .numerical import first_hit_numeric
+
+    lo, hi = net.surface_box
+    c = 0.5 * (lo + hi)
+    u = _rays.random_directions(n, seed)
+    o = np.broadcast_to(c, u.shape).copy()
+    t, _ = first_hit_numeric(net.with_lipschitz("local"), o, u, 0.0, float(np.linalg.norm(hi - lo)), n_samples=128)
+    if not np.all(np.isfinite(t)):
+        raise AssertionError("a ray from the centre of the neural blob found no surface")
+    return o + t[:, None] * u
+
+
+def grazing_rays(net: NeuralSDF, n: int, offset: float, seed: int, back: float = 2.5):
+    """Rays tangent to the surface at points p of it, along the direction of largest normal
+    curvature κ₁ > 0 (φ grows quadratically along them, ½κ₁|∇φ|s²), moved by ±``offset`` along
+    the normal n: even rays at p + offset·n (just outside: a near miss there), odd rays at
+    p − offset·n (just inside: two crossings ~√(2·offset/κ₁) either side of p).  Origins are
+    ``back`` before p along the ray (outside the surface box).  Points with κ₁ < 0.3 (too flat for
+    the offset to decide the ray) are skipped."""
+    from .curvature import tangent_basis
+
+    p = surface_points(net, 2 * n, seed)
+    _, g, H = net.gradient_hessian(p)
+    gn = np.linalg.norm(g, axis=1)
+    nrm = g / gn[:, None]
+    t1, t2 = tangent_basis(nrm)
+    b11 = np.einsum("ni,nij,nj->n", t1, H, t1) / gn
+    b22 = np.einsum("ni,nij,nj->n", t2, H, t2) / gn
+    b12 = np.einsum("ni,nij,nj->n", t1, H, t2) / gn
+    ang = 0.5 * np.arctan2(2 * b12, b11 - b22)  # the eigenvector of the larger eigenvalue
+    d = np.cos(ang)[:, None] * t1 + np.sin(ang)[:, None] * t2
+    k1 = 0.5 * (b11 + b22) + np.hypot(0.5 * (b11 - b22), b12)
+    keep = np.flatnonzero(k1 >= 0.3)[:n]
+    if keep.size < n:
+        raise AssertionError(f"only {keep.size} of {2 * n} surface points have κ₁ ≥ 0.3")
+    p, nrm, d = p[keep], nrm[keep], _rays.normalize(d[keep])
+    s = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    x = p + (s * offset)[:, None] * nrm
+    return x - back * d, d
+
+
+def _case(case_id, scene, o, d, tags, description, t_min=0.0, t_max=6.0) -> Case:
+    return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(o, np.float64),
+                directions=np.ascontiguousarray(d, np.float64), t_min=t_min, t_max=t_max,
+                tags=tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags))), description=description)
+
+
+#: the ids :func:`neural_cases` builds, registered in the catalog without building them
+NEURAL_CASE_IDS = ("neural.blob.camera.16x16", "neural.blob.camera.16x16.Llocal", "neural.blob.grazing.1e-3.Llocal",
+                   "neural.blob.grazing.1e-6.Llocal", "neural.blob.understated")
+
+
+def neural_cases() -> list[Case]:
+    """The neural SDF cases (:data:`NEURAL_CASE_IDS`)."""
+    spectral, local = stored_network("spectral"), stored_network("local")
+    cam = _cam(16, fov=50.0)
+    out = [
+        _case("neural.blob.camera.16x16", spectral, *cam, ("camera", "quick"),
+              f"the stored 3→64→64→1 softplus (β = 100) network fitted to the blob mesh, 16×16 camera; spectral "
+              f"Lipschitz bound ∏‖Wₖ‖₂ = {spectral.spectral_bound:.3g} (certified everywhere)"),
+        _case("neural.blob.camera.16x16.Llocal", local, *cam, ("camera",),
+              f"the same network and rays with the local bound {local.local_bound:.3g}, certified on its surface box "
+              f"by interval bounds (largest measured slope {local.measured_slope:.4g})"),
+    ]
+    # grazing rays with the local bound: certifying a near miss at distance δ costs ~L/√δ
+    # evaluations per ray (the reference halves intervals until |φ(a)| + |φ(b)| > L(b − a)),
+    # 5× fewer than with the spectral bound
+    for k, n in ((3, 128), (6, 64)):
+        out.append(_case(f"neural.blob.grazing.1e-{k}.Llocal", local, *grazing_rays(local, n, 10.0**-k, seed=120 + k),
+                         ("grazing",),
+                         f"rays tangent to the network's surface along its direction of largest curvature, 1e-{k} "
+                         "outside (even rays) or inside (odd rays) it; local bound"))
+    o, d = _rays.in_ball(256, 0.5, seed=130)
+    lie = DeclaredLipschitz(local, UNDERSTATED_FACTOR * local.measured_slope)
+    out.append(_case("neural.blob.understated", lie, o, d, ("understated", "inside"),
+                     f"the network declared with L = {UNDERSTATED_FACTOR} × its largest measured slope "
+                     f"({lie.declared:.3g}, below the true slope of ≈ 1 almost everywhere); origins inside "
+                     "(|o| ≤ 0.5), random directions: a step of |φ|/L crosses the surface, which the check must flag; "
+                     "exact hits from the network's own certified (local) bound"))
+    return out
+
+
+register_group(NEURAL_CASE_IDS, neural_cases)
