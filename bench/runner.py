@@ -411,9 +411,9 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
         spec = METHODS[method]
         sweep = suite.sweep_for(spec)
         usable = []
-        excluded = set(suite.exclude_cases.get(spec.family, ())) if not explicit else set()
+        excluded = () if explicit else (*suite.exclude_cases.get(spec.family, ()), *suite.exclude_cases.get(spec.name, ()))
         for case in cases:
-            if case.id in excluded:
+            if any(fnmatch.fnmatchcase(case.id, g) for g in excluded):
                 continue
             if applies(spec, case) is not None:
                 work.append((0, order[case.id], case, method, 0, sweep[0], 0))
