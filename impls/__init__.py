@@ -14,8 +14,8 @@ entry points, ``module:attr``).
 """
 
 from .methods import METHODS, get_method
-from .protocol import Backend, Capabilities, Prepared, RayResult, Status
+from .protocol import Backend, Capabilities, Declined, Prepared, RayResult, Status
 from .registry import Unavailable, available, default_ids, resolve
 
-__all__ = ["METHODS", "Backend", "Capabilities", "Prepared", "RayResult", "Status", "Unavailable",
+__all__ = ["METHODS", "Backend", "Capabilities", "Declined", "Prepared", "RayResult", "Status", "Unavailable",
            "available", "default_ids", "get_method", "resolve"]

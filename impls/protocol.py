@@ -39,6 +39,29 @@ class Status(enum.IntEnum):
     LIPSCHITZ_VIOLATED = -7
 
 
+class Declined(NotImplementedError):
+    """A backend does not run this method on this scene although it offers the method (e.g. a
+    compiling backend and a scene node it cannot compile: a mesh, a user's field).  Raised by
+    ``prepare``; the message is the reason, and a run records the configuration as skipped with it.
+
+    A backend that can tell without being given rays says so ahead of time with the optional hook
+    ``declines(method, scene) -> str | None`` (the reason, or None), which the runner asks while
+    planning (:func:`declined_reason`)."""
+
+
+def declined_reason(backend: Any, method: str, scene: Any) -> str | None:
+    """The reason ``backend`` declines ``method`` on ``scene`` (its optional ``declines`` hook), or
+    None (no hook, or not declined).  A hook must return a string or None (else TypeError)."""
+    hook = getattr(backend, "declines", None)
+    if not callable(hook):
+        return None
+    reason = hook(method, scene)
+    if reason is not None and not isinstance(reason, str):
+        raise TypeError(f"backend.declines(method, scene) must return a reason (str) or None, got "
+                        f"{type(reason).__name__}")
+    return reason or None
+
+
 @dataclasses.dataclass
 class RayResult:
     """Per-ray outputs of any method, as numpy arrays with leading dimension ``n`` (rays).

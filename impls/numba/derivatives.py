@@ -1,0 +1,48 @@
+"""φ and dφ/dt along a ray in compiled code, as numpy's backend computes them.
+
+``ev(p, o, d, t)`` = φ(o + t d) (x = o + t·d per coordinate, as numpy's ``o + t[:, None] * d``);
+``ev_d`` also returns dφ/dt = ⟨∇φ, d⟩ as numpy's central difference
+(:func:`impls.numpy.derivatives.ray_eval`): h = ε^{1/3}·max(1, |t|), rounded to a step exactly
+representable at t (h ← (t + h) − t, ε^{1/3} where that is not > 0), and
+(φ(x + h d) − φ(x − h d))/2h — error O(h²|φ‴|) + O(ε|φ|/h), about 1e-10 relative; 3 evaluations.
+numba has no autodiff; this is the derivative Newton's refinement (``march_newton``) uses.
+"""
+
+from __future__ import annotations
+
+
+
+import numpy as np
+
+CBRT_EPS64 = float(np.cbrt(np.finfo(np.float64).eps))
+
+
+def make_ray_eval(phi):
+    """``(ev, ev_d)`` for the compiled scene function ``phi(p, x0, x1, x2)``."""
+    from numba import njit
+
+    from .fields import helpers
+
+    _max = helpers()["_max"]
+    jit = njit(error_model="numpy")
+
+    @jit
+    def ev(p, o0, o1, o2, d0, d1, d2, t):
+        return phi(p, o0 + t * d0, o1 + t * d1, o2 + t * d2)
+
+    @jit
+    def ev_d(p, o0, o1, o2, d0, d1, d2, t):
+        x0, x1, x2 = o0 + t * d0, o1 + t * d1, o2 + t * d2
+        h = CBRT_EPS64 * _max(1.0, abs(t))
+        h = (t + h) - t
+        if not (h > 0):
+            h = CBRT_EPS64
+        f = phi(p, x0, x1, x2)
+        fp = phi(p, x0 + h * d0, x1 + h * d1, x2 + h * d2)
+        fm = phi(p, x0 - h * d0, x1 - h * d1, x2 - h * d2)
+        return f, (fp - fm) / (2 * h)
+
+    return ev, ev_d
+
+
+

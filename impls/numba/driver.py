@@ -1,0 +1,447 @@
+"""The numba loop driver: isobench's root finders run ray by ray in compiled loops.
+
+The algorithms are those of :mod:`impls.core.rootfind` (``SphereTrace``; ``MarchRefine`` with its
+``ConstantStep`` or ``CertifiedStep`` rule, its ``Bisect``, ``Secant`` or ``Newton`` refiner and its
+optional ladder stage), built by the method catalog from the validated knobs
+(:meth:`impls.methods.MethodSpec.algorithm`) and read here field by field, so no knob has a
+default of its own in this module.  Each step is the array step of :mod:`impls.core.rootfind`
+written for one ray, with the same operations in the same order: the same depths, statuses
+(:class:`impls.protocol.Status`), iteration and evaluation counts as the array drivers, the same
+Lipschitz-violation check (:func:`impls.core.rootfind.lipschitz_violated`) and the same
+certified convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or φ = 0).
+A ray's stage is its ``phase`` (march, ladder, refine), as in the array drivers.
+
+Where the array drivers step every ray still iterating once per loop step (compacting or
+masking), this driver runs each ray to completion on its own (``prange`` over rays, threads
+``NumbaSettings.threads``), with its state in registers: no per-step overhead, which is what the
+array drivers' ladder stage exists to amortise, so the driver's choice for the knob
+``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).
+
+φ along a ray is the compiled scene (:mod:`impls.numba.fields`); dφ/dt, for Newton, is numpy's
+central difference (:mod:`impls.numba.derivatives`), 3 evaluations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..core.driver import _whole_at_least
+from ..core.rootfind import BAD, CONV, IN, LIPV, MAXI, MISS, NONF, Bisect, CertifiedStep, Newton, SphereTrace
+
+#: per-ray ladder samples where the knob leaves it to the driver (-1): none (module docstring)
+LADDER = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class NumbaSettings:
+    """How the per-ray driver runs, held by the numba backend (``backend.settings``) and recorded
+    with every result row (``driver_json``).  Only ``ladder`` changes a per-ray result (it is
+    part of the algorithm).
+
+    threads: numba threads running rays side by side (``--threads`` of the bench commands; at
+             most ``numba.config.NUMBA_NUM_THREADS``, fixed when numba starts);
+    ladder:  samples per ladder step where the knob ``ladder`` is -1 (the driver's choice)."""
+
+    threads: int = 1
+    ladder: int = LADDER
+
+    kind = "per-ray"
+
+    def __post_init__(self):
+        _whole_at_least(type(self).__name__, "threads", self.threads, 1)
+        _whole_at_least(type(self).__name__, "ladder", self.ladder, 0)
+        import numba
+
+        most = numba.config.NUMBA_NUM_THREADS
+        if self.threads > most:
+            raise ValueError(f"{type(self).__name__}: threads={self.threads} exceeds numba's thread pool of {most} "
+                             "(NUMBA_NUM_THREADS, set in the environment before numba is imported)")
+
+    def record(self) -> dict:
+        """The settings as recorded with a result: ``{"driver": kind, field: value, …}``."""
+        return {"driver": self.kind, **dataclasses.asdict(self)}
+
+
+# -- the algorithm's numbers, as the kernels take them -------------------------------------------
+
+# float configuration: index names
+(F_TMIN, F_TMAX, F_INVLIP, F_TOL, F_OMEGA, F_SCALE, F_LEPS, F_XTOL, F_STEP, F_CHECK, F_MINSTEP, F_CAP, F_EXTRA,
+ F_REACH) = range(14)
+# int configuration
+(I_BOUNDS, I_PROBE, I_MAXSTEPS, I_CERT, I_HASCHECK, I_REFINER, I_LADDER, I_LADDER_AFTER) = range(8)
+
+
+def _lip_eps(alg, dtype) -> float:
+    """16·gain·ε, the Lipschitz check's rounding factor (:func:`impls.core.rootfind.lipschitz_violated`)."""
+    return 16.0 * alg.gain * float(np.finfo(np.dtype(dtype)).eps)
+
+
+def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
+    """``(kind, floats, ints)`` of a root finder built by the catalog: ``kind`` "sphere" or
+    "march", its numbers in the kernels' layout (index names ``F_*``, ``I_*``)."""
+    fc = np.zeros(14)
+    ic = np.zeros(8, np.int64)
+    fc[F_TMIN], fc[F_TMAX], fc[F_SCALE], fc[F_LEPS] = alg.t_min, alg.t_max, alg.scale, _lip_eps(alg, dtype)
+    ic[I_BOUNDS], ic[I_MAXSTEPS] = alg.bounds is not None, alg.max_steps
+    if isinstance(alg, SphereTrace):
+        fc[F_INVLIP], fc[F_TOL], fc[F_OMEGA] = alg.inv_lip, alg.tol, alg.omega
+        ic[I_PROBE] = alg.probe
+        return "sphere", fc, ic
+    rule, ref = alg.rule, alg.refiner
+    fc[F_XTOL] = alg.xtol
+    ic[I_LADDER], ic[I_LADDER_AFTER] = alg.ladder, alg.ladder_after
+    ic[I_REFINER] = 0 if isinstance(ref, Bisect) else (2 if isinstance(ref, Newton) else 1)
+    if isinstance(rule, CertifiedStep):
+        ic[I_CERT], ic[I_PROBE] = 1, rule.probe
+        fc[F_INVLIP], fc[F_MINSTEP], fc[F_CAP] = rule.inv_lip, rule.min_step, rule.cap
+        fc[F_EXTRA], fc[F_REACH] = rule.extrapolate, rule.reach
+    else:
+        fc[F_STEP] = rule.step
+        fc[F_MINSTEP] = rule.min_step
+    if rule.check is not None:
+        ic[I_HASCHECK], fc[F_CHECK] = 1, rule.check
+    return "march", fc, ic
+
+
+# -- kernels ------------------------------------------------------------------------------------
+
+_KERNELS: dict = {}
+CBRT_EPS64 = float(np.cbrt(np.finfo(np.float64).eps))
+
+
+def kernels(key: str):
+    """``{"sphere": …, "march": …}`` parallel kernels for the scene source ``key``
+    (:class:`impls.numba.fields.CompiledScene`), made once per key; numba compiles each on its
+    first call."""
+    k = _KERNELS.get(key)
+    if k is None:
+        from .fields import CompiledScene, scene_functions
+
+        phi, bounds = scene_functions(CompiledScene(key, np.zeros(0)))
+        k = _KERNELS[key] = _make_kernels(phi, bounds)
+    return k
+
+
+def _make_kernels(phi, bounds):
+    from numba import njit, prange
+
+    from .derivatives import make_ray_eval
+    from .fields import helpers
+
+    h = helpers()
+    _max, _min = h["_max"], h["_min"]
+    ev, ev_d = make_ray_eval(phi)
+    jit = njit(error_model="numpy")
+    inf, nan = math.inf, math.nan
+
+    @jit
+    def lipv(f0, f1, t0, t1, inv_lip, mag, leps):
+        """impls.core.rootfind.lipschitz_violated (the inv_lip = 1 branch is this one times 1)."""
+        a0, a1 = abs(f0), abs(f1)
+        at = (abs(t0) + abs(t1)) + mag
+        return abs(f1 - f0) * inv_lip > abs(t1 - t0) + leps * ((a0 + a1) * inv_lip + at)
+
+    @jit
+    def verdict(nonf, conv, maxed, miss, lv):
+        """impls.core.rootfind._verdict: NON_FINITE, LIPSCHITZ_VIOLATED, MISS, CONVERGED, MAX_ITER."""
+        if nonf:
+            return NONF
+        if lv:
+            return LIPV
+        if miss:
+            return MISS
+        if conv:
+            return CONV
+        if maxed:
+            return MAXI
+        return IN
+
+    @jit
+    def final_t(t, status):
+        if status == MISS:
+            return inf
+        if status == NONF or status == BAD or status == LIPV:
+            return nan
+        return t
+
+    @jit
+    def start(p, o0, o1, o2, d0, d1, d2, t_min, t_max, use_bounds):
+        """impls.core.rootfind._start: (t, hi, status) before any evaluation."""
+        if use_bounds:
+            lo, hi = bounds(p, o0, o1, o2, d0, d1, d2)
+            lo, hi = _max(lo, t_min), _min(hi, t_max)
+        else:
+            lo, hi = t_min, t_max
+        outside = not (lo <= hi)
+        fin = (math.isfinite(o0) and math.isfinite(o1) and math.isfinite(o2) and math.isfinite(d0)
+               and math.isfinite(d1) and math.isfinite(d2))
+        status = BAD if not fin else (MISS if outside else IN)
+        return (t_min if outside else lo), hi, status
+
+    @jit
+    def sphere_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
+        """SphereTrace.init and .step for one ray: (t as reported, status, iterations, evals)."""
+        t_min, t_max = fc[F_TMIN], fc[F_TMAX]
+        inv_lip, tol, omega, leps = fc[F_INVLIP], fc[F_TOL], fc[F_OMEGA], fc[F_LEPS]
+        probe, max_steps = ic[I_PROBE] != 0, ic[I_MAXSTEPS]
+        t, hi, status = start(p, o0, o1, o2, d0, d1, d2, t_min, t_max, ic[I_BOUNDS] != 0)
+        if status != IN:
+            return final_t(t, status), status, 0, 0
+        f = ev(p, o0, o1, o2, d0, d1, d2, t)
+        evals = 1
+        if not math.isfinite(f):
+            return nan, NONF, 0, evals
+        if abs(f) <= tol:
+            return t, CONV, 0, evals
+        mag = ((abs(o0) + abs(o1)) + abs(o2)) + fc[F_SCALE]
+        t_prev, r_prev, om = t, 0.0, omega
+        far = t_max if probe else hi
+        iters = 0
+        while True:
+            r = abs(f) * inv_lip
+            fail = (om > 1) and (r + r_prev < t - t_prev)
+            if fail:
+                t_new = t_prev + r_prev
+                om = 1.0
+            else:
+                t_new = t + om * r
+                t_prev = t
+                r_prev = r
+            out = (t_new > hi) or not math.isfinite(t_new)
+            if out:
+                t_far = _min(t_new, far)
+                t_eval = t_far if math.isfinite(t_far) else t
+            else:
+                t_eval = t_new
+            f_new = ev(p, o0, o1, o2, d0, d1, d2, t_eval)
+            evals += 1
+            iters += 1
+            ok = not ((om > 1) and (abs(f_new) * inv_lip + r_prev < t_new - t_prev))
+            lv = lipv(f, f_new, t, t_eval, inv_lip, mag, leps)
+            status = verdict((not math.isfinite(f_new)) and not out, (abs(f_new) <= tol) and ok,
+                             iters >= max_steps, out, lv)
+            t, f = t_new, f_new
+            if status != IN:
+                return final_t(t, status), status, iters, evals
+
+    @jit
+    def march_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
+        """MarchRefine.init, .step_march, .step_ladder and .step_refine for one ray."""
+        t_min, t_max, xtol, leps = fc[F_TMIN], fc[F_TMAX], fc[F_XTOL], fc[F_LEPS]
+        cert, has_check, refiner = ic[I_CERT] != 0, ic[I_HASCHECK] != 0, ic[I_REFINER]
+        probe, max_steps = ic[I_PROBE] != 0, ic[I_MAXSTEPS]
+        ladder, ladder_after = ic[I_LADDER], ic[I_LADDER_AFTER]
+        inv_lip, min_step, cap, extra, reach = fc[F_INVLIP], fc[F_MINSTEP], fc[F_CAP], fc[F_EXTRA], fc[F_REACH]
+        step, check = fc[F_STEP], fc[F_CHECK]
+        deriv = refiner == 2
+        cost = 3 if deriv else 1
+        t, hi, status = start(p, o0, o1, o2, d0, d1, d2, t_min, t_max, ic[I_BOUNDS] != 0)
+        if status != IN:
+            return final_t(t, status), status, 0, 0
+        df = 0.0
+        if deriv:
+            f, df = ev_d(p, o0, o1, o2, d0, d1, d2, t)
+        else:
+            f = ev(p, o0, o1, o2, d0, d1, d2, t)
+        evals = cost
+        if not math.isfinite(f):
+            return nan, NONF, 0, evals
+        if f == 0:
+            return t, CONV, 0, evals
+        mag = ((abs(o0) + abs(o1)) + abs(o2)) + fc[F_SCALE]
+        p_, fp, a, fa, b = t, f, t, f, t
+        dl = cap
+        wq = inf
+        iters = 0
+        use_ladder = ladder > 1
+        refine_phase = 2 if use_ladder else 1
+        phase = 0
+        while True:
+            if phase == 0:  # -- step_march --
+                if cert:
+                    r = abs(f) * inv_lip
+                    hstep = _max(r, dl)
+                    if extra != 0.0:
+                        x = _min(extra * (f * (t - p_) / (fp - f)), reach)
+                        if x > hstep:
+                            hstep = x
+                    t_n = _min(t + hstep, hi)
+                    if probe and t + hstep > hi:
+                        t_n = _min(t + hstep, t_max)
+                else:
+                    r = 0.0
+                    hstep = step
+                    t_n = _min(t + hstep, hi)
+                df_n = 0.0
+                if deriv:
+                    f_n, df_n = ev_d(p, o0, o1, o2, d0, d1, d2, t_n)
+                else:
+                    f_n = ev(p, o0, o1, o2, d0, d1, d2, t_n)
+                zero = f_n == 0
+                fin = math.isfinite(f_n)
+                cross = fin and (zero or ((f_n > 0) != (f > 0)))
+                gone = (t_n >= hi) or not math.isfinite(t_n)
+                miss = (not cross) and gone
+                conv = cross and (zero or (t_n - t <= xtol))
+                nonf = (not fin) and math.isfinite(t_n)
+                lv = has_check and lipv(f, f_n, t, t_n, check, mag, leps)
+                if cert:
+                    ok = cross or (r + abs(f_n) * inv_lip >= hstep) or (hstep <= min_step) or not math.isfinite(t_n)
+                    dl = _min(_max(2 * dl if ok else 0.5 * dl, min_step), cap)
+                    miss = miss and ok
+                    if not ok:
+                        t_n, f_n, df_n = t, f, df
+                iters += 1
+                evals += cost
+                status = verdict(nonf, conv, iters >= max_steps, miss, lv)
+                if use_ladder:
+                    phase = (1 if (cross or iters >= ladder_after) else 0) + (1 if cross else 0)
+                else:
+                    phase = 1 if cross else 0
+                p_, fp, a, fa, b = t, f, t, f, t_n
+                if refiner != 0:
+                    wq = 4.0 * (t_n - t)
+                t, f, df = t_n, f_n, df_n
+            elif phase == 1 and use_ladder:  # -- step_ladder --
+                if cert:
+                    r = abs(f) * inv_lip
+                    hstep = _max(r, dl)
+                else:
+                    r = 0.0
+                    hstep = step
+                T, F, DF = np.empty(ladder), np.empty(ladder), np.empty(ladder)  # (rays that reach a ladder only)
+                for j in range(ladder):
+                    T[j] = _min(t + hstep * float(j + 1), hi)
+                    if deriv:
+                        F[j], DF[j] = ev_d(p, o0, o1, o2, d0, d1, d2, T[j])
+                    else:
+                        F[j] = ev(p, o0, o1, o2, d0, d1, d2, T[j])
+                e = ladder - 1
+                stopped = False
+                cross_e = False
+                fin_e = True
+                lv_e = False
+                tp, fpj, rp = t, f, r
+                for j in range(ladder):
+                    Tj, Fj = T[j], F[j]
+                    crossj = (Fj == 0) or ((Fj > 0) != (fpj > 0))
+                    finj = math.isfinite(Fj)
+                    event = crossj or not finj
+                    Rj = abs(Fj) * inv_lip
+                    if cert:
+                        spacing = Tj - tp if Tj >= hi else hstep
+                        certified = (rp + Rj >= spacing) or (hstep <= min_step)
+                        event = event or not certified
+                    lvj = has_check and lipv(fpj, Fj, tp, Tj, check, mag, leps)
+                    event = event or lvj
+                    if event:
+                        e, stopped, cross_e, fin_e, lv_e = j, True, crossj, finj, lvj
+                        break
+                    tp, fpj, rp = Tj, Fj, Rj
+                Te, Fe = T[e], F[e]
+                Tpe = t if e == 0 else T[e - 1]
+                Fpe = f if e == 0 else F[e - 1]
+                DFpe = df if e == 0 else DF[e - 1]
+                nonf = stopped and (not fin_e) and math.isfinite(Te)
+                lv = stopped and lv_e
+                onto = cross_e or not stopped
+                miss = ((not stopped) and (Te >= hi)) or not math.isfinite(Te)
+                conv = cross_e and ((Fe == 0) or (Te - Tpe <= xtol))
+                iters += 1
+                evals += cost * ladder
+                status = verdict(nonf, conv, iters >= max_steps, miss, lv)
+                t_new = Te if onto else Tpe
+                f_new = Fe if onto else Fpe
+                p_, fp, a, fa, b = Tpe, Fpe, Tpe, Fpe, t_new
+                phase = (1 if cross_e else 0) + 1
+                if refiner != 0:
+                    wq = 4.0 * (Te - Tpe)
+                if cert:
+                    if not stopped:
+                        grow = 2 * dl
+                    elif (not cross_e) and e < ladder // 2:
+                        grow = 0.5 * dl
+                    else:
+                        grow = dl
+                    dl = _min(_max(grow, min_step), cap)
+                if deriv:
+                    df = DF[e] if onto else DFpe
+                t, f = t_new, f_new
+            else:  # -- step_refine --
+                mid = 0.5 * (a + b)
+                i2 = iters % 3 == 0
+                if refiner == 0:
+                    c = mid
+                else:
+                    if refiner == 1:
+                        c = t - f * (t - p_) / (f - fp)
+                    else:
+                        c = t - f / df
+                    hh = 0.5 * xtol
+                    stp = abs(c - t)
+                    lift = stp + 0.5 * hh
+                    if stp < hh:
+                        c = t + lift if t - a <= b - t else t - lift
+                    slow = i2 and (b - a > 0.5 * wq)
+                    if not ((c >= a) and (c <= b) and not slow):
+                        c = mid
+                df_c = 0.0
+                if deriv:
+                    f_c, df_c = ev_d(p, o0, o1, o2, d0, d1, d2, c)
+                else:
+                    f_c = ev(p, o0, o1, o2, d0, d1, d2, c)
+                same_a = (f_c > 0) == (fa > 0)
+                na = c if same_a else a
+                nb = b if same_a else c
+                nmid = 0.5 * (na + nb)
+                conv = (f_c == 0) or (nb - na <= xtol) or (nmid <= na) or (nmid >= nb)
+                if refiner == 0:
+                    t_out = c
+                else:
+                    z = c - f_c * (c - t) / (f_c - f)
+                    z = _min(_max(z, na), nb)
+                    t_out = z if (conv and (f_c != 0) and (z == z)) else c
+                iters += 1
+                evals += cost
+                status = verdict(not math.isfinite(f_c), conv, iters >= max_steps, False, False)
+                if refiner != 0 and i2:
+                    wq = b - a
+                p_, fp = t, f
+                a, b = na, nb
+                t, f = t_out, f_c
+                if deriv:
+                    df = df_c
+            if status != IN:
+                return final_t(t, status), status, iters, evals
+
+    @njit(parallel=True, error_model="numpy")
+    def run_sphere(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
+        for i in prange(O.shape[0]):
+            t, s, it, ne = sphere_one(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], fc, ic)
+            out_t[i], out_s[i], out_i[i], out_e[i] = t, s, it, ne
+
+    @njit(parallel=True, error_model="numpy")
+    def run_march(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
+        for i in prange(O.shape[0]):
+            t, s, it, ne = march_one(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], fc, ic)
+            out_t[i], out_s[i], out_i[i], out_e[i] = t, s, it, ne
+
+    return {"sphere": run_sphere, "march": run_march}
+
+
+def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, settings: NumbaSettings) -> dict:
+    """Run the catalog's root finder ``alg`` on rays ``o``, ``d`` (float64 (n, 3)) of the compiled
+    scene (``key``, ``params``) with ``settings.threads`` threads; ``{t, status, iterations,
+    evals}`` (t as reported: ``inf`` for MISS, NaN for NON_FINITE/BAD_INPUT/LIPSCHITZ_VIOLATED)."""
+    import numba
+
+    kind, fc, ic = configuration(alg, o.dtype)
+    n = o.shape[0]
+    out = {"t": np.empty(n, o.dtype), "status": np.empty(n, np.int32), "iterations": np.empty(n, np.int32),
+           "evals": np.empty(n, np.int32)}
+    numba.set_num_threads(settings.threads)
+    kernels(key)[kind](o, d, params, fc, ic, out["t"], out["status"], out["iterations"], out["evals"])
+    return out
