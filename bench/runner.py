@@ -2,7 +2,8 @@
 
 Every planned configuration becomes rows, never nothing: ``ok`` (measured; one row per checked
 quantity, see :mod:`bench.metrics`), ``skipped`` (with the reason: backend unavailable, method
-not implemented, dtype unsupported, scene lacks what the method needs, no reference answer) or
+not implemented, dtype unsupported, scene lacks what the method needs, the backend declines the
+scene (``declines`` hook or :class:`impls.protocol.Declined` from ``prepare``), no reference answer) or
 ``failed`` (the exception, a wrong shape, a silent NaN or a timeout; the run goes on).
 
 Rows are written to disk atomically at least every ``flush_s`` seconds and after every case,
@@ -25,7 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from impls import METHODS, Unavailable, get_method
-from impls.protocol import RayResult, Status
+from impls.protocol import Declined, RayResult, Status, declined_reason
 from reference import Case, catalog
 from reference.quadric import ray_sphere_roots
 
@@ -84,7 +85,7 @@ def _backend_call(backend: Any, what: str, fn: Callable[[], Any]) -> Any:
     names ``what`` was called."""
     try:
         return fn()
-    except Timeout:
+    except (Timeout, Declined):  # a declined configuration is skipped, not failed (run_one)
         raise
     except (Exception, SystemExit) as exc:  # user code: whatever it raises is its fault, not the run's
         raise BackendFault(f"{what} raised {type(exc).__name__}: {exc}") from exc
@@ -129,15 +130,21 @@ def backend_dtypes(backend: Any) -> tuple[str, ...]:
 
 
 def skip_reason(cfg: Config, backend: Any) -> str | None:
-    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it.  A backend
-    whose ``methods()`` or ``capabilities`` break raises :class:`BackendFault`."""
+    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it, the backend's
+    optional ``declines(method, scene)`` hook last (:func:`impls.protocol.declined_reason`).  A
+    backend whose ``methods()``, ``capabilities`` or ``declines`` break raises :class:`BackendFault`."""
     if isinstance(backend, Unavailable):
         return f"backend unavailable: {backend.reason}"
     if cfg.method not in backend_methods(backend):
         return f"{cfg.backend_id} does not implement {cfg.method}"
     if cfg.dtype not in backend_dtypes(backend):
         return f"{cfg.backend_id} does not support {cfg.dtype}"
-    return applies(get_method(cfg.method), cfg.case)
+    reason = applies(get_method(cfg.method), cfg.case)
+    if reason:
+        return reason
+    declined = _backend_call(backend, "backend.declines(method, scene)",
+                             lambda: declined_reason(backend, cfg.method, cfg.case.scene))
+    return f"{cfg.backend_id} declines {cfg.method} on this scene: {declined}" if declined else None
 
 
 #: the codes a result may hold (IN_PROGRESS is internal to the drivers, never returned)
@@ -289,6 +296,8 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
     except Timeout as exc:
         return [{**row, "outcome": "failed", "reason": f"Timeout: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]
+    except Declined as exc:  # the backend does not run this method on this scene: a skip, with its reason
+        return [{**row, "outcome": "skipped", "reason": f"{cfg.backend_id} declines {cfg.method} on this scene: {exc}"}]
     except (Exception, SystemExit) as exc:  # a failing configuration becomes a row; the run goes on
         return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]

@@ -20,7 +20,7 @@ import warnings
 import numpy as np
 import pytest
 
-from impls import METHODS, Status, registry
+from impls import METHODS, Declined, Status, registry
 from tests.conftest import BACKEND_IDS, resolve_or_skip
 from reference import Sphere
 from reference.rendering import SineColor, render_exact
@@ -146,8 +146,24 @@ def xfail_if_expected(request, backend, check: str):
         request.applymarker(pytest.mark.xfail(strict=True, reason=f"{backend.id}: {reason}"))
 
 
+def offered_or_skip(backend, method, dtype="float64"):
+    """Skip (with the reason) where ``backend`` does not offer ``method`` (a plug-in may offer a
+    subset of the catalog: ``backend.methods()``) or ``dtype`` (``capabilities.dtypes``)."""
+    if method not in backend.methods():
+        pytest.skip(f"{backend.id} does not offer {method} (its methods(): {', '.join(backend.methods())})")
+    if dtype not in backend.capabilities.dtypes:
+        pytest.skip(f"{backend.id} does not support {dtype} (capabilities.dtypes: {backend.capabilities.dtypes})")
+
+
 def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **knobs):
-    prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, t_hit=t_hit, **knobs)
+    """``method`` on the rays, float64, as a RayResult; a skip where the backend does not offer the
+    method or declines the scene (:class:`impls.protocol.Declined`: e.g. a compiling backend and
+    one of this module's test fields, which it cannot compile)."""
+    offered_or_skip(backend, method)
+    try:
+        prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, t_hit=t_hit, **knobs)
+    except Declined as exc:
+        pytest.skip(f"{backend.id} declines {method} on {type(scene).__name__}: {exc}")
     out = prep.run()
     backend.synchronize(out)
     return prep.result(out)
@@ -356,6 +372,8 @@ def test_jax_jitted_equals_eager():
 
 
 def test_bad_knobs_name_the_knob(any_backend):
+    for method in ("sphere_trace", "march_bisect"):
+        offered_or_skip(any_backend, method)
     o, d = camera(2)
     with pytest.raises(ValueError, match="omega"):
         any_backend.prepare("sphere_trace", SPHERE, o, d, omega=2.5)
@@ -658,6 +676,7 @@ def test_every_method_agrees_with_numpy(any_backend, method):
 def test_every_method_runs_in_float32(any_backend, method):
     """float32 is a stress dtype: every method runs, returns every output and a valid status, and
     hits are where float64 puts them to float32 accuracy."""
+    offered_or_skip(any_backend, method, "float32")
     o, d, t, hit, x = hits(SPHERE, 4)
     kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
     if METHODS[method].family == "root":

@@ -134,7 +134,7 @@ def _make_kernels(phi, bounds):
     h = helpers()
     _max, _min = h["_max"], h["_min"]
     ev, ev_d = make_ray_eval(phi)
-    jit = njit(error_model="numpy")
+    jit = njit(inline="always", error_model="numpy")
     inf, nan = math.inf, math.nan
 
     @jit
@@ -181,7 +181,7 @@ def _make_kernels(phi, bounds):
         status = BAD if not fin else (MISS if outside else IN)
         return (t_min if outside else lo), hi, status
 
-    @jit
+    @njit(error_model="numpy")
     def sphere_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
         """SphereTrace.init and .step for one ray: (t as reported, status, iterations, evals)."""
         t_min, t_max = fc[F_TMIN], fc[F_TMAX]
@@ -227,7 +227,7 @@ def _make_kernels(phi, bounds):
             if status != IN:
                 return final_t(t, status), status, iters, evals
 
-    @jit
+    @njit(error_model="numpy")
     def march_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
         """MarchRefine.init, .step_march, .step_ladder and .step_refine for one ray."""
         t_min, t_max, xtol, leps = fc[F_TMIN], fc[F_TMAX], fc[F_XTOL], fc[F_LEPS]

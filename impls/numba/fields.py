@@ -20,7 +20,8 @@ alone share one compiled kernel.
 
 Nodes compiled (exact types, so a subclass that changes a formula is not mistaken for its base):
 Sphere, Plane, Box, Torus, Capsule, CappedCylinder, AlgebraicSphere, Ellipsoid, Scaled, Union,
-Intersection, Difference, Complement, Transform and MLPField.  Any other node (a mesh, a grid, a
+Intersection, Difference, Complement, Transform, MLPField and the catalog's DeclaredLipschitz (a
+child with another stated L, which the root finders read from ``scene.info``).  Any other node (a mesh, a grid, a
 neural SDF with softplus layers, a user's callable or ``Field`` subclass) raises
 :class:`impls.protocol.Declined` with the reason.
 """
@@ -49,15 +50,17 @@ class CompiledScene:
 def _known():
     from reference import (AlgebraicSphere, Box, CappedCylinder, Capsule, Complement, Difference, Ellipsoid,
                            Intersection, MLPField, Plane, Scaled, Sphere, Torus, Transform, Union)
+    from reference.cases import DeclaredLipschitz
 
     return {Sphere: "sphere", Plane: "plane", Box: "box", Torus: "torus", Capsule: "capsule",
             CappedCylinder: "cylinder", AlgebraicSphere: "algsphere", Ellipsoid: "ellipsoid", Scaled: "scaled",
             Union: "union", Intersection: "intersection", Difference: "difference", Complement: "complement",
-            Transform: "transform", MLPField: "mlp"}
+            Transform: "transform", MLPField: "mlp", DeclaredLipschitz: "declared"}
 
 
 COMPILED_NODES = ("Sphere", "Plane", "Box", "Torus", "Capsule", "CappedCylinder", "AlgebraicSphere", "Ellipsoid",
-                  "Scaled", "Union", "Intersection", "Difference", "Complement", "Transform", "MLPField")
+                  "Scaled", "Union", "Intersection", "Difference", "Complement", "Transform", "MLPField",
+                  "DeclaredLipschitz")
 
 
 def decline_reason(scene) -> str | None:
@@ -164,6 +167,8 @@ def _phi(w: _Writer, node, x) -> str:
         a = [w.ref(v) for v in node.axes]
         y = [w.let(f"{xi} / {ai}") for xi, ai in zip(x, a)]
         return w.let(f"({_sum([f'{v} * {v}' for v in y])}) - 1.0")
+    if kind == "declared":  # the child's φ; only the stated L differs (the root finders read it from info)
+        return _phi(w, node.child, x)
     if kind == "scaled":
         k = w.ref(node.scale)
         return w.let(f"{k} * {_phi(w, node.child, x)}")
@@ -254,7 +259,7 @@ def _bounds(w: _Writer, node, o, d) -> tuple[str, str]:
         w.lines.append(f"    {lo}, {hi} = _slab_chord({o[2]}, {d[2]}, {w.ref(node.minor)}, "
                        f"_pad({', '.join(o)}, {w.ref(size)}, {w.ref(1e-6 * size)}))")
         return _meet(w, ball, (lo, hi))
-    if kind == "scaled":
+    if kind in ("scaled", "declared"):
         return _bounds(w, node.child, o, d)
     if kind == "union":
         return _hull(w, *(_bounds(w, c, o, d) for c in node.children))
@@ -305,7 +310,7 @@ _HELPERS = None
 def _make_helpers():
     from numba import njit
 
-    jit = njit(inline="always", error_model="numpy", cache=False)
+    jit = njit(inline="always", error_model="numpy")
 
     @jit
     def _max(a, b):
