@@ -688,7 +688,9 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     r = sub.add_parser("run", help="run a suite and write results and a report")
-    r.add_argument("--suite", default="quick", help="quick (CI, < 2 min) or full")
+    r.add_argument("--suite", default="quick",
+                   help="quick (CI, the showcase), full (every method on 3 cases, sweeps, float32, every workload "
+                   "case) or workloads (the mesh, grid and neural cases only, default knobs)")
     r.add_argument("--backend", action="append", help="backend ids, comma-separated or repeated (default: all available)")
     r.add_argument("--method", action="append", help="methods to run (default: all in the suite)")
     r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's)")

@@ -401,6 +401,24 @@ def test_normal_and_curvatures_against_exact(any_backend, scene_name):
         assert np.all(np.abs(r.outputs["curvature_laplacian"][hit] - r.outputs["curvature_divergence"][hit]) > 1)
 
 
+def test_normal_and_curvatures_of_a_plane_are_exact(any_backend):
+    """A linear field has a constant gradient and a zero Hessian: backends whose autodiff drops
+    such outputs from the graph must still answer (torch raised on the plane before)."""
+    from reference import Plane
+
+    scene = Plane(normal=(0.0, 0.0, 1.0), offset=0.0)
+    o = np.array([[0.1, -0.2, 2.0], [0.3, 0.4, 1.0]])
+    d = normalize(np.array([[0.0, 0.0, -1.0], [0.2, -0.1, -1.0]]))
+    t = -o[:, 2] / d[:, 2]
+    r = run(any_backend, "normal", scene, o, d, t_hit=t)
+    assert np.all(r.status == Status.CONVERGED)
+    np.testing.assert_allclose(r.outputs["normal"], np.tile([0.0, 0.0, 1.0], (2, 1)), rtol=0, atol=1e-12)
+    r = run(any_backend, "curvature", scene, o, d, t_hit=t)
+    assert np.all(r.status == Status.CONVERGED)
+    for key in ("curvature_divergence", "gaussian_curvature", "curvature_laplacian"):
+        np.testing.assert_allclose(r.outputs[key], 0.0, rtol=0, atol=tol_for(any_backend, 1e-12, 1e-6))
+
+
 DT_METHODS = {"dt_implicit": ({}, 1e-12, 1e-8), "dt_idr": ({}, 1e-12, 1e-8),
               "dt_finite_diff": ({"h": 1e-6}, 1e-7, 1e-7), "dt_unrolled": ({"steps": 200}, 1e-9, 1e-5)}
 
