@@ -146,7 +146,15 @@ def xfail_if_expected(request, backend, check: str):
         request.applymarker(pytest.mark.xfail(strict=True, reason=f"{backend.id}: {reason}"))
 
 
+def skip_unless_offered(backend, method):
+    """Skip where ``backend`` does not offer ``method`` (``MethodSpec.libs``: e.g. scipy's refiner is
+    numpy's only); that it declines such a method cleanly is checked in tests/test_chandrupatla.py."""
+    if method not in backend.methods():
+        pytest.skip(f"{backend.id} does not offer {method} (MethodSpec.libs = {METHODS[method].libs})")
+
+
 def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **knobs):
+    skip_unless_offered(backend, method)
     prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, t_hit=t_hit, **knobs)
     out = prep.run()
     backend.synchronize(out)
@@ -158,7 +166,7 @@ def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **kn
 ROOT_METHODS = [m for m, s in METHODS.items() if s.family == "root"]
 TIGHT = {"sphere_trace": dict(tol=1e-13, max_steps=20000), "hybrid_secant": dict(xtol=1e-13),
          "march_bisect": dict(xtol=1e-13, step=0.01), "march_secant": dict(xtol=1e-13, step=0.01),
-         "march_newton": dict(xtol=1e-13, step=0.01)}
+         "march_newton": dict(xtol=1e-13, step=0.01), "march_chandrupatla": dict(xtol=1e-13, step=0.01)}
 
 
 def applicable(method, scene) -> bool:
@@ -662,6 +670,7 @@ def test_every_method_runs_in_float32(any_backend, method):
     kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
     if METHODS[method].family == "root":
         kw.update({k: v for k, v in {"tol": 1e-5, "xtol": 1e-5}.items() if k in {kn.name for kn in METHODS[method].knobs}})
+    skip_unless_offered(any_backend, method)
     prep = any_backend.prepare(method, SPHERE, o, d, dtype="float32", **kw)
     r = prep.result(prep.run())
     assert set(r.outputs) == set(METHODS[method].outputs)

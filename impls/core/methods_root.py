@@ -10,7 +10,8 @@ import math
 
 import numpy as np
 
-from .rootfind import REFINERS, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
+from .chandrupatla import MarchChandrupatla
+from .rootfind import REFINERS, Bisect, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
 
 
 def lipschitz_step(scene) -> float:
@@ -87,14 +88,17 @@ def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, 
 
 
 def march_builder(refine: str):
-    """The builder of ``march_<refine>``'s algorithm: constant steps, then ``refine``."""
+    """The builder of ``march_<refine>``'s algorithm: constant steps, then ``refine`` (one of
+    :data:`impls.core.rootfind.REFINERS`, or ``chandrupatla``: scipy's ``find_root`` on the brackets,
+    :class:`impls.core.chandrupatla.MarchChandrupatla`)."""
+    cls, refiner = (MarchChandrupatla, Bisect) if refine == "chandrupatla" else (MarchRefine, REFINERS[refine])
 
     def build_march(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
         bounds = search_bounds(scene, knobs, theta)
-        return MarchRefine(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
-                           refiner=REFINERS[refine](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
-                           t_min=t_min, t_max=t_max, bounds=bounds, ladder=_ladder(knobs, ladder),
-                           ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene))
+        return cls(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
+                   refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
+                   bounds=bounds, ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
+                   scale=rounding_scale(scene), gain=rounding_gain(scene))
 
     build_march.__name__ = f"build_march_{refine}"
     return build_march
