@@ -195,6 +195,15 @@ def _specs() -> list[MethodSpec]:
             "least the secant's extrapolation past a shallow approach, within reach), in ladder steps of several "
             "samples after ladder_after steps, then safeguarded secant on the bracket",
         ),
+        MethodSpec(
+            name="hybrid_chandrupatla",
+            family="root",
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+                   _REACH),
+            requires=("lipschitz",), build=methods_root.build_hybrid_chandrupatla, libs=_REFINE_LIBS["chandrupatla"],
+            description="hybrid_secant's certified march to the first sign change, then "
+            + _REFINE_DOC["chandrupatla"],
+        ),
     ]
     for refine, doc in _REFINE_DOC.items():
         specs.append(MethodSpec(

@@ -48,6 +48,24 @@ def test_agrees_with_march_bisect_to_xtol(case_id):
     assert c.evals[conv].mean() < a.evals[conv].mean()
 
 
+@pytest.mark.parametrize("case_id", ["torus.camera.32x32", "torus.grazing.1e-6", "sphere.grazing.1e-9",
+                                     "csg.union.camera.32x32"])
+def test_hybrid_chandrupatla_agrees_with_hybrid_secant(case_id):
+    """The certified march of hybrid_secant, refined by scipy: the same statuses, depths within xtol."""
+    case = get_case(case_id)
+    kw = dict(t_min=case.t_min, t_max=case.t_max, xtol=1e-12)
+    a = run("hybrid_secant", case.scene, case.origins, case.directions, **kw)
+    c = run("hybrid_chandrupatla", case.scene, case.origins, case.directions, **kw)
+    np.testing.assert_array_equal(c.status, a.status)
+    conv = c.status == Status.CONVERGED
+    assert conv.mean() > 0.2
+    # both brackets hold a sign change of φ as evaluated, ≤ xtol wide; where the ray grazes, φ's
+    # rounding (≈ 8ε(|o| + t)) moves that sign change by up to its size over |φ'| = |⟨n, d⟩|
+    cos = np.abs(np.einsum("ij,ij->i", case.exact_normals[conv], case.directions[conv]))
+    slack = 2e-12 + 8 * np.finfo(float).eps * (np.linalg.norm(case.origins[conv], axis=1) + a.t[conv]) / cos
+    assert np.all(np.abs(c.t[conv] - a.t[conv]) <= slack)
+
+
 def _fake_find_root(bracket, f_bracket, x, f_x, status, nit=3, nfev=5):
     def find_root(f, init, *, args=(), tolerances=None, maxiter=None):
         n = np.shape(init[0])
