@@ -708,6 +708,43 @@ def cmd_speed(args) -> int:
     return 0
 
 
+def cmd_sampling(args) -> int:
+    from . import sampling
+    from .environment import ROOT
+
+    cases = _split([args.case]) if args.case else list(sampling.DEFAULT_CASES)
+    try:
+        targets = tuple(float(t) for t in _split([args.targets])) if args.targets else sampling.DEFAULT_TARGETS
+    except ValueError:
+        return _error(f"--targets: {args.targets!r} must be comma-separated numbers, e.g. 1e-2,1e-3")
+    if not targets or not all(t > 0 for t in targets):
+        return _error(f"--targets: {args.targets!r} must be positive numbers")
+    from reference.cases import get_case
+
+    for cid in cases:
+        try:
+            get_case(cid)
+        except (KeyError, ValueError) as exc:
+            return _error(f"--case: {exc}")
+    df = sampling.sampling_table(cases, targets, density=args.density, sharpness=args.sharpness, max_rays=args.max_rays,
+                                 n_max=args.n_max, disk=ROOT / "reports" / ".refcache",
+                                 progress=None if args.quiet else (lambda line: print(line, flush=True)))
+    print(sampling.markdown(df))
+    if args.out:
+        from .results import write_atomic
+
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
+        print(f"wrote {out / sampling.FILE}")
+        if (out / "environment.json").exists():  # a run directory: its report gains the section
+            from .report import build_from_dir
+
+            build_from_dir(out)
+            print(f"rebuilt {out / 'report.html'}")
+    return 0
+
+
 ALLOCATOR_HELP = ("tuned (default): glibc keeps freed memory instead of mmapping and faulting in fresh pages for "
                   "every large temporary (bench.environment.tune_allocator; recorded); default: leave malloc alone")
 
@@ -840,6 +877,18 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     sp.add_argument("--out", help="write the rows as JSON")
     sp.set_defaults(fn=cmd_speed)
+
+    sm = sub.add_parser("sampling", help="samples per ray each volume sampler needs to reach colour error targets "
+                        "against the rendering integral (bench/sampling.py)")
+    sm.add_argument("--case", help="case ids, comma-separated (default: sphere.camera.64x64,torus.camera.32x32)")
+    sm.add_argument("--targets", help="colour error targets, comma-separated (default 1e-2,1e-3,1e-4)")
+    sm.add_argument("--density", default="nerf", choices=("nerf", "volsdf", "neus"), help="density model (default nerf)")
+    sm.add_argument("--sharpness", type=float, default=50.0, help="density sharpness s (default 50)")
+    sm.add_argument("--max-rays", type=_int_at_least(1), default=64, help="reference rays per case (default 64)")
+    sm.add_argument("--n-max", type=_int_at_least(4), default=4096, help="largest N searched (default 4096)")
+    sm.add_argument("--out", help="write sampling.csv there; a run directory's report then shows the table")
+    sm.add_argument("--quiet", action="store_true", help="no progress lines")
+    sm.set_defaults(fn=cmd_sampling)
 
     args = p.parse_args(argv)
     return args.fn(args)
