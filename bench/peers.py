@@ -361,4 +361,7 @@ def format_volume(rows: list[dict]) -> str:
         return "(no rows)"
     cols = ["scene", "what", "kind", "time_s", "time_min_s", "time_max_s", "compile_s", "first_call_s",
             "max_color_diff_vs_numpy"]
-    return pd.DataFrame(rows)[cols].to_markdown(index=False, floatfmt=".3g")
+    df = pd.DataFrame(rows)
+    order = {s: i for i, s in enumerate(dict.fromkeys(df["scene"]))}
+    df = df.iloc[np.argsort(df["scene"].map(order).to_numpy(), kind="stable")]  # scene by scene, in run order
+    return df[cols].to_markdown(index=False, floatfmt=".3g")
