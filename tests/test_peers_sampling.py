@@ -119,3 +119,16 @@ def test_report_section_reads_the_written_table(tmp_path):
     df.to_csv(tmp_path / sampling.FILE, index=False)
     lines = sampling.section_md(tmp_path)
     assert lines[0] == "## Samples to a colour error target" and "| sphere.camera.64x64 |" in lines[4]
+
+
+def test_volume_rows_compare_every_renderer_with_numpy(monkeypatch):
+    def no_compiler(lib):
+        raise ImportError(f"{lib} not here (test)")
+
+    monkeypatch.setattr(peers, "_compile_plain", no_compiler)
+    rows, skipped = peers.volume_rows(["numpy"], n_side=4, n_samples=8, repeats=2)
+    assert [r["scene"] for r in rows] == ["sphere", "torus∪box"]
+    assert all(r["max_color_diff_vs_numpy"] == 0 and r["time_min_s"] <= r["time_s"] <= r["time_max_s"] for r in rows)
+    assert skipped == ["plain torch compositing: skipped: torch not here (test)",
+                       "plain jax compositing: skipped: jax not here (test)"]
+    assert "torus∪box" in peers.format_volume(rows)
