@@ -14,7 +14,9 @@ Contract (φ along the ray t ↦ φ(o + t d), bracket [a, b] with φ(a)φ(b) < 0
 * scipy's tolerances: ``xatol = max(0, xtol − ε·M)``, ``xrtol = ε`` (M the largest |a|, |b| of
   the call, ε the dtype's), ``fatol = frtol = 0``.  scipy stops when its bracket is narrower than
   ``xatol + ε·|x_min|`` ≤ xtol (or, where xtol is below the float spacing, about one spacing) or
-  φ = 0 exactly at an iterate.
+  φ = 0 exactly at an iterate.  (scipy's tolerances are scalars: one ray far from the origin
+  in a call makes every ray of that call refine to about a float spacing, which costs a few
+  iterations more and changes no status.)
 * CONVERGED is decided here, from scipy's returned bracket ``(xl, xr)`` and values ``(fl, fr)``,
   not from its flag: finite ends with a sign change (or φ = 0 exactly at the returned x) that are
   no more than ``xtol`` apart or adjacent floats (their midpoint rounds to an end), within the
