@@ -146,7 +146,15 @@ def xfail_if_expected(request, backend, check: str):
         request.applymarker(pytest.mark.xfail(strict=True, reason=f"{backend.id}: {reason}"))
 
 
+def skip_unless_offered(backend, method):
+    """Skip where ``backend`` does not offer ``method`` (``MethodSpec.libs``: e.g. scipy's refiner is
+    numpy's only); that it declines such a method cleanly is checked in tests/test_chandrupatla.py."""
+    if method not in backend.methods():
+        pytest.skip(f"{backend.id} does not offer {method} (MethodSpec.libs = {METHODS[method].libs})")
+
+
 def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **knobs):
+    skip_unless_offered(backend, method)
     prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, t_hit=t_hit, **knobs)
     out = prep.run()
     backend.synchronize(out)
@@ -158,7 +166,8 @@ def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **kn
 ROOT_METHODS = [m for m, s in METHODS.items() if s.family == "root"]
 TIGHT = {"sphere_trace": dict(tol=1e-13, max_steps=20000), "hybrid_secant": dict(xtol=1e-13),
          "march_bisect": dict(xtol=1e-13, step=0.01), "march_secant": dict(xtol=1e-13, step=0.01),
-         "march_newton": dict(xtol=1e-13, step=0.01)}
+         "march_newton": dict(xtol=1e-13, step=0.01), "march_chandrupatla": dict(xtol=1e-13, step=0.01),
+         "hybrid_chandrupatla": dict(xtol=1e-13)}
 
 
 def applicable(method, scene) -> bool:
@@ -288,7 +297,7 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     scene = SCENES[scene_name]
     ball = scene.bounding_sphere()
     o, d = camera(8)
-    if method in ("sphere_trace", "hybrid_secant"):
+    if method in ("sphere_trace", "hybrid_secant", "hybrid_chandrupatla"):
         # plain sphere tracing certifies a miss that passes δ·r from the surface in ~√(1/δ) steps
         # (never, when δ·r < tol): it gets δ ≥ 1e-8
         o2, d2 = silhouette_rays(ball, delta_min=1e-8 if method == "sphere_trace" else 1e-12)
@@ -304,11 +313,11 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     assert np.all(on.status[outside] == Status.MISS)
     assert np.all(on.evals[outside] == 0) and np.all(on.iterations[outside] == 0)
     assert np.all(on.evals[hit] >= 1) and np.all(off.evals >= 1)
-    # hybrid_secant's documented limit: a crossing whose chord is shorter than min_step (1e-5)
-    # may be missed, with or without the clip (where its samples fall decides)
+    # hybrid_secant's (and hybrid_chandrupatla's) documented limit: a crossing whose chord is shorter
+    # than min_step (1e-5) may be missed, with or without the clip (where its samples fall decides)
     spheres = scene.children or (scene,)
     chord = np.max([[b[1] - b[0] if b.size else 0.0 for b in s.ray_intervals(o, d)] for s in spheres], axis=0)
-    sure = hit & (chord >= 1e-5) if method == "hybrid_secant" else hit
+    sure = hit & (chord >= 1e-5) if method in ("hybrid_secant", "hybrid_chandrupatla") else hit
     for r in (on, off):
         assert np.all(r.status[sure] == Status.CONVERGED) and np.all(r.status[~hit] == Status.MISS), r.status_counts()
         np.testing.assert_allclose(r.t[sure], exact[sure], rtol=0, atol=1e-9)
@@ -680,6 +689,7 @@ def test_every_method_runs_in_float32(any_backend, method):
     kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
     if METHODS[method].family == "root":
         kw.update({k: v for k, v in {"tol": 1e-5, "xtol": 1e-5}.items() if k in {kn.name for kn in METHODS[method].knobs}})
+    skip_unless_offered(any_backend, method)
     prep = any_backend.prepare(method, SPHERE, o, d, dtype="float32", **kw)
     r = prep.result(prep.run())
     assert set(r.outputs) == set(METHODS[method].outputs)
