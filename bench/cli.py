@@ -6,7 +6,8 @@
                         [--cluster local:N | --scheduler ADDRESS]
     python -m bench spread RUN_DIR [--workers 1 2 64] [--overhead-s S] [--central-s S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
-                          [--allocator tuned|default]
+                          [--allocator tuned|default] [--no-peers] [--volume [--samples 256]]
+    python -m bench sampling [--case sphere.camera.64x64,torus.camera.32x32] [--targets 1e-2,1e-3,1e-4]
     python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
     python -m bench claims [--out DIR] [--full] [--only ID ...]
     python -m bench cases [--tag grazing]
@@ -658,24 +659,89 @@ def cmd_speed(args) -> int:
         METHODS[args.method].validate(dict(args.knobs or {}))
     except (ValueError, TypeError) as exc:
         return _error(f"--knobs: {exc}")
+    args.side_given = args.side is not None
+    if args.side is None:
+        args.side = 1024
     environment.configure_threads(args.threads)
     allocator = environment.tune_allocator() if args.allocator == "tuned" else "default"
     ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
     bad = [(bid, b) for bid, b in ((bid, registry.resolve(bid)) for bid in ids) if isinstance(b, registry.Unavailable)]
     if bad:
         return _error("--backend: " + "; ".join(f"{bid}: {b.reason}" for bid, b in bad))
+    if args.volume:
+        from . import peers
+
+        rows, notes = peers.volume_rows(ids, n_side=args.side if args.side_given else 256, n_samples=args.samples,
+                                        repeats=args.repeats)
+        for row in rows:
+            row["threads"] = args.threads
+            row["allocator"] = allocator
+        print(f"volume rendering, {(args.side if args.side_given else 256)}² rays × {args.samples} samples, NeRF "
+              f"density s = 50, no early termination, {args.threads} thread(s); time: median (min–max) of "
+              f"{args.repeats}, compile and first call apart")
+        print(peers.format_volume(rows))
+        for line in notes:
+            print(line)
+        if args.out:
+            from .results import write_json
+
+            write_json(Path(args.out), rows)
+        return 0
+    notes: list[str] = []
     rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {},
-                         threads=args.threads)
+                         threads=args.threads, peers=not args.no_peers, notes=notes)
     for row in rows:
         row["threads"] = args.threads
         row["allocator"] = allocator
     print(f"{args.side}² rays, {args.method}, {args.threads} thread(s) per library and root-finder driver, "
           f"allocator: {allocator}; × unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)")
+    if not args.no_peers:
+        print("peers (bench/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, bounding-sphere "
+              "clip); peer:scipy = hybrid_secant's march on numpy + scipy find_root (hybrid_chandrupatla)")
     print(speed.format_rows(rows))
+    for line in notes:
+        print(line)
     if args.out:
         from .results import write_json
 
         write_json(Path(args.out), rows)
+    return 0
+
+
+def cmd_sampling(args) -> int:
+    from . import sampling
+    from .environment import ROOT
+
+    cases = _split([args.case]) if args.case else list(sampling.DEFAULT_CASES)
+    try:
+        targets = tuple(float(t) for t in _split([args.targets])) if args.targets else sampling.DEFAULT_TARGETS
+    except ValueError:
+        return _error(f"--targets: {args.targets!r} must be comma-separated numbers, e.g. 1e-2,1e-3")
+    if not targets or not all(t > 0 for t in targets):
+        return _error(f"--targets: {args.targets!r} must be positive numbers")
+    from reference.cases import get_case
+
+    for cid in cases:
+        try:
+            get_case(cid)
+        except (KeyError, ValueError) as exc:
+            return _error(f"--case: {exc}")
+    df = sampling.sampling_table(cases, targets, density=args.density, sharpness=args.sharpness, max_rays=args.max_rays,
+                                 n_max=args.n_max, disk=ROOT / "reports" / ".refcache",
+                                 progress=None if args.quiet else (lambda line: print(line, flush=True)))
+    print(sampling.markdown(df))
+    if args.out:
+        from .results import write_atomic
+
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
+        print(f"wrote {out / sampling.FILE}")
+        if (out / "environment.json").exists():  # a run directory: its report gains the section
+            from .report import build_from_dir
+
+            build_from_dir(out)
+            print(f"rebuilt {out / 'report.html'}")
     return 0
 
 
@@ -688,7 +754,9 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     r = sub.add_parser("run", help="run a suite and write results and a report")
-    r.add_argument("--suite", default="quick", help="quick (CI, < 2 min) or full")
+    r.add_argument("--suite", default="quick",
+                   help="quick (CI, the showcase), full (every method on 3 cases, sweeps, float32, every workload "
+                   "case) or workloads (the mesh, grid and neural cases only, default knobs)")
     r.add_argument("--backend", action="append", help="backend ids, comma-separated or repeated (default: all available)")
     r.add_argument("--method", action="append", help="methods to run (default: all in the suite)")
     r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's)")
@@ -798,13 +866,31 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--backend", action="append", help="backend ids (default: all available)")
     sp.add_argument("--method", default="hybrid_secant")
     sp.add_argument("--knobs", type=_json_dict, help='JSON knob dict, e.g. \'{"xtol": 1e-8}\' (default: the method\'s defaults)')
-    sp.add_argument("--side", type=_int_at_least(1), default=1024, help="rays per image side (default 1024: 2^20 rays)")
+    sp.add_argument("--side", type=_int_at_least(1), default=None, help="rays per image side (default 1024: 2^20 rays; "
+                    "256 with --volume: 2^16 rays)")
+    sp.add_argument("--no-peers", action="store_true", help="leave out the peers' rows (bench/peers.py: a numba per-ray "
+                    "sphere tracer, scipy's Chandrupatla refiner)")
+    sp.add_argument("--volume", action="store_true", help="volume rendering instead: each backend's volume_nerf_uniform "
+                    "against the plain compositing compiled by torch.compile and jax.jit (bench/peers.py)")
+    sp.add_argument("--samples", type=_int_at_least(1), default=256, help="samples per ray with --volume (default 256)")
     sp.add_argument("--repeats", type=_int_at_least(1), default=3)
     sp.add_argument("--threads", type=_int_at_least(1), default=1, help="threads per library and worker threads of the numpy/torch "
                     "root-finder drivers (default 1)")
     sp.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     sp.add_argument("--out", help="write the rows as JSON")
     sp.set_defaults(fn=cmd_speed)
+
+    sm = sub.add_parser("sampling", help="samples per ray each volume sampler needs to reach colour error targets "
+                        "against the rendering integral (bench/sampling.py)")
+    sm.add_argument("--case", help="case ids, comma-separated (default: sphere.camera.64x64,torus.camera.32x32)")
+    sm.add_argument("--targets", help="colour error targets, comma-separated (default 1e-2,1e-3,1e-4)")
+    sm.add_argument("--density", default="nerf", choices=("nerf", "volsdf", "neus"), help="density model (default nerf)")
+    sm.add_argument("--sharpness", type=float, default=50.0, help="density sharpness s (default 50)")
+    sm.add_argument("--max-rays", type=_int_at_least(1), default=64, help="reference rays per case (default 64)")
+    sm.add_argument("--n-max", type=_int_at_least(4), default=4096, help="largest N searched (default 4096)")
+    sm.add_argument("--out", help="write sampling.csv there; a run directory's report then shows the table")
+    sm.add_argument("--quiet", action="store_true", help="no progress lines")
+    sm.set_defaults(fn=cmd_sampling)
 
     args = p.parse_args(argv)
     return args.fn(args)

@@ -463,6 +463,10 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             md += [f"![claim {r.get('id', '')}]({r['plot']})" for _, r in claims.iterrows()
                    if str(r.get("plot", "")) and (out_dir / str(r["plot"])).is_file()]
             md += [""]
+    from .sampling import section_md as sampling_md
+
+    sampling_lines = sampling_md(out_dir)
+    md += sampling_lines
     spread_lines, spread_workers = spread_section(df, env)
     if spread_lines:
         cells = spread_workers.astype(str).replace(r"\|", r"\\|", regex=True)  # a machine key's '|' is not a column
@@ -530,6 +534,9 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             parts += [f"<p class='warn'>{e(claims_note)}</p>"]
         if claims is not None:
             parts += [_claims_html(claims, out_dir)]
+    if sampling_lines:  # markdown table → HTML through pandas would lose nothing worth the code: shown as text
+        parts += ["<h2>Samples to a colour error target</h2>", f"<p class='note'>{e(sampling_lines[2])}</p>",
+                  "<pre>" + e(sampling_lines[4]) + "</pre>"]
     if spread_lines:
         parts += ["<h2>How the run was spread</h2><ul>", *[f"<li>{e(x)}</li>" for x in spread_lines], "</ul>",
                   table(spread_workers)]

@@ -84,8 +84,10 @@ def _median_time(fn, k: int) -> float:
 
 
 def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repeats: int = 3, knobs=None,
-            t_max: float = 10.0, threads: int = 1) -> list[dict]:
-    """One row per scene × backend (see the module docstring).
+            t_max: float = 10.0, threads: int = 1, peers: bool = False, notes: list | None = None) -> list[dict]:
+    """One row per scene × backend (see the module docstring), and with ``peers`` one per scene ×
+    peer (:mod:`bench.peers`: a numba per-ray sphere tracer, scipy's Chandrupatla), timed after
+    the backends and scored the same way; a peer that cannot run here is a line in ``notes``.
 
     Backends run one after the other, each on every scene (jax, last by default, leaves XLA's
     worker threads behind), and every run is timed before any exact hit is computed (the
@@ -125,6 +127,13 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
                 "x_unit": float(np.median(ratios)), "x_unit_min": float(np.min(ratios)),
                 "x_unit_max": float(np.max(ratios)), "target": TARGETS.get(b.id),
                 "compile_s": p.compile_s, "first_call_s": first}))
+    if peers:
+        from .peers import root_peer_runs
+
+        peer_runs, skipped = root_peer_runs(cases, repeats, t_max, unit_timer)
+        runs += [(name, label, label, r, row) for name, label, r, row in peer_runs]
+        if notes is not None:
+            notes.extend(skipped)
     rows = []
     exact_of = {}
     for name, _, _, r, row in runs:

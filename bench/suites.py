@@ -227,6 +227,14 @@ SUITES = {
                   min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=1, max_cases=3,
                   diverse_cases=True, secondary_dtype_cases=1, budget_s=None,
                   always_cases=_WORKLOADS, exclude_cases=_PER_PARAMETER),
+    # workloads: the mesh, grid-SDF and neural-SDF cases only, every root finder, the surface
+    # renderer, the gradients and the implicit dt/dθ at default knobs, float64, timed like full:
+    # "which to pick" on the fields people trace (the full suite runs the same configurations
+    # among its others)
+    "workloads": Suite(name="workloads", case_pattern=",".join(_WORKLOAD_GLOBS), dtypes=("float64",), sweeps={},
+                       level="full", min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=0,
+                       expensive_references=False,
+                       methods=(*_root_methods(), "render_surface", "normal", "curvature", "dt_implicit", "dt_idr")),
 }
 
 

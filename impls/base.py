@@ -145,7 +145,9 @@ class ArrayBackend:
         return f"<isobench backend {self.id}>"
 
     def methods(self) -> tuple[str, ...]:
-        return tuple(sorted(self._impl))
+        """The catalog's methods this backend offers: all, less those whose ``MethodSpec.libs``
+        names other array libraries (e.g. ``march_chandrupatla``, numpy only)."""
+        return tuple(sorted(m for m in self._impl if get_method(m).libs is None or self.lib in get_method(m).libs))
 
     def configure(self, **changes: Any) -> None:
         """Change driver settings of this backend (``backend.configure(threads=2)``); a name its
@@ -209,7 +211,7 @@ class ArrayBackend:
         if not (callable(getattr(scene, "value", None)) and hasattr(scene, "info")):
             raise TypeError(f"scene must be a reference.scene.Field (a scene tree, or a CallableField wrapping "
                             f"fn(x, xp)), got {type(scene).__name__}")
-        if method not in self._impl:
+        if method not in self.methods():
             raise NotImplementedError(f"backend {self.id} does not implement {method!r}; it implements {self.methods()}")
         if not isinstance(dtype, str) or dtype not in self.capabilities.dtypes:
             raise ValueError(f"dtype={dtype!r} not supported by {self.id}; use one of {self.capabilities.dtypes}")

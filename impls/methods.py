@@ -93,6 +93,10 @@ class MethodSpec:
     #: (:mod:`impls.core.rootfind`) from the knobs ``validate`` returned; ``ladder`` is the loop
     #: driver's choice of ladder samples for the knob value -1 (:mod:`impls.core.methods_root`)
     build: Callable[..., Any] | None = None
+    #: array libraries (``Backend.lib``) whose backends offer the method; None: every backend.  A
+    #: built-in backend of another library leaves it out of ``methods()``, and the runner records
+    #: such a configuration as skipped ("does not implement")
+    libs: tuple[str, ...] | None = None
 
     def algorithm(self, scene, t_min: float, t_max: float, knobs: dict[str, Any], theta: Any = None, *,
                   ladder: int) -> Any:
@@ -146,7 +150,11 @@ _REFINE_DOC = {
     "bisect": "bisection (linear, ratio 1/2)",
     "secant": "safeguarded secant (order ≈ 1.618)",
     "newton": "safeguarded Newton with φ' = ⟨∇φ, d⟩ (order 2; autodiff, or central differences in numpy)",
+    "chandrupatla": "scipy.optimize.elementwise.find_root (Chandrupatla: inverse quadratic interpolation or "
+                    "bisection), CONVERGED only on a certified bracket (numpy backend only)",
 }
+#: refiners that run outside the backends' loop drivers, and the libraries that offer them
+_REFINE_LIBS = {"chandrupatla": ("numpy",)}
 DENSITIES = {
     "nerf": "NeRF-style density σ = s·sigmoid(−sφ) from the field, α = 1 − exp(−σδ)",
     "unisurf": "UNISURF occupancy as alpha, α = sigmoid(−sφ) at each sample",
@@ -187,6 +195,15 @@ def _specs() -> list[MethodSpec]:
             "least the secant's extrapolation past a shallow approach, within reach), in ladder steps of several "
             "samples after ladder_after steps, then safeguarded secant on the bracket",
         ),
+        MethodSpec(
+            name="hybrid_chandrupatla",
+            family="root",
+            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+                   _REACH),
+            requires=("lipschitz",), build=methods_root.build_hybrid_chandrupatla, libs=_REFINE_LIBS["chandrupatla"],
+            description="hybrid_secant's certified march to the first sign change, then "
+            + _REFINE_DOC["chandrupatla"],
+        ),
     ]
     for refine, doc in _REFINE_DOC.items():
         specs.append(MethodSpec(
@@ -195,7 +212,7 @@ def _specs() -> list[MethodSpec]:
             knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)"),
                    Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps"), _BOUNDS, _LADDER,
                    _LADDER_AFTER),
-            requires=(), build=methods_root.march_builder(refine),
+            requires=(), build=methods_root.march_builder(refine), libs=_REFINE_LIBS.get(refine),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
     specs += [

@@ -433,3 +433,28 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
             elif spec.family == "render":
                 assert (case.id, spec.name) not in planned or case.id in suite.lead_cases.get("render", ())
     assert len(catalog("mesh.*")) >= 3
+
+
+def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
+    """``--suite workloads``: every mesh, grid and neural case of the catalog, no other case, each
+    root finder and the surface renderer on each (default knobs, float64), the gradients where the
+    scene is smooth."""
+    import fnmatch
+
+    from bench.suites import get_suite
+    from reference import catalog
+
+    suite = get_suite("workloads")
+    cfgs = runner.plan(suite, ["numpy"], None, None, None)
+    ids = {c.case.id for c in cfgs}
+    expected = {c.id for c in catalog() if any(fnmatch.fnmatchcase(c.id, g) for g in ("mesh.*", "grid.*", "neural.*"))}
+    assert ids == expected and len(expected) >= 10
+    assert {c.dtype for c in cfgs} == {"float64"}
+    planned = {(c.case.id, c.method) for c in cfgs}
+    for case in catalog():
+        if case.id not in expected:
+            continue
+        for name in [m for m, s in METHODS.items() if s.family == "root"] + ["render_surface"]:
+            assert (case.id, name) in planned, (case.id, name)
+    for c in cfgs:
+        assert c.knobs == suite.sweep_for(METHODS[c.method])[0]

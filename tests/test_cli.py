@@ -199,13 +199,17 @@ def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys)
     assert main(["speed", "--backend", "numpy", "--side", "16", "--repeats", "1", "--out", str(out)]) == 0
     rows = json.loads(out.read_text())
     assert {r["scene"] for r in rows} == {"sphere", "torus∪box"}
+    assert {r["backend"] for r in rows} >= {"numpy", "peer:scipy"}  # the peers' rows, beside the backends'
     for r in rows:
         assert r["rays"] == 256 and r["x_unit"] > 0 and r["false_hits"] == 0 and r["false_misses"] == 0
-        assert r["err_max"] < 1e-9
+        # the numba per-ray tracer stops at φ < 1e-9: its depth error is that over |cos| at grazing hits
+        assert r["err_max"] < (1e-6 if r["backend"] == "peer:numba-st" else 1e-9)
+        assert r["evals_mean"] > 0
     assert "x_unit" in capsys.readouterr().out
     assert all(r["allocator"] != "" for r in rows)
     assert main(["speed", "--backend", "numpy", "--side", "8", "--repeats", "1", "--allocator", "default",
-                 "--out", str(out)]) == 0
+                 "--no-peers", "--out", str(out)]) == 0
+    assert {r["backend"] for r in json.loads(out.read_text())} == {"numpy"}
     assert {r["allocator"] for r in json.loads(out.read_text())} == {"default"}
     assert "allocator: default" in capsys.readouterr().out
 
@@ -293,6 +297,8 @@ USER_ERRORS = {
     "speed --backend nosuch": (lambda t: ["speed", "--backend", "nosuch", "--side", "4"], 2, "--backend"),
     "speed --method nosuch": (lambda t: ["speed", "--method", "nosuch", "--side", "4"], 2, "--method"),
     "cases --tag nosuch": (lambda t: ["cases", "--tag", "nosuch"], 2, "--tag"),
+    "sampling --targets x": (lambda t: ["sampling", "--targets", "x"], 2, "--targets"),
+    "sampling --case nosuch": (lambda t: ["sampling", "--case", "nosuch"], 2, "--case"),
 }
 
 

@@ -146,11 +146,14 @@ def xfail_if_expected(request, backend, check: str):
         request.applymarker(pytest.mark.xfail(strict=True, reason=f"{backend.id}: {reason}"))
 
 
-def offered_or_skip(backend, method, dtype="float64"):
-    """Skip (with the reason) where ``backend`` does not offer ``method`` (a plug-in may offer a
-    subset of the catalog: ``backend.methods()``) or ``dtype`` (``capabilities.dtypes``)."""
+def skip_unless_offered(backend, method, dtype="float64"):
+    """Skip (with the reason) where ``backend`` does not offer ``method`` (``backend.methods()``:
+    ``MethodSpec.libs`` leaves e.g. scipy's refiner to numpy, and a plug-in may offer a subset of the
+    catalog; that it declines such a method cleanly is checked in tests/test_chandrupatla.py) or
+    ``dtype`` (``capabilities.dtypes``)."""
     if method not in backend.methods():
-        pytest.skip(f"{backend.id} does not offer {method} (its methods(): {', '.join(backend.methods())})")
+        pytest.skip(f"{backend.id} does not offer {method} (MethodSpec.libs = {METHODS[method].libs}; its methods(): "
+                    f"{', '.join(backend.methods())})")
     if dtype not in backend.capabilities.dtypes:
         pytest.skip(f"{backend.id} does not support {dtype} (capabilities.dtypes: {backend.capabilities.dtypes})")
 
@@ -159,7 +162,7 @@ def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **kn
     """``method`` on the rays, float64, as a RayResult; a skip where the backend does not offer the
     method or declines the scene (:class:`impls.protocol.Declined`: e.g. a compiling backend and
     one of this module's test fields, which it cannot compile)."""
-    offered_or_skip(backend, method)
+    skip_unless_offered(backend, method)
     try:
         prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, t_hit=t_hit, **knobs)
     except Declined as exc:
@@ -174,7 +177,8 @@ def run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, **kn
 ROOT_METHODS = [m for m, s in METHODS.items() if s.family == "root"]
 TIGHT = {"sphere_trace": dict(tol=1e-13, max_steps=20000), "hybrid_secant": dict(xtol=1e-13),
          "march_bisect": dict(xtol=1e-13, step=0.01), "march_secant": dict(xtol=1e-13, step=0.01),
-         "march_newton": dict(xtol=1e-13, step=0.01)}
+         "march_newton": dict(xtol=1e-13, step=0.01), "march_chandrupatla": dict(xtol=1e-13, step=0.01),
+         "hybrid_chandrupatla": dict(xtol=1e-13)}
 
 
 def applicable(method, scene) -> bool:
@@ -304,7 +308,7 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     scene = SCENES[scene_name]
     ball = scene.bounding_sphere()
     o, d = camera(8)
-    if method in ("sphere_trace", "hybrid_secant"):
+    if method in ("sphere_trace", "hybrid_secant", "hybrid_chandrupatla"):
         # plain sphere tracing certifies a miss that passes δ·r from the surface in ~√(1/δ) steps
         # (never, when δ·r < tol): it gets δ ≥ 1e-8
         o2, d2 = silhouette_rays(ball, delta_min=1e-8 if method == "sphere_trace" else 1e-12)
@@ -320,11 +324,11 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     assert np.all(on.status[outside] == Status.MISS)
     assert np.all(on.evals[outside] == 0) and np.all(on.iterations[outside] == 0)
     assert np.all(on.evals[hit] >= 1) and np.all(off.evals >= 1)
-    # hybrid_secant's documented limit: a crossing whose chord is shorter than min_step (1e-5)
-    # may be missed, with or without the clip (where its samples fall decides)
+    # hybrid_secant's (and hybrid_chandrupatla's) documented limit: a crossing whose chord is shorter
+    # than min_step (1e-5) may be missed, with or without the clip (where its samples fall decides)
     spheres = scene.children or (scene,)
     chord = np.max([[b[1] - b[0] if b.size else 0.0 for b in s.ray_intervals(o, d)] for s in spheres], axis=0)
-    sure = hit & (chord >= 1e-5) if method == "hybrid_secant" else hit
+    sure = hit & (chord >= 1e-5) if method in ("hybrid_secant", "hybrid_chandrupatla") else hit
     for r in (on, off):
         assert np.all(r.status[sure] == Status.CONVERGED) and np.all(r.status[~hit] == Status.MISS), r.status_counts()
         np.testing.assert_allclose(r.t[sure], exact[sure], rtol=0, atol=1e-9)
@@ -373,7 +377,7 @@ def test_jax_jitted_equals_eager():
 
 def test_bad_knobs_name_the_knob(any_backend):
     for method in ("sphere_trace", "march_bisect"):
-        offered_or_skip(any_backend, method)
+        skip_unless_offered(any_backend, method)
     o, d = camera(2)
     with pytest.raises(ValueError, match="omega"):
         any_backend.prepare("sphere_trace", SPHERE, o, d, omega=2.5)
@@ -417,6 +421,24 @@ def test_normal_and_curvatures_against_exact(any_backend, scene_name):
     np.testing.assert_allclose(r.outputs["curvature_laplacian"][hit], lap, rtol=0, atol=tol)
     if scene_name == "algebraic":  # the two curvatures differ for a non-SDF, and both are kept
         assert np.all(np.abs(r.outputs["curvature_laplacian"][hit] - r.outputs["curvature_divergence"][hit]) > 1)
+
+
+def test_normal_and_curvatures_of_a_plane_are_exact(any_backend):
+    """A linear field has a constant gradient and a zero Hessian: backends whose autodiff drops
+    such outputs from the graph must still answer (torch raised on the plane before)."""
+    from reference import Plane
+
+    scene = Plane(normal=(0.0, 0.0, 1.0), offset=0.0)
+    o = np.array([[0.1, -0.2, 2.0], [0.3, 0.4, 1.0]])
+    d = normalize(np.array([[0.0, 0.0, -1.0], [0.2, -0.1, -1.0]]))
+    t = -o[:, 2] / d[:, 2]
+    r = run(any_backend, "normal", scene, o, d, t_hit=t)
+    assert np.all(r.status == Status.CONVERGED)
+    np.testing.assert_allclose(r.outputs["normal"], np.tile([0.0, 0.0, 1.0], (2, 1)), rtol=0, atol=1e-12)
+    r = run(any_backend, "curvature", scene, o, d, t_hit=t)
+    assert np.all(r.status == Status.CONVERGED)
+    for key in ("curvature_divergence", "gaussian_curvature", "curvature_laplacian"):
+        np.testing.assert_allclose(r.outputs[key], 0.0, rtol=0, atol=tol_for(any_backend, 1e-12, 1e-6))
 
 
 DT_METHODS = {"dt_implicit": ({}, 1e-12, 1e-8), "dt_idr": ({}, 1e-12, 1e-8),
@@ -676,7 +698,7 @@ def test_every_method_agrees_with_numpy(any_backend, method):
 def test_every_method_runs_in_float32(any_backend, method):
     """float32 is a stress dtype: every method runs, returns every output and a valid status, and
     hits are where float64 puts them to float32 accuracy."""
-    offered_or_skip(any_backend, method, "float32")
+    skip_unless_offered(any_backend, method, "float32")
     o, d, t, hit, x = hits(SPHERE, 4)
     kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
     if METHODS[method].family == "root":

@@ -10,7 +10,8 @@ import math
 
 import numpy as np
 
-from .rootfind import REFINERS, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
+from .chandrupatla import MarchChandrupatla
+from .rootfind import REFINERS, Bisect, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
 
 
 def lipschitz_step(scene) -> float:
@@ -71,30 +72,41 @@ def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=Non
                        probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene), gain=rounding_gain(scene))
 
 
-def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
+def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int,
+                 refine: str = "secant") -> MarchRefine:
     """``hybrid_secant``'s (and ``render_surface``'s) algorithm from its validated knobs; the largest
     forced step is at least the smallest (``overstep`` below ``min_step`` means no forced-step
-    range: the plain IDR march), clamped here only."""
+    range: the plain IDR march), clamped here only.  ``refine="chandrupatla"``: the same march,
+    its brackets refined by scipy (``hybrid_chandrupatla``, :mod:`impls.core.chandrupatla`)."""
     rule = CertifiedStep(inv_lip=lipschitz_step(scene), min_step=knobs["min_step"],
                          overstep=max(knobs["overstep"], knobs["min_step"]), extrapolate=knobs["extrapolate"],
                          reach=knobs["reach"],
                          # a bound stated on a domain only (the algebraic sphere's on |x| ≤ R) is not
                          # checked past the ray bounds
                          probe=getattr(scene.info, "domain", None) is None)
-    return MarchRefine(rule=rule, refiner=REFINERS["secant"](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
+    cls, refiner = (MarchChandrupatla, Bisect) if refine == "chandrupatla" else (MarchRefine, REFINERS[refine])
+    return cls(rule=rule, refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
                        t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
                        ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene))
 
 
+def build_hybrid_chandrupatla(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int):
+    """``hybrid_chandrupatla``: ``hybrid_secant``'s certified march, then scipy's ``find_root``."""
+    return build_hybrid(scene, t_min, t_max, knobs, theta, ladder=ladder, refine="chandrupatla")
+
+
 def march_builder(refine: str):
-    """The builder of ``march_<refine>``'s algorithm: constant steps, then ``refine``."""
+    """The builder of ``march_<refine>``'s algorithm: constant steps, then ``refine`` (one of
+    :data:`impls.core.rootfind.REFINERS`, or ``chandrupatla``: scipy's ``find_root`` on the brackets,
+    :class:`impls.core.chandrupatla.MarchChandrupatla`)."""
+    cls, refiner = (MarchChandrupatla, Bisect) if refine == "chandrupatla" else (MarchRefine, REFINERS[refine])
 
     def build_march(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
         bounds = search_bounds(scene, knobs, theta)
-        return MarchRefine(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
-                           refiner=REFINERS[refine](), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
-                           t_min=t_min, t_max=t_max, bounds=bounds, ladder=_ladder(knobs, ladder),
-                           ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene))
+        return cls(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
+                   refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
+                   bounds=bounds, ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
+                   scale=rounding_scale(scene), gain=rounding_gain(scene))
 
     build_march.__name__ = f"build_march_{refine}"
     return build_march

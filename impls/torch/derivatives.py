@@ -25,10 +25,18 @@ def grad_hess(xp, scene, x, hess, theta=None):
     with torch.enable_grad():
         x = x.detach().requires_grad_(True)
         f = scene.value(x, xp, theta)
-        (g,) = torch.autograd.grad(f.sum(), x, create_graph=hess)
+        # A field that is constant (or linear) in x leaves φ (or ∇φ) outside the graph, and
+        # autograd.grad refuses such outputs: the derivative is then exactly zero.
+        if f.requires_grad:
+            (g,) = torch.autograd.grad(f.sum(), x, create_graph=hess, materialize_grads=True)
+        else:
+            g = torch.zeros_like(x)
         if not hess:
             return g.detach(), None, 1
-        rows = [torch.autograd.grad(g[:, i].sum(), x, retain_graph=i < 2)[0] for i in range(3)]
+        if not g.requires_grad:
+            return g.detach(), torch.zeros(x.shape + (3,), dtype=x.dtype, device=x.device), 1
+        rows = [torch.autograd.grad(g[:, i].sum(), x, retain_graph=i < 2, materialize_grads=True)[0]
+                for i in range(3)]
     return g.detach(), torch.stack(rows, dim=1).detach(), 1
 
 

@@ -1,0 +1,112 @@
+"""scipy's elementwise Chandrupatla solver as the refiner of a constant-step marcher: a peer of
+isobench's own bracket refiners (bisection, secant, Newton), method ``march_chandrupatla``.
+
+The marching is isobench's (:class:`impls.core.rootfind.MarchRefine` with a
+:class:`~impls.core.rootfind.ConstantStep` rule, ladder steps included: the same samples, the
+same brackets, statuses and Lipschitz checks as ``march_bisect``); only the refinement stage
+differs.  Where ``march_bisect`` shrinks a bracket one loop step at a time, the refinement stage
+here hands every bracket the loop driver gives it to ``scipy.optimize.elementwise.find_root``
+(Chandrupatla 1997: inverse quadratic interpolation where the last three points make it safe,
+else bisection; superlinear near a simple root) in one call, which runs to completion.
+
+Contract (φ along the ray t ↦ φ(o + t d), bracket [a, b] with φ(a)φ(b) < 0 from the march):
+
+* scipy's tolerances: ``xatol = max(0, xtol − ε·M)``, ``xrtol = ε`` (M the largest |a|, |b| of
+  the call, ε the dtype's), ``fatol = frtol = 0``.  scipy stops when its bracket is narrower than
+  ``xatol + ε·|x_min|`` ≤ xtol (or, where xtol is below the float spacing, about one spacing) or
+  φ = 0 exactly at an iterate.  (scipy's tolerances are scalars: one ray far from the origin
+  in a call makes every ray of that call refine to about a float spacing, which costs a few
+  iterations more and changes no status.)
+* CONVERGED is decided here, from scipy's returned bracket ``(xl, xr)`` and values ``(fl, fr)``,
+  not from its flag: finite ends with a sign change (or φ = 0 exactly at the returned x) that are
+  no more than ``xtol`` apart or adjacent floats (their midpoint rounds to an end), within the
+  ray's step budget.  ``t`` is scipy's ``x`` (the end with the smaller |φ|), inside that bracket.
+* Otherwise: NON_FINITE (t NaN) where scipy reports a non-finite value (status −3) or returns a
+  non-finite x; MAX_ITER (t scipy's last x, or the bracket's midpoint where that is NaN) where
+  the budget ran out (scipy −2, or more iterations than the ray's ``max_steps`` left: scipy's
+  ``maxiter`` is one number, the largest budget left among the rays of the call) or scipy
+  stopped on a bracket isobench cannot certify (scipy 0 or −1 on an uncertified bracket).
+* ``iterations`` += scipy's ``nit``; ``evals`` += φ evaluations made (scipy's ``nfev`` less the
+  two bracket ends, whose φ the march already holds and passes back when scipy asks for them:
+  :func:`refine`).
+
+numpy only (``MethodSpec.libs``): scipy's solver runs eagerly on numpy arrays (its array-API
+mode is experimental and needs ``SCIPY_ARRAY_API=1``), so the refinement cannot run inside jax's
+traced loops, and on torch it would convert at every call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .rootfind import CONV, MAXI, NONF, MarchRefine
+
+
+def refine(a, b, fa, fb, o, d, ev, *, xtol: float, budget):
+    """Refine brackets [a, b] (φ(a) = ``fa``, φ(b) = ``fb`` of opposite signs) on rays ``o``, ``d``
+    ((m, 3)) with ``scipy.optimize.elementwise.find_root``; ``budget`` (m,) iterations left per ray.
+
+    Returns ``(t, status, nit, evals)`` per ray as the module docstring states.  φ is evaluated
+    through the backend's ``ev(o, d, t, deriv) -> (φ, _, cost)`` on the rays scipy still works on
+    (it compacts its arguments, so the ray components travel as ``args``)."""
+    from scipy.optimize.elementwise import find_root
+
+    m = a.shape[0]
+    O = np.ascontiguousarray(o.T)  # (3, m): the drivers' layout, φ runs on contiguous rows
+    D = np.ascontiguousarray(d.T)
+    eps = float(np.finfo(a.dtype).eps)
+    mag = float(np.max(np.maximum(np.abs(a), np.abs(b)))) if m else 0.0
+    calls = {"n": 0, "served": 0, "cost": 1}
+
+    def f(t, ox, oy, oz, dx, dy, dz):
+        calls["n"] += 1
+        # scipy first evaluates the two bracket ends, whole arrays; the march holds φ there
+        if calls["n"] <= 2 and t.shape == a.shape:
+            for ends, fends in ((a, fa), (b, fb)):
+                if np.array_equal(t, ends):
+                    calls["served"] += 1
+                    return fends.copy()
+        oo, dd = np.stack((ox, oy, oz)), np.stack((dx, dy, dz))
+        val, _, cost = ev(oo.T, dd.T, t, False)
+        calls["cost"] = cost
+        return val
+
+    tol = dict(xatol=max(0.0, xtol - eps * mag), xrtol=eps, fatol=0.0, frtol=0.0)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        res = find_root(f, (a, b), args=(O[0], O[1], O[2], D[0], D[1], D[2]), tolerances=tol,
+                        maxiter=int(np.max(budget)) if m else 0)
+    xl, xr = (np.asarray(v, a.dtype) for v in res.bracket)
+    fl, fr = (np.asarray(v, a.dtype) for v in res.f_bracket)
+    x, fx = np.asarray(res.x, a.dtype), np.asarray(res.f_x, a.dtype)
+    nit = np.asarray(res.nit, np.int64)
+    code = np.asarray(res.status)
+    mid = 0.5 * (xl + xr)
+    ends_ok = np.isfinite(xl) & np.isfinite(xr) & (xl <= xr)
+    sign_change = ((fl > 0) != (fr > 0)) | (fl == 0) | (fr == 0)
+    narrow = (xr - xl <= xtol) | (mid <= xl) | (mid >= xr)
+    exact = (fx == 0) & np.isfinite(x)
+    certified = ends_ok & np.isfinite(x) & (exact | (sign_change & narrow)) & (x >= xl) & (x <= xr)
+    within = nit <= budget
+    nonf = (code == -3) | ~np.isfinite(x)
+    status = np.where(certified & within, CONV, np.where(nonf & ~(certified & within), NONF, MAXI)).astype(np.int32)
+    t = np.where(status == NONF, np.nan, np.where(np.isfinite(x), x, mid))
+    evals = (np.asarray(res.nfev, np.int64) - calls["served"]) * calls["cost"]
+    return t.astype(a.dtype), status, nit, evals
+
+
+@dataclasses.dataclass(frozen=True)
+class MarchChandrupatla(MarchRefine):
+    """:class:`impls.core.rootfind.MarchRefine` whose refinement stage is one call of scipy's
+    ``find_root`` on every bracket the driver passes it (:func:`refine`; the module docstring
+    states the contract).  Build it with ``refiner=Bisect()`` (no refiner state is carried)."""
+
+    def step_refine(self, xp, s, o, d, ev):
+        if xp is not np:
+            raise TypeError("march_chandrupatla refines with scipy.optimize.elementwise.find_root on numpy arrays; "
+                            f"the array namespace here is {getattr(xp, '__name__', xp)!r} (numpy backend only)")
+        budget = self.max_steps - s["iterations"]
+        t, status, nit, evals = refine(s["a"], s["b"], s["fa"], s["f"], o, d, ev, xtol=self.xtol, budget=budget)
+        new = dict(t=t, status=status, iterations=s["iterations"] + nit, evals=s["evals"] + evals)
+        return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}
