@@ -22,7 +22,8 @@ from reference.rays import pinhole
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 needs_numba = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed (pip install -e '.[numba]')")
 
-ROOTS = [m for m, s in METHODS.items() if s.family == "root"]
+#: the root methods every backend offers (``MethodSpec.libs`` None; scipy's refiners are numpy's)
+ROOTS = [m for m, s in METHODS.items() if s.family == "root" and s.libs is None]
 
 
 def _fake_entry_point(tmp_path, monkeypatch):
