@@ -115,13 +115,12 @@ def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
 # -- kernels ------------------------------------------------------------------------------------
 
 _KERNELS: dict = {}
-CBRT_EPS64 = float(np.cbrt(np.finfo(np.float64).eps))
 
 
 def kernels(key: str):
-    """``{"sphere": …, "march": …}`` parallel kernels for the scene source ``key``
-    (:class:`impls.numba.fields.CompiledScene`), made once per key; numba compiles each on its
-    first call."""
+    """``{"sphere": …, "march": …, "lanes": …}`` parallel kernels for the scene source ``key``
+    (:class:`impls.numba.fields.CompiledScene`), made once per key (the cache lives as long as the
+    process); numba compiles each on its first call."""
     k = _KERNELS.get(key)
     if k is None:
         from .fields import CompiledScene, scene_functions
@@ -263,7 +262,6 @@ def _make_kernels(phi, bounds):
         wq = inf
         iters = 0
         use_ladder = ladder > 1
-        refine_phase = 2 if use_ladder else 1
         phase = 0
         while True:
             if phase == 0:  # -- step_march --
