@@ -8,7 +8,10 @@ of the step per lane with the lane's own variables (numba keeps them in register
 passed through function calls or arrays measured slower), and compiled by numba per scene like
 the per-ray kernels of :mod:`impls.numba.driver`.  Each lane runs exactly
 ``driver``'s ``march_one`` for one ray at a time — the same operations in the same order, so the
-same results — and takes the next ray of its thread's chunk when its ray finishes.
+same results — and takes the next ray of its thread's chunk when its ray finishes.  A lane's
+iteration computes the depth its phase evaluates next (−1: the start, ``init``; 0: a march step;
+1: a refinement step), evaluates φ there (one inlined copy of φ per lane, which keeps the
+compile time down), and updates its state as that phase's step does.
 """
 
 from __future__ import annotations
@@ -26,27 +29,19 @@ _FETCH = """
                     o0_K, o1_K, o2_K = O[i_K, 0], O[i_K, 1], O[i_K, 2]
                     d0_K, d1_K, d2_K = D[i_K, 0], D[i_K, 1], D[i_K, 2]
                     t_K, hi_K, st_K = start(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, t_min, t_max, use_bounds)
-                    ev_K = 0
-                    if st_K == IN:
-                        f_K = ev(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, t_K)
-                        ev_K = 1
-                        if not math.isfinite(f_K):
-                            st_K = NONF
-                        elif f_K == 0:
-                            st_K = CONV
-                    if st_K == IN:
-                        mag_K = ((abs(o0_K) + abs(o1_K)) + abs(o2_K)) + scale
-                        p_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, t_K
-                        dl_K, wq_K, ph_K, it_K = cap, inf, 0, 0
+                    if st_K == IN:  # φ at t is the lane's next evaluation (phase -1: MarchRefine.init)
+                        ph_K, it_K, ev_K = -1, 0, 0
                         act_K = True
                     else:
-                        out_t[i_K], out_s[i_K], out_i[i_K], out_e[i_K] = final_t(t_K, st_K), st_K, 0, ev_K
+                        out_t[i_K], out_s[i_K], out_i[i_K], out_e[i_K] = final_t(t_K, st_K), st_K, 0, 0
 """
 
 _STEP = """
             if act_K:
                 busy = True
-                if ph_K == 0:
+                if ph_K == -1:
+                    te_K = t_K
+                elif ph_K == 0:
                     if cert:
                         r_K = abs(f_K) * inv_lip
                         h_K = _max(r_K, dl_K)
@@ -54,70 +49,80 @@ _STEP = """
                             x_K = _min(extra * (f_K * (t_K - p_K) / (fp_K - f_K)), reach)
                             if x_K > h_K:
                                 h_K = x_K
-                        tn_K = _min(t_K + h_K, hi_K)
+                        te_K = _min(t_K + h_K, hi_K)
                         if probe and t_K + h_K > hi_K:
-                            tn_K = _min(t_K + h_K, t_max)
+                            te_K = _min(t_K + h_K, t_max)
                     else:
                         r_K = 0.0
                         h_K = step
-                        tn_K = _min(t_K + h_K, hi_K)
-                    fn_K = ev(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, tn_K)
-                    zero_K = fn_K == 0
-                    fin_K = math.isfinite(fn_K)
-                    cross_K = fin_K and (zero_K or ((fn_K > 0) != (f_K > 0)))
-                    gone_K = (tn_K >= hi_K) or not math.isfinite(tn_K)
-                    miss_K = (not cross_K) and gone_K
-                    conv_K = cross_K and (zero_K or (tn_K - t_K <= xtol))
-                    nonf_K = (not fin_K) and math.isfinite(tn_K)
-                    lv_K = has_check and lipv(f_K, fn_K, t_K, tn_K, check, mag_K, leps)
-                    if cert:
-                        ok_K = cross_K or (r_K + abs(fn_K) * inv_lip >= h_K) or (h_K <= min_step) or not math.isfinite(tn_K)
-                        dl_K = _min(_max(2 * dl_K if ok_K else 0.5 * dl_K, min_step), cap)
-                        miss_K = miss_K and ok_K
-                        if not ok_K:
-                            tn_K, fn_K = t_K, f_K
-                    it_K += 1
-                    ev_K += 1
-                    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K, lv_K)
-                    ph_K = 1 if cross_K else 0
-                    p_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, tn_K
-                    if refiner != 0:
-                        wq_K = 4.0 * (tn_K - t_K)
-                    t_K, f_K = tn_K, fn_K
+                        te_K = _min(t_K + h_K, hi_K)
                 else:
                     mid_K = 0.5 * (a_K + b_K)
                     i2_K = it_K % 3 == 0
                     if refiner == 0:
-                        c_K = mid_K
+                        te_K = mid_K
                     else:
-                        c_K = t_K - f_K * (t_K - p_K) / (f_K - fp_K)
-                        stp_K = abs(c_K - t_K)
+                        te_K = t_K - f_K * (t_K - p_K) / (f_K - fp_K)
+                        stp_K = abs(te_K - t_K)
                         lift_K = stp_K + 0.5 * hh
                         if stp_K < hh:
-                            c_K = t_K + lift_K if t_K - a_K <= b_K - t_K else t_K - lift_K
+                            te_K = t_K + lift_K if t_K - a_K <= b_K - t_K else t_K - lift_K
                         slow_K = i2_K and (b_K - a_K > 0.5 * wq_K)
-                        if not ((c_K >= a_K) and (c_K <= b_K) and not slow_K):
-                            c_K = mid_K
-                    fc_K = ev(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, c_K)
-                    same_K = (fc_K > 0) == (fa_K > 0)
-                    na_K = c_K if same_K else a_K
-                    nb_K = b_K if same_K else c_K
-                    nmid_K = 0.5 * (na_K + nb_K)
-                    conv_K = (fc_K == 0) or (nb_K - na_K <= xtol) or (nmid_K <= na_K) or (nmid_K >= nb_K)
-                    if refiner == 0:
-                        to_K = c_K
+                        if not ((te_K >= a_K) and (te_K <= b_K) and not slow_K):
+                            te_K = mid_K
+                fe_K = ev(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, te_K)
+                ev_K += 1
+                if ph_K == -1:
+                    if not math.isfinite(fe_K):
+                        st_K = NONF
+                    elif fe_K == 0:
+                        st_K = CONV
                     else:
-                        z_K = c_K - fc_K * (c_K - t_K) / (fc_K - f_K)
-                        z_K = _min(_max(z_K, na_K), nb_K)
-                        to_K = z_K if (conv_K and (fc_K != 0) and (z_K == z_K)) else c_K
+                        f_K = fe_K
+                        mag_K = ((abs(o0_K) + abs(o1_K)) + abs(o2_K)) + scale
+                        p_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, t_K
+                        dl_K, wq_K, ph_K, it_K = cap, inf, 0, 0
+                elif ph_K == 0:
+                    zero_K = fe_K == 0
+                    fin_K = math.isfinite(fe_K)
+                    cross_K = fin_K and (zero_K or ((fe_K > 0) != (f_K > 0)))
+                    gone_K = (te_K >= hi_K) or not math.isfinite(te_K)
+                    miss_K = (not cross_K) and gone_K
+                    conv_K = cross_K and (zero_K or (te_K - t_K <= xtol))
+                    nonf_K = (not fin_K) and math.isfinite(te_K)
+                    lv_K = has_check and lipv(f_K, fe_K, t_K, te_K, check, mag_K, leps)
+                    if cert:
+                        ok_K = cross_K or (r_K + abs(fe_K) * inv_lip >= h_K) or (h_K <= min_step) or not math.isfinite(te_K)
+                        dl_K = _min(_max(2 * dl_K if ok_K else 0.5 * dl_K, min_step), cap)
+                        miss_K = miss_K and ok_K
+                        if not ok_K:
+                            te_K, fe_K = t_K, f_K
                     it_K += 1
-                    ev_K += 1
-                    st_K = verdict(not math.isfinite(fc_K), conv_K, it_K >= max_steps, False, False)
+                    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K, lv_K)
+                    ph_K = 1 if cross_K else 0
+                    p_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, te_K
+                    if refiner != 0:
+                        wq_K = 4.0 * (te_K - t_K)
+                    t_K, f_K = te_K, fe_K
+                else:
+                    same_K = (fe_K > 0) == (fa_K > 0)
+                    na_K = te_K if same_K else a_K
+                    nb_K = b_K if same_K else te_K
+                    nmid_K = 0.5 * (na_K + nb_K)
+                    conv_K = (fe_K == 0) or (nb_K - na_K <= xtol) or (nmid_K <= na_K) or (nmid_K >= nb_K)
+                    if refiner == 0:
+                        to_K = te_K
+                    else:
+                        z_K = te_K - fe_K * (te_K - t_K) / (fe_K - f_K)
+                        z_K = _min(_max(z_K, na_K), nb_K)
+                        to_K = z_K if (conv_K and (fe_K != 0) and (z_K == z_K)) else te_K
+                    it_K += 1
+                    st_K = verdict(not math.isfinite(fe_K), conv_K, it_K >= max_steps, False, False)
                     if refiner != 0 and i2_K:
                         wq_K = b_K - a_K
                     p_K, fp_K = t_K, f_K
                     a_K, b_K = na_K, nb_K
-                    t_K, f_K = to_K, fc_K
+                    t_K, f_K = to_K, fe_K
                 if st_K != IN:
                     out_t[i_K], out_s[i_K], out_i[i_K], out_e[i_K] = final_t(t_K, st_K), st_K, it_K, ev_K
                     act_K = False
@@ -127,6 +132,8 @@ _INIT = """        act_K = False
         i_K, it_K, ev_K, ph_K, st_K = 0, 0, 0, 0, IN
         o0_K = o1_K = o2_K = d0_K = d1_K = d2_K = 0.0
         t_K = f_K = p_K = fp_K = a_K = fa_K = b_K = hi_K = dl_K = wq_K = mag_K = 0.0
+        te_K = fe_K = r_K = h_K = mid_K = 0.0
+        i2_K = False
 """
 
 _HEAD = """
