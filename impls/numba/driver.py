@@ -17,7 +17,7 @@ masking), this driver runs each ray to completion on its own (``prange`` over ra
 array drivers' ladder stage exists to amortise, so the driver's choice for the knob
 ``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).  A ray's steps are one chain of
 dependent operations, so the hybrid and the constant-step marchers (without derivatives or ladder
-steps) run two rays in turn per thread (:mod:`impls.numba.lanes`: the same steps, 1.35× faster
+steps) run two rays in turn per thread (:mod:`impls.numba.lanes`: the same steps, 1.5× faster
 on the speed scenes); the others run one ray at a time (``march_one``, ``sphere_one``).
 
 φ along a ray is the compiled scene (:mod:`impls.numba.fields`); dφ/dt, for Newton, is numpy's
