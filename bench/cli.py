@@ -669,10 +669,10 @@ def cmd_speed(args) -> int:
     if bad:
         return _error("--backend: " + "; ".join(f"{bid}: {b.reason}" for bid, b in bad))
     if args.volume:
-        from . import peers
+        from . import peers, speed
 
-        rows, notes = peers.volume_rows(ids, n_side=args.side if args.side_given else 256, n_samples=args.samples,
-                                        repeats=args.repeats)
+        rows, notes = peers.volume_rows(ids, speed.scenes(args.side if args.side_given else 256),
+                                        n_samples=args.samples, repeats=args.repeats)
         for row in rows:
             row["threads"] = args.threads
             row["allocator"] = allocator

@@ -273,20 +273,17 @@ def _timed(fn, repeats: int, sync) -> tuple[float, list[float]]:
     return first, ts
 
 
-def volume_rows(backend_ids, n_side: int = 256, n_samples: int = 256, repeats: int = 5, sharpness: float = 50.0,
+def volume_rows(backend_ids, cases: dict, n_samples: int = 256, repeats: int = 5, sharpness: float = 50.0,
                 t_min: float = 0.0, t_max: float = 6.0, method: str = "volume_nerf_uniform") -> tuple[list[dict], list[str]]:
     """Rows of time (median, min, max of ``repeats``) and compile time apart, for every backend's
-    ``method`` and the compiled plain compositing in torch and jax, on the two scenes of
-    :func:`bench.speed.scenes` with ``n_side``² rays and ``n_samples`` samples each; with each row
+    ``method`` and the compiled plain compositing in torch and jax, on ``cases`` (name →
+    (scene, origins, directions), e.g. :func:`bench.speed.scenes`) with ``n_samples`` samples each; with each row
     the largest colour difference from the numpy renderer's (the same sum: rounding only).
     Returns (rows, skipped lines)."""
     from impls import registry
     from reference.rendering import SineColor
 
-    from .speed import scenes
-
     rows, skipped = [], []
-    cases = scenes(n_side)
     ref_colors: dict[str, np.ndarray] = {}
     knobs = dict(n_samples=n_samples, sharpness=sharpness, t_threshold=0.0)
 

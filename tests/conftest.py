@@ -16,6 +16,7 @@ import pytest
 from hypothesis import settings
 
 from impls import registry
+from impls.protocol import Declined
 
 # CI runs hypothesis derandomized so a red build is reproducible.
 settings.register_profile("ci", derandomize=True, deadline=None, max_examples=60)
@@ -33,6 +34,18 @@ def extra_backend_ids(value: str | None = None) -> list[str]:
 
 
 BACKEND_IDS = list(dict.fromkeys(registry.default_ids() + extra_backend_ids()))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_pyfunc_call(pyfuncitem):
+    """A backend that declines a test's scene (:class:`impls.protocol.Declined`, e.g. the numba
+    backend and a user's field it does not compile) skips that test with its reason, as a run
+    records a skipped row: declining is part of the protocol, not a failure.  Tests that check
+    declining itself catch the exception inside the test."""
+    try:
+        return (yield)
+    except Declined as exc:
+        pytest.skip(f"declined: {exc}")
 
 
 def resolve_or_skip(backend_id: str):

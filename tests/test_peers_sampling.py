@@ -126,7 +126,7 @@ def test_volume_rows_compare_every_renderer_with_numpy(monkeypatch):
         raise ImportError(f"{lib} not here (test)")
 
     monkeypatch.setattr(peers, "_compile_plain", no_compiler)
-    rows, skipped = peers.volume_rows(["numpy"], n_side=4, n_samples=8, repeats=2)
+    rows, skipped = peers.volume_rows(["numpy"], scenes(4), n_samples=8, repeats=2)
     assert [r["scene"] for r in rows] == ["sphere", "torus∪box"]
     assert all(r["max_color_diff_vs_numpy"] == 0 and r["time_min_s"] <= r["time_s"] <= r["time_max_s"] for r in rows)
     assert skipped == ["plain torch compositing: skipped: torch not here (test)",
