@@ -31,6 +31,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .timing import median_time
+
 #: status codes of the per-ray tracer (isobench's, :class:`impls.protocol.Status`)
 _CONV, _MISS, _MAXI = 0, 2, -2
 
@@ -113,15 +115,6 @@ def numba_tracer(numba, phi: Callable[[float, float, float], float]):
     return trace
 
 
-def _median_time(fn, k: int) -> float:
-    ts = []
-    for _ in range(k):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
-
-
 def root_peer_runs(cases: dict, repeats: int, t_max: float, unit_timer, eps: float = 1e-9,
                    max_steps: int = 4096, scipy_method: str = "hybrid_chandrupatla") -> tuple[list, list[str]]:
     """Time the peers on ``cases`` (:func:`bench.speed.scenes`); returns (runs, skipped lines).
@@ -160,7 +153,7 @@ def root_peer_runs(cases: dict, repeats: int, t_max: float, unit_timer, eps: flo
             times, units, ratios = [], [], []
             unit_fn = unit_timer(o, d)
             for _ in range(repeats):
-                unit = _median_time(unit_fn, 3)
+                unit = median_time(unit_fn, 3)
                 t0 = time.perf_counter()
                 call()
                 dt = time.perf_counter() - t0
@@ -179,7 +172,7 @@ def root_peer_runs(cases: dict, repeats: int, t_max: float, unit_timer, eps: flo
         times, units, ratios = [], [], []
         unit_fn = unit_timer(o, d)
         for _ in range(repeats):
-            unit = _median_time(unit_fn, 3)
+            unit = median_time(unit_fn, 3)
             t0 = time.perf_counter()
             out = p.run()
             dt = time.perf_counter() - t0

@@ -25,6 +25,8 @@ import time
 
 import numpy as np
 
+from .timing import median_time
+
 TARGETS = {"numpy": 30.0, "jax:cpu": 20.0, "torch:cpu": 60.0}
 
 
@@ -74,15 +76,6 @@ def scenes(n_side: int):
     }
 
 
-def _median_time(fn, k: int) -> float:
-    ts = []
-    for _ in range(k):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
-
-
 def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repeats: int = 3, knobs=None,
             t_max: float = 10.0, threads: int = 1, peers: bool = False, notes: list | None = None) -> list[dict]:
     """One row per scene × backend (see the module docstring), and with ``peers`` one per scene ×
@@ -113,7 +106,7 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
             ratios, times, units = [], [], []
             unit_fn = unit_timer(o, d)
             for _ in range(repeats):
-                unit = _median_time(unit_fn, 3)
+                unit = median_time(unit_fn, 3)
                 t0 = time.perf_counter()
                 out = p.run()
                 b.synchronize(out)

@@ -74,6 +74,17 @@ class TimingPolicy:
                 raise ValueError(f"TimingPolicy.{name}={v} must be a finite number ≥ 0")
 
 
+def median_time(fn: Callable[[], Any], k: int) -> float:
+    """Median wall time in seconds of ``k`` calls of ``fn`` (perf_counter; no synchronisation:
+    for host-side work such as the closed-form unit)."""
+    ts = []
+    for _ in range(k):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts))
+
+
 def _timed(run: Callable[[], Any], sync: Callable[[Any], None], loops: int) -> tuple[float, Any]:
     clock = time.perf_counter
     t0 = clock()
