@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from impls import Status
+from impls.protocol import Declined
 from reference import CallableField, Plane, Sphere, catalog, rays
 from tests.conftest import resolve_or_skip
 
@@ -244,10 +245,16 @@ def _certification_scenes():
 def test_every_converged_ray_lies_in_a_certified_bracket(backend, method, xtol):
     """The conformance check of CONVERGED (:func:`assert_certified`) over scenes, methods, backends
     and tolerances: a loose xtol is where a verdict on a short predicted step would show."""
+    checked = 0
     for scene, o, d, t_max in _certification_scenes():
         if scene.info.lipschitz is None and method == "hybrid_secant":
             continue
-        res = solve(backend, method, scene, o, d, t_max=t_max, xtol=xtol)
+        try:
+            res = solve(backend, method, scene, o, d, t_max=t_max, xtol=xtol)
+        except Declined:  # a compiling backend (numba) and a field it does not compile: the others still count
+            continue
+        checked += 1
         assert np.mean(res.status == Status.CONVERGED) > 0.2
         # the float spacing of t bounds what a bracket can certify (adjacent floats)
         assert_certified(scene, res, o, d, max(xtol, 4 * np.spacing(t_max)))
+    assert checked, "the backend declined every scene"
