@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .timing import median_time
+from .timing import times_against_unit
 
 #: status codes of the per-ray tracer (isobench's, :class:`impls.protocol.Status`)
 _CONV, _MISS, _MAXI = 0, 2, -2
@@ -150,16 +150,7 @@ def root_peer_runs(cases: dict, repeats: int, t_max: float, unit_timer, eps: flo
             t0 = time.perf_counter()
             call()
             first = time.perf_counter() - t0
-            times, units, ratios = [], [], []
-            unit_fn = unit_timer(o, d)
-            for _ in range(repeats):
-                unit = median_time(unit_fn, 3)
-                t0 = time.perf_counter()
-                call()
-                dt = time.perf_counter() - t0
-                times.append(dt)
-                units.append(unit)
-                ratios.append(dt / unit)
+            times, units, ratios, _ = times_against_unit(call, unit_timer(o, d), repeats)
             res = RayResult(t=bufs[0].copy(), status=bufs[1].copy(), iterations=bufs[2].copy(), evals=bufs[2].copy())
             runs.append((name, "peer:numba-st", res, _row(name, "peer:numba-st", f"per-ray sphere trace φ<{eps:g}",
                                                           n, times, units, ratios, compile_s, first)))
@@ -169,16 +160,7 @@ def root_peer_runs(cases: dict, repeats: int, t_max: float, unit_timer, eps: flo
         t0 = time.perf_counter()
         out = p.run()
         first = time.perf_counter() - t0
-        times, units, ratios = [], [], []
-        unit_fn = unit_timer(o, d)
-        for _ in range(repeats):
-            unit = median_time(unit_fn, 3)
-            t0 = time.perf_counter()
-            out = p.run()
-            dt = time.perf_counter() - t0
-            times.append(dt)
-            units.append(unit)
-            ratios.append(dt / unit)
+        times, units, ratios, out = times_against_unit(p.run, unit_timer(o, d), repeats)
         runs.append((name, "peer:scipy", p.result(out), _row(name, "peer:scipy", scipy_method, o.shape[0], times,
                                                              units, ratios, None, first)))
     return runs, skipped

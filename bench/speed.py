@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from .timing import median_time
+from .timing import times_against_unit
 
 TARGETS = {"numpy": 30.0, "jax:cpu": 20.0, "torch:cpu": 60.0}
 
@@ -103,17 +103,13 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
             out = p.run()
             b.synchronize(out)
             first = time.perf_counter() - t0
-            ratios, times, units = [], [], []
-            unit_fn = unit_timer(o, d)
-            for _ in range(repeats):
-                unit = median_time(unit_fn, 3)
-                t0 = time.perf_counter()
-                out = p.run()
-                b.synchronize(out)
-                dt = time.perf_counter() - t0
-                times.append(dt)
-                units.append(unit)
-                ratios.append(dt / unit)
+
+            def call():
+                res = p.run()
+                b.synchronize(res)
+                return res
+
+            times, units, ratios, out = times_against_unit(call, unit_timer(o, d), repeats)
             runs.append((name, bid, b.id, p.result(out), {
                 "scene": name, "backend": bid, "method": method, "rays": int(o.shape[0]),
                 "time_s": float(np.median(times)), "unit_s": float(np.median(units)),

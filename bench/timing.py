@@ -85,6 +85,23 @@ def median_time(fn: Callable[[], Any], k: int) -> float:
     return float(np.median(ts))
 
 
+def times_against_unit(call: Callable[[], Any], unit_fn: Callable[[], Any], repeats: int):
+    """``repeats`` timed calls of ``call``, each right after the unit's median time (3 calls of
+    ``unit_fn``) so that every ratio compares the two under the same machine state.  Returns
+    ``(times, units, ratios, out)`` in seconds, ``out`` the last call's value (``call`` must
+    synchronise its device before returning)."""
+    times, units, ratios, out = [], [], [], None
+    for _ in range(repeats):
+        unit = median_time(unit_fn, 3)
+        t0 = time.perf_counter()
+        out = call()
+        dt = time.perf_counter() - t0
+        times.append(dt)
+        units.append(unit)
+        ratios.append(dt / unit)
+    return times, units, ratios, out
+
+
 def _timed(run: Callable[[], Any], sync: Callable[[Any], None], loops: int) -> tuple[float, Any]:
     clock = time.perf_counter
     t0 = clock()
