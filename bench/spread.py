@@ -161,7 +161,10 @@ def project(df: pd.DataFrame, env: dict, workers=WORKERS, overhead_s: float | No
         ls = list_schedule(durations, p) if n else 0.0
         central = n * c
         wall = max(ls, central, crit)
-        bound = "workers" if wall == ls else ("central (scheduler and client)" if wall == central else "critical path")
+        # the list schedule cannot end before its longest task: within 1 % of the critical path
+        # it is that task (or chain), not the number of workers, that sets the wall time
+        bound = ("central (scheduler and client)" if wall == central and central > ls else
+                 "critical path" if crit >= 0.99 * wall else "workers")
         rows.append({"workers": p, "projected wall s": wall, "list schedule s": ls, "central bound s": central,
                      "critical path s": crit, "speed-up vs 1": float("nan"), "limited by": bound})
     out = pd.DataFrame(rows)

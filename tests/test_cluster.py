@@ -221,6 +221,12 @@ def test_projection_model():
     assert list(proj["projected wall s"]) == [12.0, 6.0, 2.5]
     assert list(proj["limited by"]) == ["workers", "workers", "critical path"]
     assert any("measured in this run" in n for n in notes)
+    # a list schedule within 1 % of the critical path is limited by it, not by the workers:
+    # one 100 s task, then eight of 1 s, on 8 workers end at 100.5 s: the longest task plus o
+    long = pd.concat([rows.iloc[:1].assign(case_id="long", task_s=100.0), rows], ignore_index=True)
+    proj, _ = spread.project(long, {**env, "cluster.critical_path_s": "100"}, workers=(1, 8))
+    assert list(proj["projected wall s"]) == [112.5, 100.5]
+    assert list(proj["limited by"]) == ["workers", "critical path"]
     proj, notes = spread.project(rows, {}, workers=(2,))
     assert proj["projected wall s"].iloc[0] == 4.0 and any("lower bound" in n for n in notes)
 
