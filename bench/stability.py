@@ -218,6 +218,10 @@ def scoreboard_lines(board: pd.DataFrame) -> list[str]:
     understated, tangent, far``."""
     out = []
     for _, r in board.sort_values(["dtypes", "backend"], key=lambda c: c.astype(str), ascending=[False, True]).iterrows():
+        if not r["families_total"]:  # "0/0 families survived" would read as a verdict
+            out.append(f"{r['backend']} ({', '.join(r['dtypes'])}): no judged cell (every adversarial case of the plan "
+                       "skipped on it: declined or not implemented)")
+            continue
         line = (f"{r['backend']} ({', '.join(r['dtypes'])}): {r['families_survived']}/{r['families_total']} "
                 f"families survived "
                 f"({r['cells_survived']}/{r['cells_total']} cells, {r['cells_flagged']} of them flagged)")

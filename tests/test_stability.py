@@ -184,9 +184,10 @@ def test_metrics_separate_declined_rays_from_reported_misses():
 
 
 def test_scoreboard_of_a_backend_with_no_judged_cell():
-    """A plugged backend whose every cell was skipped: no crash, 0 of 0 (it broke the report)."""
+    """A plugged backend whose every cell was skipped: no crash (it broke the report), and a line
+    that says no cell was judged rather than a 0/0 score."""
     c = pd.DataFrame([{"method": "sphere_trace", "backend": "fake", "dtype": "float64", "family": "grazing",
                        "verdict": "n/a"}])
     board = S.scoreboard(c)
     assert board.loc[0, "families_survived"] == 0 and board.loc[0, "families_total"] == 0
-    assert S.scoreboard_lines(board)[0].startswith("fake (float64): 0/0")
+    assert S.scoreboard_lines(board)[0].startswith("fake (float64): no judged cell")
