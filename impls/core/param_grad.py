@@ -154,7 +154,7 @@ def dt_finite_diff(backend, scene, o, d, *, t_min, t_max, t_hit, h, min_cos):
                 t = xp.where(newton, t - f / df, t)
                 cost = cost + c
             ts.append(t)
-        col = (ts[0] - ts[1]) / (ends[0] - ends[1])  # the step taken, not 2h_i: exact in float32 too
+        col = (ts[0] - ts[1]) / (ends[0] - ends[1])  # the step actually taken, not 2h_i
         return xp.where(e_i[None, :], col[:, None], dt), cost
 
     dt0 = backend.asarray(np.zeros((o.shape[0], th.size)), dtype)
