@@ -396,7 +396,9 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     given; fewest rays first with ``suite.small_cases_first``, one per scene family in turn with
     ``suite.diverse_cases``), its knob sweep on the first ``suite.sweep_cases`` of them and its
     default knobs on the rest (plus, beyond ``max_cases``, every applicable case matching
-    the method's ``suite.always_cases``, at default knobs; secondary dtypes: see ``Suite.secondary_dtype_cases``); a case it does not apply to gets one configuration (default knobs), which the
+    the method's ``suite.always_cases``, at default knobs; secondary dtypes: see ``Suite.secondary_dtype_cases``;
+    never the suite's ``exclude_cases`` for it, unless ``--case`` names cases other than by the
+    match-all ``*``); a case it does not apply to gets one configuration (default knobs), which the
     runner records as skipped with the reason.  Order: every default-knob configuration first
     (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
@@ -411,6 +413,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
             raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
     cases = select_cases(suite, case_pattern)
     explicit = bool(case_pattern)
+    # the suite's cost exclusions hold for the match-all sweep, not for cases named on purpose
+    names_cases = explicit and any(g.strip() not in ("", "*") for g in str(case_pattern).split(","))
     if suite.small_cases_first and not explicit:
         cases = sorted(cases, key=lambda c: c.n_rays)  # stable: catalog order among equals
     order = {c.id: i for i, c in enumerate(cases)}
@@ -420,7 +424,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
         spec = METHODS[method]
         sweep = suite.sweep_for(spec)
         usable = []
-        excluded = () if explicit else (*suite.exclude_cases.get(spec.family, ()), *suite.exclude_cases.get(spec.name, ()))
+        excluded = () if names_cases else (*suite.exclude_cases.get(spec.family, ()),
+                                             *suite.exclude_cases.get(spec.name, ()))
         for case in cases:
             if any(fnmatch.fnmatchcase(case.id, g) for g in excluded):
                 continue

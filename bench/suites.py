@@ -74,7 +74,9 @@ class Suite:
     #: pick" compares)
     rotate_families: bool = True
     #: method family or name → case-id globs the suite does not plan for it (too costly for its
-    #: purpose; both the family's and the method's own apply)
+    #: purpose; both the family's and the method's own apply).  ``--case '*'`` keeps them out too
+    #: (the catalog sweep would otherwise spend --timeout on each: 60 configurations, 2 h of the
+    #: quick suite's); a ``--case`` that names cases any other way runs them
     exclude_cases: dict = dataclasses.field(default_factory=dict)
     #: method name or family → case-id globs it also runs on, at default knobs, wherever it
     #: applies, beyond ``max_cases`` (the workload scenes a suite must cover); a method's own

@@ -435,6 +435,23 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
     assert len(catalog("mesh.*")) >= 3
 
 
+def test_match_all_case_keeps_the_suites_cost_exclusions_and_named_cases_lift_them():
+    """``--case '*'`` (the catalog sweep) leaves out what the suite excludes for cost (dt/dθ by
+    finite differences or unrolling on the neural SDF's 4481 weights: each runs past --timeout);
+    ``--case 'neural.*'`` names those cases and plans them, with the knob sweep."""
+    from bench.suites import get_suite
+
+    suite = get_suite("full")
+    every = runner.plan(suite, ["numpy"], "*", ["dt_finite_diff", "dt_implicit"], None)
+    assert not [c for c in every if c.method == "dt_finite_diff" and c.case.id.startswith("neural.")]
+    assert [c for c in every if c.method == "dt_implicit" and c.case.id.startswith("neural.")]
+    assert [c for c in every if c.method == "dt_finite_diff" and c.case.id.startswith("mlp.")]
+    named = runner.plan(suite, ["numpy"], "neural.*", ["dt_finite_diff"], None)
+    applicable = [c for c in named if runner.applies(METHODS[c.method], c.case) is None]
+    assert applicable and all(c.case.id.startswith("neural.") for c in named)
+    assert len({json.dumps(c.knobs, sort_keys=True) for c in applicable}) == len(suite.sweep_for(METHODS["dt_finite_diff"]))
+
+
 def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
     """``--suite workloads``: every mesh, grid and neural case of the catalog, no other case, each
     root finder and the surface renderer on each (default knobs, float64), the gradients where the
