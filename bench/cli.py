@@ -759,7 +759,9 @@ def main(argv: list[str] | None = None) -> int:
                    "case) or workloads (the mesh, grid and neural cases only, default knobs)")
     r.add_argument("--backend", action="append", help="backend ids, comma-separated or repeated (default: all available)")
     r.add_argument("--method", action="append", help="methods to run (default: all in the suite)")
-    r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's)")
+    r.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's); the matching cases run "
+                   "each method with its whole knob sweep; '*' (the catalog sweep) still leaves out what the suite "
+                   "excludes for cost, a glob that names cases runs them too")
     r.add_argument("--cases", action="append", help="your own cases: package.module:attribute (a Case, a list of them, or a function "
                    "returning either), comma-separated; they join the catalog tagged 'user' (reference/user_cases.py)")
     r.add_argument("--dtype", action="append", help="float64 and/or float32 (default: the suite's)")
