@@ -278,8 +278,72 @@ def cmd_run(args) -> int:
             executor.close()
 
 
+#: ``bench run`` options that define a run's plan and how its rows are measured: recorded in
+#: environment.json (``run_options``) and restored by ``--resume``, so a resumed run finishes the
+#: plan it started (``--case '*'`` stays the catalog sweep without retyping it).  The timing-sample
+#: options (--min-time, --min-repeats, --max-time, --timeout, --rounds), --budget, --cluster and
+#: --scheduler are per session: a resume may change them, as the budget hint says.
+RESUMED_OPTIONS = ("suite", "case", "method", "dtype", "backend", "cases", "threads", "allocator", "accuracy_only")
+
+
+def _flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def _shown(dest: str, value) -> str:
+    """An option as the user would type it: ``--case 'box.*'``, ``--dtype 'float32,float64'``, ``no --case``."""
+    if value is None:
+        return "no " + _flag(dest)
+    return f"{_flag(dest)} {','.join(value) if isinstance(value, list) else value!r}"
+
+
+def _restore_run_options(args) -> str | None:
+    """With ``--resume``: set ``args``' :data:`RESUMED_OPTIONS` to those recorded by the run in
+    ``--out``; an option given now that differs from the recorded one (and from its default) is an
+    error naming it, not a silently different plan.  A run recorded before options were (no
+    ``run_options``) resumes with the options given now, with a warning.  Returns an error message
+    or None."""
+    env_path = Path(args.out) / "environment.json"
+    try:
+        recorded = json.loads(json.loads(env_path.read_text()).get("run_options", "null"))
+    except (OSError, ValueError):
+        return None  # the runner reports a missing or broken environment.json with the fix
+    if recorded is None:
+        print(f"warning: {env_path} records no run options (a run from an older isobench): resuming with the "
+              "--suite/--case/--method/--dtype/--backend given now; give the ones it started with",
+              file=sys.stderr, flush=True)
+        return None
+    defaults = args.run_option_defaults
+    for dest in RESUMED_OPTIONS:
+        given, then = _normal(dest, getattr(args, dest)), _normal(dest, recorded.get(dest, defaults[dest]))
+        if given != _normal(dest, defaults[dest]) and given != then:
+            return (f"{_flag(dest)}: the run in {args.out} was started with {_shown(dest, then)} "
+                    f"(given now: {_shown(dest, given)}); "
+                    f"--resume finishes the plan it started: drop {_flag(dest)} (the recorded value is used), "
+                    "or start a new run with another --out")
+        setattr(args, dest, then)
+    return None
+
+
+def _normal(dest: str, value):
+    """Repeated and comma-separated list options as one list (``--dtype a,b`` = ``--dtype a --dtype b``)."""
+    return _split(value) if dest in ("method", "dtype", "backend", "cases") else value
+
+
+def _run_options(args, backend_ids) -> str:
+    """The JSON of :data:`RESUMED_OPTIONS` as this run uses them (backends resolved to ids)."""
+    rec = {dest: _normal(dest, getattr(args, dest)) for dest in RESUMED_OPTIONS}
+    rec["backend"] = list(backend_ids)
+    return json.dumps(rec, sort_keys=True)
+
+
 def _cmd_run(args, held: list) -> int:
     from .environment import configure_threads
+
+    if args.resume and args.out:
+        err = _restore_run_options(args)
+        if err:
+            return _error(err)
 
     configure_threads(args.threads)  # before any array library is imported
     if args.allocator == "tuned":
@@ -357,7 +421,9 @@ def _cmd_run(args, held: list) -> int:
         try:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
-                            resume=args.resume, env_extra={"threads": str(args.threads)}, budget_s=budget,
+                            resume=args.resume, env_extra={"threads": str(args.threads),
+                                                           "run_options": _run_options(args, backends)},
+                            budget_s=budget,
                             rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
                             else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout,
                             executor=executor)
@@ -778,7 +844,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     r.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
                    "(deterministic, for baselines)")
-    r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR")
+    r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR, with the plan "
+                   "options it recorded (--suite, --case, --method, --dtype, --backend, --cases, --threads, "
+                   "--allocator, --accuracy-only); the timing-sample options, --budget and --cluster are this session's")
     r.add_argument("--rounds", type=_int_at_least(1), default=1, help="time the whole plan this many times, round after round, "
                    "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
     r.add_argument("--budget", type=_seconds, default=None, help="wall-clock guard against a hang, in seconds "
@@ -802,6 +870,7 @@ def main(argv: list[str] | None = None) -> int:
                    "(stage lines and the summary still print; without it, progress is a live bar on a terminal and "
                    "plain lines when piped)")
     r.set_defaults(fn=cmd_run)
+    r.set_defaults(run_option_defaults={dest: r.get_default(dest) for dest in RESUMED_OPTIONS})
 
     c = sub.add_parser("compare", help="compare two runs; exit 1 on regression")
     c.add_argument("base")

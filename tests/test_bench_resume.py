@@ -52,3 +52,36 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     assert {tuple(map(str, c.key)) for c in plan} == set(map(tuple, full[runner.CONFIG_KEY].astype(str).itertuples(
         index=False, name=None)))
     assert (out / "report.html").exists()
+
+
+def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path):
+    """``--resume`` restores the recorded ``--case``/``--method``/``--backend``: typing the hint the
+    run prints (``--resume --out DIR``) finishes a ``--case`` sweep, not the suite's default cases;
+    an option given on resume that contradicts the recorded one is an error naming it."""
+    from bench import runner
+    from bench.suites import get_suite
+
+    out = tmp_path / "run"
+    base = [sys.executable, "-m", "bench", "run", "--out", str(out), "--no-progress", "--no-claims"]
+    first = subprocess.run(base + ["--backend", "numpy", "--case", "box.inside,cylinder.parallel", "--method",
+                                   "march_bisect,normal", "--accuracy-only", "--budget", "0.001"],
+                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 1 and "INCOMPLETE" in first.stderr, first.stdout + first.stderr
+    recorded = json.loads(json.loads((out / "environment.json").read_text())["run_options"])
+    assert recorded["case"] == "box.inside,cylinder.parallel" and recorded["backend"] == ["numpy"]
+
+    again = subprocess.run(base + ["--resume"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stdout + again.stderr
+    full = read_results(out)
+    plan = runner.plan(get_suite("quick"), ["numpy"], "box.inside,cylinder.parallel", ["march_bisect", "normal"], None)
+    assert {tuple(map(str, c.key)) for c in plan} == set(map(tuple, full[runner.CONFIG_KEY].astype(str).itertuples(
+        index=False, name=None)))
+    assert (full["n_samples"].fillna(0) == 0).all()  # --accuracy-only was restored too: no timing samples
+
+    clash = subprocess.run(base + ["--resume", "--case", "box.*"], cwd=ROOT, capture_output=True, text=True,
+                           timeout=300)
+    assert clash.returncode == 2 and "--case: the run in" in clash.stderr and "'box.inside,cylinder.parallel'" in \
+        clash.stderr, clash.stderr
+    same = subprocess.run(base + ["--resume", "--backend", "numpy", "--dtype", "float64"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert "error: --backend" not in same.stderr, same.stderr
