@@ -338,7 +338,6 @@ class ClusterExecutor:
         self._critical = 0.0
         self._capacity_at = (0.0, 1)
         self._workers_max = 0
-        self._last_flush_cost = 0.0
 
     # -- life cycle
 
@@ -448,11 +447,6 @@ class ClusterExecutor:
             self._workers_max = max(self._workers_max, len(nthreads))
         return self._capacity_at[1]
 
-    def flush_interval(self, flush_s: float) -> float:
-        """Seconds between two writes of the results: ``flush_s``, stretched so that rewriting a
-        large table costs the client at most a sixth of its time (it also feeds the workers)."""
-        return max(flush_s, 5.0 * self._last_flush_cost)
-
     # -- the plan
 
     def execute(self, run_id: str, todo: list, backends: dict, policy: TimingPolicy, ref_options: ReferenceOptions,
@@ -543,9 +537,7 @@ class ClusterExecutor:
                 cfg = todo[job.index]
                 got, over = self._config_done(run_id, cfg, backends, job, future, now)
                 future.release()
-                t_yield = time.perf_counter()
                 yield job.index, got, over
-                self._last_flush_cost = max(0.0, time.perf_counter() - t_yield)
         for r in refs.values():
             r.result = None  # the integrals' futures: dask may forget them now
         self._record["cluster.execute_s"] = f"{time.perf_counter() - t_start:.2f}"

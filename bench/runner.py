@@ -6,9 +6,10 @@ not implemented, dtype unsupported, scene lacks what the method needs, the backe
 scene (``declines`` hook or :class:`impls.protocol.Declined` from ``prepare``), no reference answer) or
 ``failed`` (the exception, a wrong shape, a silent NaN or a timeout; the run goes on).
 
-Rows are written to disk atomically at least every ``flush_s`` seconds and after every case,
-so a run that dies keeps what it finished, and ``resume=True`` finishes it: configurations
-already in the run directory are kept, the others are run under the same run id.
+Rows are written to disk atomically every ``flush_s`` seconds, or every :data:`FLUSH_COST_FACTOR`
+times as long as the last write took once the table is large, so a run that dies keeps what it
+finished up to that moment, and ``resume=True`` finishes it: configurations already in the run
+directory are kept, the others are run under the same run id.
 """
 
 from __future__ import annotations
@@ -40,6 +41,13 @@ from .timing import Timeout, TimingPolicy, measure, time_limit
 
 #: columns that identify a configuration (a row is a configuration × quantity)
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
+
+#: the results are rewritten whole (parquet and csv, atomically), so a write's cost grows with
+#: the run: 0.8 s at 18k rows.  Writing every ``flush_s`` = 1 s then spent ~40 % of a catalog
+#: sweep's wall time writing; waiting this many times the last write's cost bounds writing to
+#: 1/(1 + FLUSH_COST_FACTOR) of the wall time, at the price of redoing at most that interval after
+#: a kill (--resume).
+FLUSH_COST_FACTOR = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -618,14 +626,20 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     ref_cache: dict = {"_options": ref_options}
     here = environment.machine_key(env)
 
+    flush_cost = [0.0]
+
     def flush():
+        t0 = time.monotonic()
         write_results(to_frame(rows), out_dir)
         _elapsed(env, time.monotonic() - started)
         write_json(out_dir / "environment.json", env)
+        flush_cost[0] = time.monotonic() - t0
         return time.monotonic()
 
+    def flush_due() -> bool:
+        return time.monotonic() - last_write > max(flush_s, FLUSH_COST_FACTOR * flush_cost[0])
+
     last_write = time.monotonic()
-    current_case = None
     n_over = 0
     interrupted = ""
 
@@ -650,7 +664,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
                     cfg = todo[j]
                     progress(n_before + len(finished), n_total, f"last: {cfg.case.id} {cfg.backend_id} {cfg.method} "
                              f"{knob_string(cfg.knobs)}", dict(counts))
-                if time.monotonic() - last_write > executor.flush_interval(flush_s):
+                if flush_due():
                     last_write = flush()
         except Interrupted as exc:
             interrupted = f"{exc}; {len(todo) - len(finished)} configurations not run: finish with --resume"
@@ -662,10 +676,6 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
             write_results(to_frame(rows), out_dir)
         env.update(executor.env_record(env))
     for i, cfg in enumerate(todo if executor is None else ()):
-        if cfg.case.id != current_case:
-            current_case = cfg.case.id
-            if rows:
-                last_write = flush()
         if progress:
             progress(n_before + i, n_total, f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}",
                      dict(counts))
@@ -678,7 +688,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         n_over += over
         rows.extend(got)
         counts[outcome_of(got)] += 1
-        if time.monotonic() - last_write > flush_s:
+        if flush_due():
             last_write = flush()
     if executor is None:
         cf_samples = {cid: [t] for cid, t in cf_cache.items()}

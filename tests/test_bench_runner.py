@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 
 import numpy as np
 import pytest
@@ -475,3 +476,30 @@ def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
             assert (case.id, name) in planned, (case.id, name)
     for c in cfgs:
         assert c.knobs == suite.sweep_for(METHODS[c.method])[0]
+
+
+def test_costly_writes_are_spaced_so_writing_stays_a_small_share_of_the_run(fake_methods, tmp_path, monkeypatch):
+    """The results are rewritten whole, so a write's cost grows with the run: the runner waits
+    FLUSH_COST_FACTOR × the last write's cost between writes (with flush_s = 0 it would write after
+    every configuration), and the final write still holds every row."""
+    from bench import results
+
+    cost, writes = 0.03, []
+
+    def slow_write(df, out_dir):
+        writes.append(time.monotonic())
+        time.sleep(cost)
+        results.write_results(df, out_dir)
+
+    monkeypatch.setattr(runner, "write_results", slow_write)
+    s = suite(["fake_root"], sweeps={"fake_root": [{"tol": 1e-6, "max_steps": m, "behaviour": 0}
+                                                   for m in range(2, 62)]})
+    t0 = time.monotonic()
+    df = runner.run(s, {"fake": FakeBackend()}, tmp_path, policy=FAST, flush_s=0.0)
+    wall = time.monotonic() - t0
+    n_cfg = len(runner.plan(s, ["fake"], None, None, None))
+    assert n_cfg >= 60
+    assert len(writes) <= wall / (runner.FLUSH_COST_FACTOR * cost) + 2 < n_cfg / 2, (len(writes), wall)
+    gaps = np.diff(writes[:-1])  # the last write is the run's closing one, whenever it comes
+    assert (gaps >= runner.FLUSH_COST_FACTOR * cost).all(), gaps
+    assert len(read_results(tmp_path)) == len(df) and df.groupby(runner.CONFIG_KEY).ngroups == n_cfg
