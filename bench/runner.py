@@ -43,10 +43,10 @@ from .timing import Timeout, TimingPolicy, measure, time_limit
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 
 #: the results are rewritten whole (parquet and csv, atomically), so a write's cost grows with
-#: the run: 0.8 s at 18k rows.  Writing every ``flush_s`` = 1 s then spent ~40 % of a catalog
-#: sweep's wall time writing; waiting this many times the last write's cost bounds writing to
-#: 1/(1 + FLUSH_COST_FACTOR) of the wall time, at the price of redoing at most that interval after
-#: a kill (--resume).
+#: the run, and writing every ``flush_s`` would take a growing share of a long sweep's wall time
+#: (docs/performance.md).  Waiting this many times the last write's cost between writes bounds
+#: writing to 1/(1 + FLUSH_COST_FACTOR) of the wall time, at the price of redoing at most that
+#: interval's configurations after a kill (--resume).
 FLUSH_COST_FACTOR = 10.0
 
 
