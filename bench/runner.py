@@ -626,18 +626,19 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     ref_cache: dict = {"_options": ref_options}
     here = environment.machine_key(env)
 
-    flush_cost = [0.0]
+    flush_cost = 0.0
 
     def flush():
+        nonlocal flush_cost
         t0 = time.monotonic()
         write_results(to_frame(rows), out_dir)
         _elapsed(env, time.monotonic() - started)
         write_json(out_dir / "environment.json", env)
-        flush_cost[0] = time.monotonic() - t0
+        flush_cost = time.monotonic() - t0
         return time.monotonic()
 
     def flush_due() -> bool:
-        return time.monotonic() - last_write > max(flush_s, FLUSH_COST_FACTOR * flush_cost[0])
+        return time.monotonic() - last_write > max(flush_s, FLUSH_COST_FACTOR * flush_cost)
 
     last_write = time.monotonic()
     n_over = 0

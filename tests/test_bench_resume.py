@@ -82,6 +82,9 @@ def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path
                            timeout=300)
     assert clash.returncode == 2 and "--case: the run in" in clash.stderr and "'box.inside,cylinder.parallel'" in \
         clash.stderr, clash.stderr
-    same = subprocess.run(base + ["--resume", "--backend", "numpy", "--dtype", "float64"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=300)
-    assert "error: --backend" not in same.stderr, same.stderr
+    same = subprocess.run(base + ["--resume", "--backend", "numpy", "--method", "march_bisect", "--method", "normal"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert same.returncode == 0 and "error:" not in same.stderr, same.stderr  # the recorded options, retyped
+    narrower = subprocess.run(base + ["--resume", "--dtype", "float64"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=300)
+    assert narrower.returncode == 2 and "--dtype: the run in" in narrower.stderr, narrower.stderr
