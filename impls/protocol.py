@@ -37,6 +37,12 @@ class Status(enum.IntEnum):
     #: a step observed |φ(t₁) − φ(t₀)| > L·|t₁ − t₀|: the scene's declared Lipschitz bound L is
     #: false there, so no certified answer exists; ``t`` is NaN
     LIPSCHITZ_VIOLATED = -7
+    #: no certified answer (docs/methods.md "What each root finder can miss"): the ray found no
+    #: crossing but stepped over part of its interval without a Lipschitz certificate (not a
+    #: certified MISS; ``t`` is ``inf``), or it reached a point where φ is within its own rounding
+    #: of 0 without a resolved sign change (a hit and a near miss cannot be told apart in this
+    #: dtype; ``t`` is that depth)
+    UNCERTIFIED = -8
 
 
 class Declined(NotImplementedError):
@@ -78,6 +84,8 @@ class RayResult:
     * BAD_INPUT (non-finite origin or direction, zero direction), NON_FINITE, LIPSCHITZ_VIOLATED
       — every float output NaN, ``t`` included;
     * MAX_ITER — ``t`` the last iterate (its error still shrinks with the budget), other outputs NaN;
+    * UNCERTIFIED — ``t`` inf (no crossing found, but not over certified steps) or the depth at
+      which φ fell within its rounding (no resolved sign change); other outputs NaN;
     * ILL_CONDITIONED — dt/dθ at a grazing hit: the value is returned but not trustworthy.
     """
 

@@ -41,7 +41,7 @@ import dataclasses
 
 import numpy as np
 
-from .rootfind import CONV, MAXI, NONF, MarchRefine
+from .rootfind import CONV, IN, MAXI, NONF, MarchRefine
 
 
 def refine(a, b, fa, fb, o, d, ev, *, xtol: float, budget):
@@ -109,4 +109,19 @@ class MarchChandrupatla(MarchRefine):
         budget = self.max_steps - s["iterations"]
         t, status, nit, evals = refine(s["a"], s["b"], s["fa"], s["f"], o, d, ev, xtol=self.xtol, budget=budget)
         new = dict(t=t, status=status, iterations=s["iterations"] + nit, evals=s["evals"] + evals)
+        if self.rule.certifies:
+            # scipy's root lies in a closed bracket; it is the ray's first crossing when the march's
+            # frontier reaches it (MarchRefine._certify), else the certification stage samples
+            # towards it from the last certified point, bisecting an earlier crossing it finds
+            later = (status == CONV) & (s["u"] + self.rule.min_step < t)
+            new.update(status=np.where(later, IN, status), a=np.where(later, t, s["a"]), b=np.where(later, t, s["b"]),
+                       cm=later, phase=np.full_like(s["iterations"], len(self.stages) - 1))
         return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        return super().stages + (("step_certify",) if self.rule.certifies else ())
+
+    def step_certify(self, xp, s, o, d, ev):
+        """The certification of :meth:`MarchRefine._certify` (bisection of an earlier crossing)."""
+        return MarchRefine.step_refine(self, xp, s, o, d, ev)

@@ -49,6 +49,13 @@ def rounding_gain(scene) -> float:
     return max([1.0, *(g for g in gains if math.isfinite(g))])
 
 
+def resolves(scene) -> bool:
+    """Whether the scene's φ is a distance bound (an SDF, CSG of SDFs, a mesh's SDF), whose
+    rounding near the surface the certified root finders model as L times the point's
+    (:func:`impls.core.rootfind.resolution`); elsewhere only φ = 0 exactly is unresolved."""
+    return bool(getattr(scene.info, "distance_bound", False) or getattr(scene.info, "exact_sdf", False))
+
+
 def marching_check(scene, bounds, theta) -> float | None:
     """1/L for constant-step marching to check on its steps, or None: the scene declares a bound
     L, φ is evaluated at the stored parameters (the bound is theirs) and, for a bound stated on
@@ -69,7 +76,8 @@ def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=Non
     """``sphere_trace``'s algorithm from its validated knobs (:meth:`impls.methods.MethodSpec.validate`)."""
     return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
                        omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
-                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene), gain=rounding_gain(scene))
+                       probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene), gain=rounding_gain(scene),
+                       resolve=resolves(scene))
 
 
 def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int,
@@ -87,7 +95,8 @@ def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, 
     cls, refiner = (MarchChandrupatla, Bisect) if refine == "chandrupatla" else (MarchRefine, REFINERS[refine])
     return cls(rule=rule, refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
                        t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
-                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene))
+                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene),
+                       resolve=resolves(scene))
 
 
 def build_hybrid_chandrupatla(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int):

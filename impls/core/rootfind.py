@@ -32,9 +32,9 @@ import numpy as np
 
 from ..protocol import Status
 
-IN, CONV, MISS, MAXI, NONF, BAD, LIPV = (int(s) for s in (
+IN, CONV, MISS, MAXI, NONF, BAD, LIPV, UNC = (int(s) for s in (
     Status.IN_PROGRESS, Status.CONVERGED, Status.MISS, Status.MAX_ITER, Status.NON_FINITE, Status.BAD_INPUT,
-    Status.LIPSCHITZ_VIOLATED))
+    Status.LIPSCHITZ_VIOLATED, Status.UNCERTIFIED))
 
 
 def bad_rays(xp, o, d):
@@ -90,17 +90,22 @@ def _typed(xp, new: dict, old: dict) -> dict:
     return {k: v if k not in old or v.dtype == old[k].dtype else xp.astype(v, old[k].dtype) for k, v in new.items()}
 
 
-def _init_status(xp, status, f, conv):
+def _init_status(xp, status, f, conv, unres=None):
     """Status after ``init``'s evaluation: of the rays IN_PROGRESS, NON_FINITE where φ is not
-    finite, else CONVERGED where ``conv``; the others (BAD_INPUT, MISS) keep theirs."""
+    finite, else CONVERGED where ``conv``, else UNCERTIFIED where ``unres`` (the start is within
+    φ's rounding of the surface: which side it is on is not known); the others (BAD_INPUT, MISS)
+    keep theirs."""
     live = status == IN
-    return xp.where(live & ~xp.isfinite(f), NONF, xp.where(live & conv, CONV, status))
+    out = xp.where(live & conv, CONV, status)
+    if unres is not None:
+        out = xp.where(live & ~conv & unres, UNC, out)
+    return xp.where(live & ~xp.isfinite(f), NONF, out)
 
 
-def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None):
+def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None, unc=None):
     """Status of a stepped ray that was IN_PROGRESS: NON_FINITE (``nonf``), LIPSCHITZ_VIOLATED
-    (``lipv``), MISS (``miss``), CONVERGED (``conv``), MAX_ITER (``maxed``), in this order of
-    precedence, else IN_PROGRESS.
+    (``lipv``), UNCERTIFIED (``unc``), MISS (``miss``), CONVERGED (``conv``), MAX_ITER
+    (``maxed``), in this order of precedence, else IN_PROGRESS.
 
     Computed as IN + Σ (code − IN)·[indicator] over indicators made exclusive, not as nested
     selects: numpy's int32 ``where`` costs 2–8× an int32 add (4 nested ones were 2.6 of the
@@ -109,6 +114,9 @@ def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None):
     if lipv is not None:
         lipv = lipv & ok
         ok = ok & ~lipv
+    if unc is not None:
+        unc = unc & ok
+        ok = ok & ~unc
     if miss is not None:
         miss = miss & ok
         ok = ok & ~miss
@@ -120,6 +128,8 @@ def _verdict(xp, nonf, conv, maxed, miss=None, lipv=None):
         status = status + xp.astype(miss, i32) * (MISS - IN)
     if lipv is not None:
         status = status + xp.astype(lipv, i32) * (LIPV - IN)
+    if unc is not None:
+        status = status + xp.astype(unc, i32) * (UNC - IN)
     return status + IN
 
 
@@ -155,6 +165,35 @@ def _magnitude(xp, o, scale: float):
     return xp.abs(o[:, 0]) + xp.abs(o[:, 1]) + xp.abs(o[:, 2]) + scale
 
 
+def _eps(a) -> float:
+    """Machine epsilon of array ``a``'s floating dtype (any backend's)."""
+    return float(np.finfo(np.dtype(str(a.dtype).rpartition(".")[2])).eps)
+
+
+def resolution(xp, t, mag, gain: float = 1.0):
+    """φ's rounding at depth ``t``, in depth units: 16·``gain``·ε·(|t| + ``mag``), the point's
+    and φ's intermediates' rounding bound of :func:`lipschitz_violated` (``mag`` =
+    :func:`_magnitude`).  Where |φ|/L is no larger, the sign of the computed φ says nothing
+    about the side of the surface the point is on: such a point is *unresolved*."""
+    return (16.0 * gain * _eps(t)) * (xp.abs(t) + mag)
+
+
+def unresolved(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
+    """Points where |φ|/L is at most twice φ's rounding (:func:`resolution`), φ = 0 included:
+    their sign proves nothing and their certified radius (:func:`certified_radius`) is below
+    the rounding itself, so a march takes neither a side, a crossing nor a step from them.  (A
+    computed φ = 0 is no root either: a ray lying in a face plane to rounding has φ = 0 all
+    along it.  Inside a bracket whose ends are resolved, refinement still stops at φ = 0.)"""
+    return xp.abs(f) * inv_lip <= 2.0 * resolution(xp, t, mag, gain)
+
+
+def certified_radius(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
+    """The radius of the unbounding sphere at a point: |φ|/L less φ's rounding there
+    (:func:`resolution`), at least 0.  No surface lies closer to the point than this, whatever
+    φ's rounding (an unresolved point certifies nothing)."""
+    return xp.maximum(xp.abs(f) * inv_lip - resolution(xp, t, mag, gain), 0.0)
+
+
 def final_t(xp, t, status):
     """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, BAD_INPUT and
     LIPSCHITZ_VIOLATED (no depth was found), ``t`` otherwise.  The steps
@@ -166,6 +205,15 @@ def final_t(xp, t, status):
 
 class _Search:
     """What both root finders start from: their fields ``t_min``, ``t_max`` and ``bounds``."""
+
+    @property
+    def rg(self) -> float:
+        """The gain on :func:`resolution` for this search's field: its rounding ``gain`` where φ is
+        a distance bound (``resolve``: near the surface |∇φ| ≈ L, so the point's rounding moves φ
+        by up to L times it), else 0: for a field flat at its roots (|x|³, an MLP whose bound L
+        far exceeds its slope) |φ|/L says nothing of the distance, and only φ = 0 exactly is
+        unresolved."""
+        return self.gain if self.resolve else 0.0
 
     def start(self, xp, o, d):
         """``(t, hi, status)`` of every ray before any evaluation (:func:`_start`)."""
@@ -215,43 +263,91 @@ class SphereTrace(_Search):
     probe: bool = False  # evaluate leaving steps where they end, within t_max (the scene's L holds there)
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
     gain: float = 1.0  # the scene's rounding gain, on that slack (lipschitz_violated)
+    resolve: bool = False  # φ is a distance bound: its rounding near the surface is L·(point's rounding) (resolution)
 
     stages = ("step",)
+
+    #: a probe that lands within φ's rounding of 0 is repeated with twice the reach, at most this
+    #: many times (then the ray is UNCERTIFIED: the dtype cannot resolve where it crosses)
+    PROBE_RETRIES = 20
 
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
         f, _, cost = ev(o, d, t, False)
-        s = {"t": t, "f": f, "t_prev": t, "r_prev": xp.zeros_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
+        s = {"t": t, "f": f, "pos": f > 0, "unc": xp.zeros_like(f, dtype=xp.bool), "t_prev": t, "f_prev": f,
+             "pm": xp.ones_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
              "evals": xp.astype(status == IN, xp.int32) * cost, "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
-        s["status"] = _init_status(xp, status, f, xp.abs(f) <= self.tol)
+        unres = unresolved(xp, f, t, self.inv_lip, _magnitude(xp, o, self.scale), self.rg)
+        s["status"] = _init_status(xp, status, f, xp.zeros_like(unres), unres)
         return s
 
     def step(self, xp, s, o, d, ev):
-        t, f, om = s["t"], s["f"], s["omega"]
-        r = xp.abs(f) * self.inv_lip
-        fail = (om > 1) & (r + s["r_prev"] < t - s["t_prev"])
-        t_new = xp.where(fail, s["t_prev"] + s["r_prev"], t + om * r)
-        t_prev = xp.where(fail, s["t_prev"], t)
-        r_prev = xp.where(fail, s["r_prev"], r)
+        t, f, om, hi = s["t"], s["f"], s["omega"], s["hi"]
+        mag = _magnitude(xp, o, self.scale)
+        r = certified_radius(xp, f, t, self.inv_lip, mag, self.rg)
+        r_prev = certified_radius(xp, s["f_prev"], s["t_prev"], self.inv_lip, mag, self.rg)
+        # Keinert's fallback: the last relaxed step's spheres did not overlap, so the tracer steps
+        # again from the point before it, with ω = 1
+        fail = (om > 1) & (r + r_prev < t - s["t_prev"])
+        tb = xp.where(fail, s["t_prev"], t)  # the step's base: an accepted point, its sphere certified
+        fb = xp.where(fail, s["f_prev"], f)
+        rb = xp.where(fail, r_prev, r)
         om = xp.where(fail, xp.ones_like(om), om)
+        # near the surface (|φ| ≤ tol, or within a few roundings of 0) the step is a probe: it reaches
+        # past the base's sphere by δ, so that a crossing there shows as a sign change within δ
+        d0 = xp.maximum(4.0 * resolution(xp, tb, mag, self.rg), self.tol * self.inv_lip)
+        near = rb <= d0
+        reach = s["pm"] * d0
+        # a relaxed step that would leave the range where a plain one does not is taken plain: the
+        # range's end must be covered by a certified sphere for a MISS
+        plain = near | ((tb + om * rb > hi) & (tb + rb <= hi))
+        t_new = tb + xp.where(near, rb + reach, xp.where(plain, rb, om * rb))
         # beyond hi, or past every finite depth (t_max = inf and no ray bound): the ray left
-        out = (t_new > s["hi"]) | ~xp.isfinite(t_new)
+        out = (t_new > hi) | ~xp.isfinite(t_new)
         # a leaving ray is evaluated where its step ends (within t_max; past the ray bound φ is still
         # defined, and where the scene's L holds everywhere also still bounded by L), so that a step
         # which jumped over thin surface under a false L shows its slope; else at the bound's end
-        t_far = xp.minimum(t_new, self.t_max if self.probe else s["hi"])
-        t_eval = xp.where(out, xp.where(xp.isfinite(t_far), t_far, t), t_new)
+        t_far = xp.minimum(t_new, self.t_max if self.probe else hi)
+        t_eval = xp.where(out, xp.where(xp.isfinite(t_far), t_far, tb), t_new)
         f_new, _, cost = ev(o, d, t_eval, False)
         iters = s["iterations"] + 1
-        # accept a point only if its unbounding sphere overlaps the previous one (Keinert et al.)
-        ok = ~((om > 1) & (xp.abs(f_new) * self.inv_lip + r_prev < t_new - t_prev))
+        fin = xp.isfinite(f_new)
+        unres = unresolved(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
+        r_new = certified_radius(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
+        # a resolved sign change within the range, against the side the ray is on (a crossing past
+        # hi, where the ray bound says there is no surface, is not one)
+        cross = fin & ~unres & (t_eval <= hi) & ((f_new > 0) != s["pos"])
+        # every crossing lies in [tb + rb, t_eval − r_new]: converged when that is within the probe's
+        # reach (a plain step's is empty, up to the rounding of the sum)
+        gap = (t_eval - tb) - rb - r_new
+        slack = xp.maximum(resolution(xp, t_eval, mag, self.rg), (4.0 * _eps(t)) * xp.abs(t_eval))
+        conv = cross & (gap <= xp.maximum(xp.where(near, reach, 0.0), slack))
+        # a probe landing within φ's rounding says nothing: the ray stays and probes twice as far
+        retry = near & unres & ~out
+        give_up = retry & (s["pm"] >= 2.0 ** self.PROBE_RETRIES)
+        # a probe that stands without a sign change leaves up to its reach uncovered: up to d0 (the
+        # tolerance) a MISS is then uncertified; past it (a retried probe) a crossing pair may
+        # hide there, and the ray ends UNCERTIFIED
+        stood = near & ~cross & ~unres & ~out & (gap > 0)
+        unc = s["unc"] | stood
+        give_up = give_up | (stood & (gap > d0))
+        miss = out & ~cross
+        covered = (tb + rb >= hi) | (t_eval - r_new <= tb + rb)
+        unc_miss = miss & (unc | ~covered)
         # the step's two ends are evaluated: a slope above L shows the declared bound is false
-        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, _magnitude(xp, o, self.scale), self.gain)
+        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, mag, self.gain)
         # (a ray that left has no depth to lose to a non-finite φ: it is a MISS, or flagged)
-        status = _verdict(xp, ~xp.isfinite(f_new) & ~out, (xp.abs(f_new) <= self.tol) & ok, iters >= self.max_steps,
-                          miss=out, lipv=lipv)
-        return _typed(xp, dict(s, t=t_new, f=f_new, t_prev=t_prev, r_prev=r_prev, omega=om, status=status,
+        stay = retry & ~give_up
+        status = _verdict(xp, ~fin & ~out, conv, iters >= self.max_steps, miss=miss & ~unc_miss, lipv=lipv,
+                          unc=unc_miss | give_up)
+        # the depth: the zero of the chord from the base to t_eval, within the bracket
+        with _quiet(xp):
+            z = tb + (t_eval - tb) * (fb / (fb - f_new))
+        z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
+        t_out = xp.where(conv, z, xp.where(unc_miss, math.inf, xp.where(stay, t, xp.where(give_up, t_eval, t_new))))
+        return _typed(xp, dict(s, t=t_out, f=xp.where(stay, f, f_new), t_prev=tb, f_prev=fb, omega=om,
+                               pm=xp.where(retry, 2.0 * s["pm"], s["pm"]), status=status, unc=unc,
                                iterations=iters, evals=s["evals"] + cost), s)
 
 
@@ -272,6 +368,9 @@ class ConstantStep:
 
     step: float
     check_inv_lip: float | None = None
+
+    #: constant steps rely on no bound: no step is certified, no MISS either (marching's limit)
+    certifies = False
 
     @property
     def min_step(self) -> float:
@@ -296,15 +395,16 @@ class ConstantStep:
         """Where the step from t ends: t + h, clamped to the ray's end ``hi``."""
         return xp.minimum(t + h, hi)
 
-    def judge(self, xp, s, cross, r, f_n, h, t_n):
-        """(stands, new state entries) of a step: a constant step always stands."""
-        return None, {}
+    def judge(self, xp, s, cross, rc, rc_n, h, t_n):
+        """(stands, new state entries, stood uncertified) of a step: a constant step always stands."""
+        return None, {}, None
 
     def ladder_size(self, xp, s, t, f):
         return None, xp.full_like(t, self.step)
 
-    def ladder_certified(self, xp, r, F, T, Tp, hi, h):
-        return None
+    def ladder_certified(self, xp, Rp, R, T, Tp, hi, h):
+        """(pairs that stand, pairs certified free of surface) of a ladder: None, None here."""
+        return None, None
 
     def ladder_adapt(self, xp, s, stopped, cross_e, e0, k) -> dict:
         return {}
@@ -326,6 +426,9 @@ class CertifiedStep:
     reach: float = 0.0  # largest extrapolated step
     probe: bool = False  # evaluate leaving steps where they end, within t_max (L holds there)
 
+    #: its steps are certified by the bound: a crossing is checked to be the first, a MISS certified
+    certifies = True
+
     def __post_init__(self):
         if not self.overstep >= self.min_step:
             raise ValueError(f"CertifiedStep: overstep={self.overstep!r} must be ≥ min_step={self.min_step!r}")
@@ -340,14 +443,15 @@ class CertifiedStep:
         return self.overstep
 
     def holds(self, stage: str) -> frozenset[str]:
-        return frozenset({"dl"} | ({"p", "fp"} if stage == "step_march" and self.extrapolate else set()))
+        return frozenset({"dl", "unc"} | ({"p", "fp"} if stage == "step_march" and self.extrapolate else set()))
 
     def radius(self, xp, f):
         """|φ|/L, the radius of the unbounding sphere (no multiplication for L = 1, an SDF's)."""
         return xp.abs(f) if self.inv_lip == 1.0 else xp.abs(f) * self.inv_lip
 
     def init(self, xp, t) -> dict:
-        return {"dl": xp.full_like(t, self.cap)}
+        # unc: the ray stood on a step no sphere certified (≤ min_step): a MISS is then uncertified
+        return {"dl": xp.full_like(t, self.cap), "unc": xp.zeros_like(t, dtype=xp.bool)}
 
     def size(self, xp, s, t, f):
         r = self.radius(xp, f)
@@ -372,24 +476,29 @@ class CertifiedStep:
             t_n = xp.where(t + h > hi, xp.minimum(t + h, t_max), t_n)
         return t_n
 
-    def judge(self, xp, s, cross, r, f_n, h, t_n):
-        # certified: overlapping unbounding spheres (r + r_n ≥ h, which a safe step h = r always
-        # passes; h ≥ t_n − t, so a step clamped at t_max is judged conservatively), a crossing,
-        # or a step no longer than min_step.  A rejected step stays where it was.
-        # (a step past every finite depth needs no certificate: nothing lies beyond it)
-        ok = cross | (r + self.radius(xp, f_n) >= h) | (h <= self.min_step) | ~xp.isfinite(t_n)
-        return ok, {"dl": xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self.cap)}
+    def judge(self, xp, s, cross, rc, rc_n, h, t_n):
+        # stands: certified by overlapping unbounding spheres (rc + rc_n ≥ h with the radii less
+        # φ's rounding, which a safe step h = |φ|/L passes up to that rounding; h ≥ t_n − t, so a
+        # step clamped at t_max is judged conservatively), a crossing (checked to be the first by
+        # the refinement stage), or a step no longer than min_step, which stands uncertified.  A
+        # rejected step stays where it was.  (A step past every finite depth needs no certificate:
+        # nothing lies beyond it.)
+        finite = xp.isfinite(t_n)
+        sure = (rc + rc_n >= h) | ~finite
+        ok = cross | sure | (h <= self.min_step)
+        return ok, {"dl": xp.clip(xp.where(ok, 2 * s["dl"], 0.5 * s["dl"]), self.min_step, self.cap)}, ok & ~cross & ~sure
 
     def ladder_size(self, xp, s, t, f):
         r = self.radius(xp, f)
         return r, xp.maximum(r, s["dl"])
 
-    def ladder_certified(self, xp, r, F, T, Tp, hi, h):
+    def ladder_certified(self, xp, Rp, R, T, Tp, hi, h):
         # as a single step, judged on the requested spacing h, except pairs ending at hi, which
-        # are shorter (the samples past hi all sit at hi: pairs of length 0)
-        R = self.radius(xp, F)
+        # are shorter (the samples past hi all sit at hi: pairs of length 0); Rp, R the certified
+        # radii at the pairs' ends
         spacing = xp.where(T >= hi[:, None], T - Tp, h[:, None])
-        return (xp.concat([r[:, None], R[:, :-1]], axis=1) + R >= spacing) | (h <= self.min_step)[:, None]
+        sure = Rp + R >= spacing
+        return sure | (h <= self.min_step)[:, None], sure
 
     def ladder_adapt(self, xp, s, stopped, cross_e, e0, k) -> dict:
         grow = xp.where(~stopped, 2 * s["dl"], xp.where(~cross_e & (e0 < k // 2), 0.5 * s["dl"], s["dl"]))
@@ -562,6 +671,7 @@ class MarchRefine(_Search):
     ladder_after: int = 0  # marching steps before a ray goes on in ladder steps
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
     gain: float = 1.0  # the scene's rounding gain, on that slack (lipschitz_violated)
+    resolve: bool = False  # φ is a distance bound: its rounding near the surface is L·(point's rounding) (resolution)
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -579,8 +689,8 @@ class MarchRefine(_Search):
         end, for refinement the bracket, plus what the step rule and the refiner hold.
         ``status`` and ``phase`` are not among them: every step writes them afresh."""
         keys = frozenset({"t", "f", "iterations", "evals"}) | self.refiner.holds(stage)
-        if stage == "step_refine":
-            return keys | {"a", "b", "fa"}
+        if stage in ("step_refine", "step_certify"):
+            return keys | {"a", "b", "fa"} | (CERTIFY_STATE if self.rule.certifies else frozenset())
         return keys | {"hi"} | self.rule.holds(stage)
 
     def init(self, xp, o, d, ev, start=None):
@@ -594,7 +704,14 @@ class MarchRefine(_Search):
         s.update(self.rule.init(xp, t))
         if not isinstance(self.refiner, Bisect):
             s["wq"] = xp.full_like(t, math.inf)  # bracket width at the last check (set on a crossing)
-        s["status"] = _init_status(xp, status, f, f == 0)
+        unres = None
+        if self.rule.certifies:
+            # the certification of a bracket's crossing as the first (step_refine): set on a crossing
+            s.update(u=t, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(f, dtype=xp.bool))
+            unres = unresolved(xp, f, t, self.rule.inv_lip, _magnitude(xp, o, self.scale), self.rg)
+        # a certifying rule starts only from a resolved point (a start on the surface to rounding
+        # is UNCERTIFIED); a constant-step march from φ = 0 exactly is at a root
+        s["status"] = _init_status(xp, status, f, (f == 0) if unres is None else xp.zeros_like(unres), unres)
         return s
 
     # The stage steps assume every row they are given is IN_PROGRESS in their stage (the
@@ -611,23 +728,42 @@ class MarchRefine(_Search):
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
         zero = f_n == 0
         fin = xp.isfinite(f_n)
+        mag = _magnitude(xp, o, self.scale)
         cross = fin & (zero | ((f_n > 0) != (f > 0)))
+        rc = rc_n = unres = None
+        if rule.certifies:
+            # certified radii (|φ|/L less φ's rounding); a landing within φ's rounding of 0 (in the
+            # range) shows no side: no crossing is taken from it, and the ray ends UNCERTIFIED there
+            rc = certified_radius(xp, f, t, rule.inv_lip, mag, self.rg)
+            rc_n = certified_radius(xp, f_n, t_n, rule.inv_lip, mag, self.rg)
+            unres = unresolved(xp, f_n, t_n, rule.inv_lip, mag, self.rg) & (t_n <= hi)
+            cross = cross & ~unres
         # at hi, or past every finite depth (t_max = inf and no ray bound): the ray left
         gone = (t_n >= hi) | ~xp.isfinite(t_n)
         miss = ~cross & gone
+        # converged at once: a bracket no wider than xtol (or, marching by constant steps, φ = 0
+        # exactly; for a certifying rule that point is unresolved)
         conv = cross & (zero | (t_n - t <= self.xtol))
         nonf = ~fin & xp.isfinite(t_n)
         # the step's two ends are evaluated: a slope above the declared L shows it is false here
-        lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check,
-                                                                  _magnitude(xp, o, self.scale), self.gain)
-        ok, new = rule.judge(xp, s, cross, r, f_n, h, t_n)
+        lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check, mag, self.gain)
+        t_land = t_n
+        ok, new, loose = rule.judge(xp, s, cross, rc, rc_n, h, t_n)
         if ok is not None:  # a step that does not stand: the ray stays where it was
             miss = miss & ok
             t_n, f_n = xp.where(ok, t_n, t), xp.where(ok, f_n, f)
             if self.deriv:
                 df_n = xp.where(ok, df_n, s["df"])
         iters = s["iterations"] + 1
-        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
+        if rule.certifies:
+            # a MISS is certified only if no step stood uncertified on the way
+            unc = s["unc"] | loose
+            unc_miss = miss & unc
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | unres)
+            t_n = xp.where(unc_miss, math.inf, xp.where(unres, t_land, t_n))
+            new.update(unc=unc, u=t + rc, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
+        else:
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
@@ -669,12 +805,19 @@ class MarchRefine(_Search):
         Fp = xp.concat([f[:, None], F[:, :-1]], axis=1)
         cross = (F == 0) | ((F > 0) != (Fp > 0))
         finite = xp.isfinite(F)
-        event = cross | ~finite
-        certified = rule.ladder_certified(xp, r, F, T, Tp, hi, h)
-        if certified is not None:
-            event = event | ~certified
+        mag = _magnitude(xp, o, self.scale)
+        if rule.certifies:
+            R = certified_radius(xp, F, T, rule.inv_lip, mag[:, None], self.rg)
+            Rp = xp.concat([certified_radius(xp, f, t, rule.inv_lip, mag, self.rg)[:, None], R[:, :-1]], axis=1)
+            # a sample within φ's rounding of 0 shows no side: the ray stops there, UNCERTIFIED
+            unresF = unresolved(xp, F, T, rule.inv_lip, mag[:, None], self.rg) & (T <= hi[:, None])
+            cross = cross & ~unresF
+            stands, sure = rule.ladder_certified(xp, Rp, R, T, Tp, hi, h)
+            event = cross | ~finite | ~stands | unresF
+        else:
+            event = cross | ~finite
         if rule.check is not None:
-            violated = lipschitz_violated(xp, Fp, F, Tp, T, rule.check, _magnitude(xp, o, self.scale)[:, None], self.gain)
+            violated = lipschitz_violated(xp, Fp, F, Tp, T, rule.check, mag[:, None], self.gain)
             event = event | violated
         stopped = xp.any(event, axis=1)
         first = xp.argmax(xp.astype(event, xp.int8), axis=1)
@@ -689,13 +832,27 @@ class MarchRefine(_Search):
         lipv = stopped & at(violated) if rule.check is not None else None
         onto = cross_e | ~stopped  # the ray moves onto sample e; otherwise it stays at e's start
         miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te)
-        conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
         iters = s["iterations"] + 1
-        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
-        t_new = xp.where(onto, Te, Tpe)
+        new = {}
+        if rule.certifies:
+            Rpe = at(Rp)
+            conv = cross_e & (Te - Tpe <= self.xtol)
+            # pairs the ray stepped over that stood uncertified (≤ min_step): a MISS is then uncertified
+            j = xp.asarray(np.arange(k), device=_device(t))[None, :]
+            taken = (j < e) | ((j == e) & onto[:, None])
+            unc = s["unc"] | xp.any(stands & ~sure & ~cross & taken, axis=1)
+            unc_miss = miss & unc
+            unres_e = stopped & at(unresF)
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | unres_e)
+            t_new = xp.where(unc_miss, math.inf, xp.where(unres_e, Te, xp.where(onto, Te, Tpe)))
+            new.update(unc=unc, u=Tpe + Rpe, cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto))
+        else:
+            conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
+            t_new = xp.where(onto, Te, Tpe)
         f_new = xp.where(onto, Fe, Fpe)
         # the ladder is stage 1, refinement stage 2
-        new = dict(t=t_new, f=f_new, p=Tpe, fp=Fpe, a=Tpe, fa=Fpe, b=t_new,  # b = Te where crossed
+        new.update(t=t_new, f=f_new, p=Tpe, fp=Fpe, a=Tpe, fa=Fpe, b=t_new,  # b = Te where crossed
                    phase=xp.astype(cross_e, xp.int32) + 1, status=status, iterations=iters,
                    evals=s["evals"] + cost * k)
         new.update(self.refiner.on_bracket(xp, Te - Tpe))
@@ -706,26 +863,103 @@ class MarchRefine(_Search):
         return _typed(xp, dict(s, **new), s)
 
     def step_refine(self, xp, s, o, d, ev):
+        """One refinement step of the bracket [a, b]; for a certifying step rule also the
+        certification that the bracket's crossing is the ray's first (see the class docstring and
+        :meth:`_certify`): a row in certification mode (``cm``) evaluates a certification sample
+        instead of the refiner's iterate."""
         t, f, a, b = s["t"], s["f"], s["a"], s["b"]
         mid = 0.5 * (a + b)
         i2 = s["iterations"] % 3 == 0  # a check of the bracket's progress (see the safeguards)
         c = self.refiner.propose(xp, s, t, f, a, b, mid, i2, self.xtol)
+        if self.rule.certifies:
+            mag = _magnitude(xp, o, self.scale)
+            c = xp.where(s["cm"], self._certify_sample(xp, s, a, mag), c)
         f_c, df_c, cost = ev(o, d, c, self.deriv)
         # fa is φ at the bracket's first end when it was formed: a moves only to points of φ's sign
         # there, so that sign (all that is used) never changes and fa, fb need no updates
         same_a = (f_c > 0) == (s["fa"] > 0)
         na = xp.where(same_a, c, a)
         nb = xp.where(same_a, b, c)
-        # certified: a root found exactly, a sign-change bracket no wider than xtol, or one whose ends
+        # closed: a root found exactly, a sign-change bracket no wider than xtol, or one whose ends
         # are adjacent floats (the midpoint rounds to an end: no float lies between them)
         nmid = 0.5 * (na + nb)
-        conv = (f_c == 0) | (nb - na <= self.xtol) | (nmid <= na) | (nmid >= nb)
-        t_out = self.refiner.report(xp, c, f_c, t, f, na, nb, conv)
+        closed = (f_c == 0) | (nb - na <= self.xtol) | (nmid <= na) | (nmid >= nb)
+        t_out = self.refiner.report(xp, c, f_c, t, f, na, nb, closed)
         iters = s["iterations"] + 1
-        status = _verdict(xp, ~xp.isfinite(f_c), conv, iters >= self.max_steps)
-        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, status=status, iterations=iters, evals=s["evals"] + cost)
+        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, iterations=iters, evals=s["evals"] + cost)
         new.update(self.refiner.after(xp, s, i2, a, b, df_c))
+        if self.rule.certifies:
+            conv = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
+        else:
+            conv = closed
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, iters >= self.max_steps)
         return _typed(xp, dict(s, **new), s)
+
+    def _certify_sample(self, xp, s, a, mag):
+        """Where a row in certification mode evaluates next: an over-relaxed step from the last
+        certified sample ``cp`` towards the bracket's end ``a`` (Keinert et al. 2014).  Where the
+        surface is crossed at slope σ (in units of L), the unbounding spheres of cp and cp + h
+        overlap while h ≤ 2ρ/(1 + σ), ρ the sphere's radius at cp; σ is estimated as ρ/(a − cp)
+        (exact for a plane), and ``kap`` ∈ (0, 1] moves the step back towards ρ after a sample
+        whose sphere did not overlap.  A step of min_step stands whatever (the rule's allowance)."""
+        rule = self.rule
+        cp = s["cp"]
+        rp = certified_radius(xp, s["fcp"], cp, rule.inv_lip, mag, self.rg)
+        y = a - cp
+        with _quiet(xp):
+            sig = xp.minimum(rp / y, 1.0)
+        h = rp + s["kap"] * (2.0 * rp / (1.0 + sig) - rp)
+        h = xp.maximum(h, xp.minimum(rule.min_step, y))
+        return xp.minimum(cp + h, a)
+
+    def _certify(self, xp, s, new, c, f_c, same_a, closed, mag):
+        """Certification that the bracket's crossing is the ray's first, for a certifying step
+        rule; updates ``new`` (the step's state) and returns the rows CONVERGED.
+
+        The march proved no crossing before the frontier ``u`` (its last sphere's end: every
+        earlier stretch was covered by certified spheres, or was at most ``min_step`` long), and
+        the crossing step proved one in [u, b].  A sample on the start's side whose sphere leaves
+        at most ``min_step`` between the frontier and itself extends the frontier to its sphere's
+        end.  A closed bracket is CONVERGED when u + ``min_step`` reaches its start ``a``: then
+        every crossing before the bracket lies in a stretch of at most min_step no sphere covered
+        (a pair of crossings with chord < min_step).  Otherwise the row enters certification mode:
+        its answer stays, and it samples from the last certified point towards ``a``
+        (:meth:`_certify_sample`) until the frontier reaches it — or a sample shows the other
+        sign: an earlier crossing, whose bracket [cp, c] refinement then takes up afresh."""
+        rule = self.rule
+        cm, u, cp = s["cm"], s["u"], s["cp"]
+        rc = certified_radius(xp, f_c, c, rule.inv_lip, mag, self.rg)
+        side = same_a & (f_c != 0)
+        earlier = cm & ~side
+        stands = side & (c - rc - u <= rule.min_step)
+        u_n = xp.where(stands, xp.maximum(u, c + rc), u)
+        adv = stands & (c > cp)
+        lo = xp.where(cm, s["a"], xp.where(f_c == 0, c, new["a"]))
+        certified = u_n + rule.min_step >= lo
+        conv = xp.where(cm, ~earlier & certified, closed & certified)
+        keep = cm & ~earlier  # certification goes on: the answer and its bracket stay
+        restart = earlier  # refinement of [cp, c] from the secant (cp, fcp) → (c, f_c)
+        for k in ("t", "f", "p", "fp", "a", "b", "wq", "df"):
+            if k in new and k in s:
+                new[k] = xp.where(keep, s[k], new[k])
+        new["a"] = xp.where(restart, cp, new["a"])
+        new["p"] = xp.where(restart, cp, new["p"])
+        new["fp"] = xp.where(restart, s["fcp"], new["fp"])
+        new["t"] = xp.where(restart, c, new["t"])
+        new["f"] = xp.where(restart, f_c, new["f"])
+        new["b"] = xp.where(restart, c, new["b"])
+        for k, v in self.refiner.on_bracket(xp, c - cp).items():
+            new[k] = xp.where(restart, v, new[k])
+        new.update(u=u_n, cp=xp.where(adv, c, cp), fcp=xp.where(adv, f_c, s["fcp"]),
+                   kap=xp.where(cm, xp.where(stands, xp.minimum(2.0 * s["kap"], 1.0), 0.5 * s["kap"]), s["kap"]),
+                   cm=keep | (~cm & closed & ~certified))
+        return conv
+
+
+#: the state a certifying rule's refinement stage keeps (:meth:`MarchRefine._certify`): the
+#: frontier ``u``, the last certified sample ``cp`` and its φ ``fcp``, the certification step's
+#: relaxation ``kap`` and the mode ``cm``
+CERTIFY_STATE = frozenset({"u", "cp", "fcp", "kap", "cm"})
 
 
 STATE_OUT = ("t", "status", "iterations", "evals")

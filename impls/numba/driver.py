@@ -441,7 +441,14 @@ def _make_kernels(phi, bounds):
     exec(compile(lanes.source(), "<isobench numba lanes>", "exec"), ns)  # noqa: S102 - our own generated source
     ns["chunk_lanes_jit"] = njit(error_model="numpy")(ns["chunk_lanes"])
     run_lanes = njit(parallel=True, error_model="numpy")(ns["run_lanes"])
-    return {"sphere": run_sphere, "march": run_march, "lanes": run_lanes}
+
+    @njit(parallel=True, error_model="numpy")
+    def phi_rays(O, D, T, p, F):
+        """φ(o_i + t_i d_i) for every ray i: the certified methods' evaluation (:func:`run_loop`)."""
+        for i in prange(T.shape[0]):
+            F[i] = ev(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], T[i])
+
+    return {"sphere": run_sphere, "march": run_march, "lanes": run_lanes, "phi_rays": phi_rays}
 
 
 def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, settings: NumbaSettings) -> dict:
@@ -451,6 +458,9 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     import numba
 
     kind, fc, ic = configuration(alg, o.dtype)
+    if kind == "sphere" or ic[I_CERT]:
+        numba.set_num_threads(settings.threads)
+        return _run_certified(key, params, alg, o, d)
     if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1:
         kind = "lanes"  # (impls.numba.lanes: no derivatives, no ladder stage)
     n = o.shape[0]
@@ -459,3 +469,25 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     numba.set_num_threads(settings.threads)
     kernels(key)[kind](o, d, params, fc, ic, out["t"], out["status"], out["iterations"], out["evals"])
     return out
+
+
+def _run_certified(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray) -> dict:
+    """The certified root finders (``SphereTrace``, ``MarchRefine`` with a ``CertifiedStep``
+    rule) run by the array algorithm of :mod:`impls.core.rootfind` itself, on numpy arrays with
+    the numpy backend's compacting driver, each of its φ evaluations one compiled parallel kernel
+    over the rays (``phi_rays``).  Their per-ray certification (the first-crossing check, the
+    certified MISS, φ's resolution) is written once, there: a per-ray copy here would be a second
+    implementation of it to keep in step."""
+    from ..core.driver import CompactingSettings
+    from ..numpy.driver import run_loop as run_compacted_numpy
+
+    phi_rays = kernels(key)["phi_rays"]
+
+    def ev(oo, dd, t, deriv):
+        if deriv:
+            raise NotImplementedError("the certified methods evaluate φ only (no dφ/dt)")
+        f = np.empty_like(t)
+        phi_rays(oo, dd, t, params, f)
+        return f, None, 1
+
+    return run_compacted_numpy(alg, o, d, ev, CompactingSettings(threads=1))
