@@ -14,9 +14,11 @@ status histogram, and one verdict:
   tangent family): |φ| at rounding level ε moves a double root by O(√ε).  float64: 1.5e-8 · T,
   float32: 3.5e-4 · T.
 * **flagged** (⚑) — no wrong answer, but some rays carry a failure status (anything other than
-  CONVERGED and MISS: MAX_ITER, NON_FINITE, BAD_INPUT, ILL_CONDITIONED, LIPSCHITZ_VIOLATED).  A
-  flagged ray says "I could not answer", which is not a silent wrong answer: a flagged cell
-  *counts as survived* on the scoreboard (the issue's "no silent wrong answer").
+  CONVERGED and MISS: MAX_ITER, NON_FINITE, BAD_INPUT, ILL_CONDITIONED, LIPSCHITZ_VIOLATED,
+  UNCERTIFIED).  A flagged ray says "I could not answer", which is not a silent wrong answer: a
+  flagged cell *counts as survived* on the scoreboard (no silent wrong answer).  The
+  constant-step marchers may fail where a feature is crossed twice within their step: their
+  documented limit, which the report's legend states.
 * **failed** (✗) — a silent wrong answer (a false hit, a false miss reported as MISS, a
   CONVERGED ray over the tolerance or with a non-finite t), or the configuration failed.
 * **n/a** (—) — every configuration of the cell was skipped (with its reason).

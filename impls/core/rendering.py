@@ -266,7 +266,7 @@ def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=No
     x = o_safe + t[:, None] * d_safe
     rgb = color.value(x, xp)
     # CONVERGED: ρ at the hit; MISS: 0 (the background); any other status (BAD_INPUT,
-    # MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED): NaN, the status says why
+    # MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED, UNCERTIFIED): NaN, the status says why
     status = xp.astype(xp.where(ok & ~xp.all(xp.isfinite(rgb), axis=1), NONF, s["status"]), xp.int32)
     ok = status == CONV
     miss = status == MISS

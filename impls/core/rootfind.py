@@ -171,20 +171,23 @@ def _eps(a) -> float:
 
 
 def resolution(xp, t, mag, gain: float = 1.0):
-    """φ's rounding at depth ``t``, in depth units: 16·``gain``·ε·(|t| + ``mag``), the point's
-    and φ's intermediates' rounding bound of :func:`lipschitz_violated` (``mag`` =
-    :func:`_magnitude`).  Where |φ|/L is no larger, the sign of the computed φ says nothing
-    about the side of the surface the point is on: such a point is *unresolved*."""
-    return (16.0 * gain * _eps(t)) * (xp.abs(t) + mag)
+    """φ's rounding at depth ``t``, in depth units: 8·``gain``·ε·(|t| + ``mag``) (``mag`` =
+    :func:`_magnitude`).  The point o + t·d is rounded by up to 2ε(|o|₁ + |t|), which moves a
+    distance bound by up to L times that; φ's own operations (distances to centres and planes,
+    CSG min/max, a rigid transform) add a few ε of |x| and the scene's extent: 8 covers both
+    (:func:`lipschitz_violated` allows twice that, so that no exact SDF is ever flagged).  Where
+    |φ|/L is no larger, the sign of the computed φ says nothing about the side of the surface
+    the point is on: such a point is *unresolved*."""
+    return (8.0 * gain * _eps(t)) * (xp.abs(t) + mag)
 
 
 def unresolved(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
-    """Points where |φ|/L is at most twice φ's rounding (:func:`resolution`), φ = 0 included:
-    their sign proves nothing and their certified radius (:func:`certified_radius`) is below
-    the rounding itself, so a march takes neither a side, a crossing nor a step from them.  (A
+    """Points where |φ|/L is at most φ's rounding (:func:`resolution`), φ = 0 included: their
+    sign proves nothing and their certified radius (:func:`certified_radius`) is 0, so a march
+    takes neither a side, a crossing nor a step from them.  (A
     computed φ = 0 is no root either: a ray lying in a face plane to rounding has φ = 0 all
     along it.  Inside a bracket whose ends are resolved, refinement still stops at φ = 0.)"""
-    return xp.abs(f) * inv_lip <= 2.0 * resolution(xp, t, mag, gain)
+    return xp.abs(f) * inv_lip <= resolution(xp, t, mag, gain)
 
 
 def certified_radius(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
@@ -201,6 +204,19 @@ def final_t(xp, t, status):
     finish (:func:`outputs`; the compacting driver on each step's leaving rows), which saves two
     full-size selects per step."""
     return xp.where(status == MISS, math.inf, xp.where((status == NONF) | (status == BAD) | (status == LIPV), math.nan, t))
+
+
+def _outside_start(xp, alg, f, t, mag, inv_lip):
+    """(φ at the start, unresolved starts) of a certified search.  A start the scene's ray bounds
+    moved past ``t_min`` lies outside the solid by the bounds' own guarantee (they contain every
+    point where φ ≤ 0, padded against rounding): there an unresolved φ is taken as on the outside
+    (|φ|), and the start is not flagged; elsewhere an unresolved start is (UNCERTIFIED)."""
+    unres = unresolved(xp, f, t, inv_lip, mag, alg.rg)
+    if alg.bounds is None:
+        return f, unres
+    clipped = t > alg.t_min
+    tiny = float(np.finfo(np.dtype(str(f.dtype).rpartition(".")[2])).tiny)  # (φ = 0 there: the outside's sign)
+    return xp.where(clipped & unres, xp.maximum(xp.abs(f), tiny), f), unres & ~clipped
 
 
 class _Search:
@@ -274,11 +290,11 @@ class SphereTrace(_Search):
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
         f, _, cost = ev(o, d, t, False)
+        f, unres = _outside_start(xp, self, f, t, _magnitude(xp, o, self.scale), self.inv_lip)
         s = {"t": t, "f": f, "pos": f > 0, "unc": xp.zeros_like(f, dtype=xp.bool), "t_prev": t, "f_prev": f,
              "pm": xp.ones_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
              "evals": xp.astype(status == IN, xp.int32) * cost, "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
-        unres = unresolved(xp, f, t, self.inv_lip, _magnitude(xp, o, self.scale), self.rg)
         s["status"] = _init_status(xp, status, f, xp.zeros_like(unres), unres)
         return s
 
@@ -318,11 +334,16 @@ class SphereTrace(_Search):
         # a resolved sign change within the range, against the side the ray is on (a crossing past
         # hi, where the ray bound says there is no surface, is not one)
         cross = fin & ~unres & (t_eval <= hi) & ((f_new > 0) != s["pos"])
-        # every crossing lies in [tb + rb, t_eval − r_new]: converged when that is within the probe's
-        # reach (a plain step's is empty, up to the rounding of the sum)
+        # every crossing lies in [tb + rb, t_eval − r_new]: converged when that is at most tol/L wide
+        # (a plain step's is empty, up to the rounding of the sum); a probe whose reach φ's rounding
+        # made wider than that brackets the crossing only to the dtype's resolution: UNCERTIFIED
         gap = (t_eval - tb) - rb - r_new
-        slack = xp.maximum(resolution(xp, t_eval, mag, self.rg), (4.0 * _eps(t)) * xp.abs(t_eval))
-        conv = cross & (gap <= xp.maximum(xp.where(near, reach, 0.0), slack))
+        slack = (4.0 * _eps(t)) * xp.abs(t_eval)
+        # (the generic rounding model, without a mesh's gain: a depth known to a few of those is
+        # what the dtype resolves; a probe repeated across an unresolved stretch widens it)
+        res0 = 4.0 * resolution(xp, tb, mag, 1.0 if self.resolve else 0.0)
+        conv = cross & (gap <= s["pm"] * xp.maximum(self.tol * self.inv_lip, res0) + slack)
+        coarse = cross & ~conv & near
         # a probe landing within φ's rounding says nothing: the ray stays and probes twice as far
         retry = near & unres & ~out
         give_up = retry & (s["pm"] >= 2.0 ** self.PROBE_RETRIES)
@@ -331,7 +352,7 @@ class SphereTrace(_Search):
         # hide there, and the ray ends UNCERTIFIED
         stood = near & ~cross & ~unres & ~out & (gap > 0)
         unc = s["unc"] | stood
-        give_up = give_up | (stood & (gap > d0))
+        give_up = give_up | (stood & (gap > d0 + slack)) | coarse
         miss = out & ~cross
         covered = (tb + rb >= hi) | (t_eval - r_new <= tb + rb)
         unc_miss = miss & (unc | ~covered)
@@ -345,7 +366,7 @@ class SphereTrace(_Search):
         with _quiet(xp):
             z = tb + (t_eval - tb) * (fb / (fb - f_new))
         z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
-        t_out = xp.where(conv, z, xp.where(unc_miss, math.inf, xp.where(stay, t, xp.where(give_up, t_eval, t_new))))
+        t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(stay, t, xp.where(give_up, t_eval, t_new))))
         return _typed(xp, dict(s, t=t_out, f=xp.where(stay, f, f_new), t_prev=tb, f_prev=fb, omega=om,
                                pm=xp.where(retry, 2.0 * s["pm"], s["pm"]), status=status, unc=unc,
                                iterations=iters, evals=s["evals"] + cost), s)
@@ -706,9 +727,10 @@ class MarchRefine(_Search):
             s["wq"] = xp.full_like(t, math.inf)  # bracket width at the last check (set on a crossing)
         unres = None
         if self.rule.certifies:
+            f, unres = _outside_start(xp, self, f, t, _magnitude(xp, o, self.scale), self.rule.inv_lip)
+            s.update(f=f, fp=f, fa=f)
             # the certification of a bracket's crossing as the first (step_refine): set on a crossing
             s.update(u=t, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(f, dtype=xp.bool))
-            unres = unresolved(xp, f, t, self.rule.inv_lip, _magnitude(xp, o, self.scale), self.rg)
         # a certifying rule starts only from a resolved point (a start on the surface to rounding
         # is UNCERTIFIED); a constant-step march from φ = 0 exactly is at a root
         s["status"] = _init_status(xp, status, f, (f == 0) if unres is None else xp.zeros_like(unres), unres)

@@ -45,10 +45,12 @@ class NumbaBackend(ArrayBackend):
         devices=("cpu",),
         autodiff=None,
         jit=True,
-        notes=("root finders compiled with numba per scene structure (the scene tree written out as scalar code; "
-               "compile time reported apart, once per structure and process) and run ray by ray in prange loops "
-               "(two rays in turn per thread for the hybrid and the marchers without derivatives or ladder), the "
-               "same algorithms, knobs, statuses and counts as numpy's array drivers",
+        notes=("scenes compiled with numba per structure (the scene tree written out as scalar code; compile "
+               "time reported apart, once per structure and process); the constant-step marchers run ray by ray "
+               "in prange loops (two rays in turn per thread without derivatives or ladder); the certified methods "
+               "(sphere_trace, hybrid_secant, render_surface) run the core array algorithm with numpy's compacting "
+               "driver, each φ evaluation one compiled parallel kernel over the rays: the same algorithms, knobs, "
+               "statuses and counts as numpy's array drivers",
                "offers the root methods and render_surface only: no gradient, curvature, dt/dθ or volume methods "
                "(numba has no autodiff; dφ/dt for march_newton is numpy's central difference, 3 evaluations)",
                "float64 only; declines scenes with nodes it does not compile (meshes, grids, neural SDFs, user "

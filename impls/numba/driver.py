@@ -11,6 +11,13 @@ Lipschitz-violation check (:func:`impls.core.rootfind.lipschitz_violated`) and t
 certified convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or φ = 0).
 A ray's stage is its ``phase`` (march, ladder, refine), as in the array drivers.
 
+The certified methods (``SphereTrace``, and ``MarchRefine`` with a ``CertifiedStep`` rule: their
+first-crossing certification, certified MISS and φ's resolution) are not copied here: they run
+the array algorithm of :mod:`impls.core.rootfind` with numpy's compacting driver, each φ
+evaluation one compiled parallel kernel over the rays (:func:`_run_certified`).  The per-ray
+kernels below (``sphere_one``, ``march_one`` with a ``CertifiedStep``, and the hybrid lanes) are
+no longer reached for them.
+
 Where the array drivers step every ray still iterating once per loop step (compacting or
 masking), this driver runs each ray to completion on its own (``prange`` over rays, threads
 ``NumbaSettings.threads``), with its state in registers: no per-step overhead, which is what the
@@ -118,7 +125,7 @@ _KERNELS: dict = {}
 
 
 def kernels(key: str):
-    """``{"sphere": …, "march": …, "lanes": …}`` parallel kernels for the scene source ``key``
+    """``{"march": …, "lanes": …, "phi_rays": …}`` parallel kernels for the scene source ``key``
     (:class:`impls.numba.fields.CompiledScene`), made once per key (the cache lives as long as the
     process); numba compiles each on its first call."""
     k = _KERNELS.get(key)
@@ -187,59 +194,13 @@ def _make_kernels(phi, bounds):
         return (t_min if outside else lo), hi, status
 
     @njit(error_model="numpy")
-    def sphere_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
-        """SphereTrace.init and .step for one ray: (t as reported, status, iterations, evals)."""
-        t_min, t_max = fc[F_TMIN], fc[F_TMAX]
-        inv_lip, tol, omega, leps = fc[F_INVLIP], fc[F_TOL], fc[F_OMEGA], fc[F_LEPS]
-        probe, max_steps = ic[I_PROBE] != 0, ic[I_MAXSTEPS]
-        t, hi, status = start(p, o0, o1, o2, d0, d1, d2, t_min, t_max, ic[I_BOUNDS] != 0)
-        if status != IN:
-            return final_t(t, status), status, 0, 0
-        f = ev(p, o0, o1, o2, d0, d1, d2, t)
-        evals = 1
-        if not math.isfinite(f):
-            return nan, NONF, 0, evals
-        if abs(f) <= tol:
-            return t, CONV, 0, evals
-        mag = ((abs(o0) + abs(o1)) + abs(o2)) + fc[F_SCALE]
-        t_prev, r_prev, om = t, 0.0, omega
-        far = t_max if probe else hi
-        iters = 0
-        while True:
-            r = abs(f) * inv_lip
-            fail = (om > 1) and (r + r_prev < t - t_prev)
-            if fail:
-                t_new = t_prev + r_prev
-                om = 1.0
-            else:
-                t_new = t + om * r
-                t_prev = t
-                r_prev = r
-            out = (t_new > hi) or not math.isfinite(t_new)
-            if out:
-                t_far = _min(t_new, far)
-                t_eval = t_far if math.isfinite(t_far) else t
-            else:
-                t_eval = t_new
-            f_new = ev(p, o0, o1, o2, d0, d1, d2, t_eval)
-            evals += 1
-            iters += 1
-            ok = not ((om > 1) and (abs(f_new) * inv_lip + r_prev < t_new - t_prev))
-            lv = lipv(f, f_new, t, t_eval, inv_lip, mag, leps)
-            status = verdict((not math.isfinite(f_new)) and not out, (abs(f_new) <= tol) and ok,
-                             iters >= max_steps, out, lv)
-            t, f = t_new, f_new
-            if status != IN:
-                return final_t(t, status), status, iters, evals
-
-    @njit(error_model="numpy")
     def march_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
-        """MarchRefine.init, .step_march, .step_ladder and .step_refine for one ray."""
+        """MarchRefine.init, .step_march, .step_ladder and .step_refine for one ray, with a
+        ConstantStep rule (the certified rule runs the core algorithm: :func:`_run_certified`)."""
         t_min, t_max, xtol, leps = fc[F_TMIN], fc[F_TMAX], fc[F_XTOL], fc[F_LEPS]
-        cert, has_check, refiner = ic[I_CERT] != 0, ic[I_HASCHECK] != 0, ic[I_REFINER]
-        probe, max_steps = ic[I_PROBE] != 0, ic[I_MAXSTEPS]
+        has_check, refiner = ic[I_HASCHECK] != 0, ic[I_REFINER]
+        max_steps = ic[I_MAXSTEPS]
         ladder, ladder_after = ic[I_LADDER], ic[I_LADDER_AFTER]
-        inv_lip, min_step, cap, extra, reach = fc[F_INVLIP], fc[F_MINSTEP], fc[F_CAP], fc[F_EXTRA], fc[F_REACH]
         step, check = fc[F_STEP], fc[F_CHECK]
         deriv = refiner == 2
         cost = 3 if deriv else 1
@@ -258,27 +219,13 @@ def _make_kernels(phi, bounds):
             return t, CONV, 0, evals
         mag = ((abs(o0) + abs(o1)) + abs(o2)) + fc[F_SCALE]
         p_, fp, a, fa, b = t, f, t, f, t
-        dl = cap
         wq = inf
         iters = 0
         use_ladder = ladder > 1
         phase = 0
         while True:
             if phase == 0:  # -- step_march --
-                if cert:
-                    r = abs(f) * inv_lip
-                    hstep = _max(r, dl)
-                    if extra != 0.0:
-                        x = _min(extra * (f * (t - p_) / (fp - f)), reach)
-                        if x > hstep:
-                            hstep = x
-                    t_n = _min(t + hstep, hi)
-                    if probe and t + hstep > hi:
-                        t_n = _min(t + hstep, t_max)
-                else:
-                    r = 0.0
-                    hstep = step
-                    t_n = _min(t + hstep, hi)
+                t_n = _min(t + step, hi)
                 df_n = 0.0
                 if deriv:
                     f_n, df_n = ev_d(p, o0, o1, o2, d0, d1, d2, t_n)
@@ -292,12 +239,6 @@ def _make_kernels(phi, bounds):
                 conv = cross and (zero or (t_n - t <= xtol))
                 nonf = (not fin) and math.isfinite(t_n)
                 lv = has_check and lipv(f, f_n, t, t_n, check, mag, leps)
-                if cert:
-                    ok = cross or (r + abs(f_n) * inv_lip >= hstep) or (hstep <= min_step) or not math.isfinite(t_n)
-                    dl = _min(_max(2 * dl if ok else 0.5 * dl, min_step), cap)
-                    miss = miss and ok
-                    if not ok:
-                        t_n, f_n, df_n = t, f, df
                 iters += 1
                 evals += cost
                 status = verdict(nonf, conv, iters >= max_steps, miss, lv)
@@ -310,12 +251,7 @@ def _make_kernels(phi, bounds):
                     wq = 4.0 * (t_n - t)
                 t, f, df = t_n, f_n, df_n
             elif phase == 1 and use_ladder:  # -- step_ladder --
-                if cert:
-                    r = abs(f) * inv_lip
-                    hstep = _max(r, dl)
-                else:
-                    r = 0.0
-                    hstep = step
+                hstep = step
                 T, F, DF = np.empty(ladder), np.empty(ladder), np.empty(ladder)  # (rays that reach a ladder only)
                 for j in range(ladder):
                     T[j] = _min(t + hstep * float(j + 1), hi)
@@ -328,23 +264,18 @@ def _make_kernels(phi, bounds):
                 cross_e = False
                 fin_e = True
                 lv_e = False
-                tp, fpj, rp = t, f, r
+                tp, fpj = t, f
                 for j in range(ladder):
                     Tj, Fj = T[j], F[j]
                     crossj = (Fj == 0) or ((Fj > 0) != (fpj > 0))
                     finj = math.isfinite(Fj)
                     event = crossj or not finj
-                    Rj = abs(Fj) * inv_lip
-                    if cert:
-                        spacing = Tj - tp if Tj >= hi else hstep
-                        certified = (rp + Rj >= spacing) or (hstep <= min_step)
-                        event = event or not certified
                     lvj = has_check and lipv(fpj, Fj, tp, Tj, check, mag, leps)
                     event = event or lvj
                     if event:
                         e, stopped, cross_e, fin_e, lv_e = j, True, crossj, finj, lvj
                         break
-                    tp, fpj, rp = Tj, Fj, Rj
+                    tp, fpj = Tj, Fj
                 Te, Fe = T[e], F[e]
                 Tpe = t if e == 0 else T[e - 1]
                 Fpe = f if e == 0 else F[e - 1]
@@ -363,14 +294,6 @@ def _make_kernels(phi, bounds):
                 phase = (1 if cross_e else 0) + 1
                 if refiner != 0:
                     wq = 4.0 * (Te - Tpe)
-                if cert:
-                    if not stopped:
-                        grow = 2 * dl
-                    elif (not cross_e) and e < ladder // 2:
-                        grow = 0.5 * dl
-                    else:
-                        grow = dl
-                    dl = _min(_max(grow, min_step), cap)
                 if deriv:
                     df = DF[e] if onto else DFpe
                 t, f = t_new, f_new
@@ -422,12 +345,6 @@ def _make_kernels(phi, bounds):
                 return final_t(t, status), status, iters, evals
 
     @njit(parallel=True, error_model="numpy")
-    def run_sphere(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
-        for i in prange(O.shape[0]):
-            t, s, it, ne = sphere_one(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], fc, ic)
-            out_t[i], out_s[i], out_i[i], out_e[i] = t, s, it, ne
-
-    @njit(parallel=True, error_model="numpy")
     def run_march(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
         for i in prange(O.shape[0]):
             t, s, it, ne = march_one(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], fc, ic)
@@ -448,7 +365,7 @@ def _make_kernels(phi, bounds):
         for i in prange(T.shape[0]):
             F[i] = ev(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], T[i])
 
-    return {"sphere": run_sphere, "march": run_march, "lanes": run_lanes, "phi_rays": phi_rays}
+    return {"march": run_march, "lanes": run_lanes, "phi_rays": phi_rays}
 
 
 def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, settings: NumbaSettings) -> dict:

@@ -1,5 +1,6 @@
-"""Interleaved per-ray loops: ``LANES`` rays stepped in turn by one thread, for the hybrid and the
-constant-step marchers without a ladder stage and without derivatives.
+"""Interleaved per-ray loops: ``LANES`` rays stepped in turn by one thread, for the constant-step
+marchers without a ladder stage and without derivatives (the certified methods run the core
+array algorithm: :func:`impls.numba.driver._run_certified`).
 
 A ray's steps form one chain of dependent operations (φ's square roots, the secant's divisions),
 so a per-ray loop waits on their latency; rays are independent, so stepping several in turn gives
@@ -42,20 +43,7 @@ _STEP = """
                 if ph_K == -1:
                     te_K = t_K
                 elif ph_K == 0:
-                    if cert:
-                        r_K = abs(f_K) * inv_lip
-                        h_K = _max(r_K, dl_K)
-                        if extra != 0.0:
-                            x_K = _min(extra * (f_K * (t_K - p_K) / (fp_K - f_K)), reach)
-                            if x_K > h_K:
-                                h_K = x_K
-                        te_K = _min(t_K + h_K, hi_K)
-                        if probe and t_K + h_K > hi_K:
-                            te_K = _min(t_K + h_K, t_max)
-                    else:
-                        r_K = 0.0
-                        h_K = step
-                        te_K = _min(t_K + h_K, hi_K)
+                    te_K = _min(t_K + step, hi_K)
                 else:
                     mid_K = 0.5 * (a_K + b_K)
                     i2_K = it_K % 3 == 0
@@ -81,7 +69,7 @@ _STEP = """
                         f_K = fe_K
                         mag_K = ((abs(o0_K) + abs(o1_K)) + abs(o2_K)) + scale
                         p_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, t_K
-                        dl_K, wq_K, ph_K, it_K = cap, inf, 0, 0
+                        wq_K, ph_K, it_K = inf, 0, 0
                 elif ph_K == 0:
                     zero_K = fe_K == 0
                     fin_K = math.isfinite(fe_K)
@@ -91,12 +79,6 @@ _STEP = """
                     conv_K = cross_K and (zero_K or (te_K - t_K <= xtol))
                     nonf_K = (not fin_K) and math.isfinite(te_K)
                     lv_K = has_check and lipv(f_K, fe_K, t_K, te_K, check, mag_K, leps)
-                    if cert:
-                        ok_K = cross_K or (r_K + abs(fe_K) * inv_lip >= h_K) or (h_K <= min_step) or not math.isfinite(te_K)
-                        dl_K = _min(_max(2 * dl_K if ok_K else 0.5 * dl_K, min_step), cap)
-                        miss_K = miss_K and ok_K
-                        if not ok_K:
-                            te_K, fe_K = t_K, f_K
                     it_K += 1
                     st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K, lv_K)
                     ph_K = 1 if cross_K else 0
@@ -131,17 +113,16 @@ _STEP = """
 _INIT = """        act_K = False
         i_K, it_K, ev_K, ph_K, st_K = 0, 0, 0, 0, IN
         o0_K = o1_K = o2_K = d0_K = d1_K = d2_K = 0.0
-        t_K = f_K = p_K = fp_K = a_K = fa_K = b_K = hi_K = dl_K = wq_K = mag_K = 0.0
-        te_K = fe_K = r_K = h_K = mid_K = 0.0
+        t_K = f_K = p_K = fp_K = a_K = fa_K = b_K = hi_K = wq_K = mag_K = 0.0
+        te_K = fe_K = mid_K = 0.0
         i2_K = False
 """
 
 _HEAD = """
 def chunk_lanes(O, D, p, fc, ic, out_t, out_s, out_i, out_e, nxt, stop):
     t_min, t_max, xtol, leps, scale = fc[F_TMIN], fc[F_TMAX], fc[F_XTOL], fc[F_LEPS], fc[F_SCALE]
-    cert, has_check, refiner = ic[I_CERT] != 0, ic[I_HASCHECK] != 0, ic[I_REFINER]
-    probe, max_steps, use_bounds = ic[I_PROBE] != 0, ic[I_MAXSTEPS], ic[I_BOUNDS] != 0
-    inv_lip, min_step, cap, extra, reach = fc[F_INVLIP], fc[F_MINSTEP], fc[F_CAP], fc[F_EXTRA], fc[F_REACH]
+    has_check, refiner = ic[I_HASCHECK] != 0, ic[I_REFINER]
+    max_steps, use_bounds = ic[I_MAXSTEPS], ic[I_BOUNDS] != 0
     step, check = fc[F_STEP], fc[F_CHECK]
     hh = 0.5 * xtol
     if True:
