@@ -615,7 +615,8 @@ _STABILITY_RULE = (
     "✓ survived: no false hit, no hitting ray reported MISS, every CONVERGED depth within √ε(dtype)·max(1, T) "
     "(T the case's largest depth); ⚑ flagged: no wrong answer, but some rays declined with a failure status "
     "(MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED…) — counts as survived; ✗ failed: a silent wrong answer or a "
-    "failed configuration; — not run. Cells: mark · max depth error of the CONVERGED rays (— none converged) · "
+    "failed configuration; — not run; ? not judged: the reference flags every ray of the cell's cases (e.g. "
+    "exact tangents float64 cannot call a touch or a miss; rays it flags elsewhere are left out). Cells: mark · max depth error of the CONVERGED rays (— none converged) · "
     "worst field evaluations per ray; default knobs. float32 cells are judged against the float64 rays' exact "
     "depths.")
 

@@ -82,33 +82,58 @@ class Case:
 
     @property
     def exact_t(self) -> np.ndarray:
-        """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss.  Closed form where the
-        scene has exact hits, else the numerical reference (:mod:`reference.numerical`) whose
-        bound is :attr:`exact_t_error_bound`."""
+        """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss, NaN where the reference
+        has no answer (a Lipschitz bound seen to be false).  Closed form where the scene has exact
+        hits, else the numerical reference (:mod:`reference.numerical`); each ray's depth bound
+        is :attr:`exact_t_error_bounds`."""
         return self._exact_t_and_bound[0]
 
     @property
-    def exact_t_error_bound(self) -> float:
-        """Largest bound on |exact_t − true depth| over the rays: 0 for closed forms (their
-        float64 rounding is stated per answer in the README table), the numerical
-        reference's bisection bound otherwise."""
-        return self._exact_t_and_bound[1]
+    def exact_t_error_bounds(self) -> np.ndarray:
+        """Per ray, a bound on |exact_t − t*|, t* the first root of the real-number φ along the
+        real-number ray (:mod:`reference.depthbound`): the float64 φ's rounding over the slope
+        |dφ/dt|, widened to second order on grazing rays; 0 at a miss.  NaN where float64 cannot
+        certify a crossing there (a near-tangent ray, or a possible tangency the numerical scan
+        could not resolve) and inf where the reference has no answer: those rays are *flagged*
+        (:attr:`judged_mask` is False), and a method's answer there is not judged."""
+        return self._answer("t_bounds", self._depth_bounds)
 
     @property
-    def _exact_t_and_bound(self) -> tuple[np.ndarray, float]:
+    def judged_mask(self) -> np.ndarray:
+        """Rays whose reference answer is certified (a finite :attr:`exact_t_error_bounds`, a
+        depth that is not NaN): the rays a method's depth, hit or miss is judged on."""
+        return self._answer("judged", lambda: np.isfinite(self.exact_t_error_bounds) & ~np.isnan(self.exact_t))
+
+    @property
+    def exact_t_error_bound(self) -> float:
+        """The largest :attr:`exact_t_error_bounds` over the judged rays (0 when none is)."""
+        b = self.exact_t_error_bounds
+        return float(np.max(b[self.judged_mask], initial=0.0))
+
+    def _truth_scene(self) -> Field:
+        # a planted lie about L (DeclaredLipschitz) is not what certifies the truth: its child's
+        # own bound does (the lie itself is flagged by the reference: see the understated cases)
+        return self.scene.child if isinstance(self.scene, DeclaredLipschitz) else self.scene
+
+    @property
+    def _exact_t_and_bound(self) -> tuple[np.ndarray, np.ndarray | None]:
         def compute():
             if self.scene.info.exact_hits:
                 t = self.scene.first_hit(self.origins, self.directions, self.t_min)
-                return np.where(t <= self.t_max, t, np.inf), 0.0
+                return np.where(t <= self.t_max, t, np.inf), None  # bounds: _depth_bounds, on demand
             from .numerical import first_hit_numeric
 
-            # a planted lie about L (DeclaredLipschitz) is not what certifies the truth: its child's
-            # own bound does (the lie itself is flagged by the reference: see the understated cases)
-            truth = self.scene.child if isinstance(self.scene, DeclaredLipschitz) else self.scene
-            t, err = first_hit_numeric(truth, self.origins, self.directions, self.t_min, self.t_max)
-            return t, float(np.max(err, initial=0.0))
+            return first_hit_numeric(self._truth_scene(), self.origins, self.directions, self.t_min, self.t_max)
 
         return self._answer("t", compute)
+
+    def _depth_bounds(self) -> np.ndarray:
+        t, err = self._exact_t_and_bound
+        if err is not None:
+            return np.asarray(err, np.float64)
+        from .depthbound import depth_bounds
+
+        return depth_bounds(self._truth_scene(), self.origins, self.directions, t)
 
     @property
     def hit_mask(self) -> np.ndarray:
