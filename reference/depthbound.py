@@ -30,9 +30,11 @@ evaluated φ̃ are used.
 **Tangency.**  If φ̃ has the *same* sign beyond δφ on both sides (a tangent or near-tangent
 ray: φ̃ dips within δφ of zero, or changes sign twice inside the window), the real φ need not
 vanish there at all: float64 cannot tell a touch from a near miss.  Such a depth is reported
-with ``crossing = False``; the numerical reference flags it (bound NaN, the ray is not judged),
-a closed form that asserts a double root (the torus's touch test) may keep it with the bound (2),
-valid under its assertion.  A window wider than ``max_width`` is also reported as not found.
+with ``crossing = False``; the numerical reference flags it (bound NaN, the ray is not judged).
+A closed form keeps it with the bound (2) where exact rational arithmetic on the float64 inputs
+proves that a real root exists (:meth:`reference.scene.Field.certified_roots`: the sphere's
+discriminant ≥ 0, the torus's exact tangents in the planes z = ±r): the real φ vanishes there, so
+|φ̃| ≤ δφ at the root, which lies in the window.  A window wider than ``max_width`` is also reported as not found.
 
 This bound covers the depth of *a* real root within (2); that it is the *first* one rests on
 the search that found t̂ (the certified scan of :mod:`reference.numerical`, or the closed form).
@@ -127,6 +129,12 @@ def depth_bounds(scene, o, d, t, L: float | None = None, *, touch_ok=None, max_w
     if hit.size:
         wm, wp, crossing, found = enclose(scene, o[hit], d[hit], t[hit], t[hit], L, max_width=max_width)
         b = np.maximum(wm, wp)
-        ok = crossing | (found & (np.zeros(hit.size, bool) if touch_ok is None else np.asarray(touch_ok)[hit]))
-        out[hit] = np.where(ok, b, np.nan)
+        touch = np.zeros(hit.size, bool)
+        if touch_ok is not None:
+            touch = np.asarray(touch_ok, bool)[hit]
+        else:  # what the scene proves in exact arithmetic (Field.certified_roots), asked only where needed
+            ask = np.flatnonzero(found & ~crossing)
+            if ask.size:
+                touch[ask] = scene.certified_roots(o[hit[ask]], d[hit[ask]])
+        out[hit] = np.where(crossing | (found & touch), b, np.nan)
     return out

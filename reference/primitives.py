@@ -107,6 +107,20 @@ class Sphere(Field):
     def ray_intervals(self, o, d):
         return iv.from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
 
+    def certified_roots(self, o, d):
+        """Real roots exist iff the discriminant (f·d)² − (d·d)(f·f − r²), f = o − c, is ≥ 0:
+        decided exactly in rationals (``fractions.Fraction`` of the float64 inputs)."""
+        from fractions import Fraction as Q
+
+        c, r = [Q(float(v)) for v in np.asarray(self.center, np.float64)], Q(float(self.radius))
+        out = np.zeros(np.shape(o)[0], bool)
+        for i, (oi, di) in enumerate(zip(np.asarray(o, np.float64), np.asarray(d, np.float64))):
+            f = [Q(float(oi[k])) - c[k] for k in range(3)]
+            dd = [Q(float(x)) for x in di]
+            b = sum(f[k] * dd[k] for k in range(3))
+            out[i] = b * b - sum(x * x for x in dd) * (sum(x * x for x in f) - r * r) >= 0
+        return out
+
     def first_hit(self, o, d, t_min: float = 0.0):
         """First root > t_min; a tangent ray (double root) counts as a hit."""
         t0, t1 = ray_sphere_roots(o, d, self.center, self.radius)
@@ -292,6 +306,22 @@ class Torus(Field):
 
     def ray_intervals(self, o, d):
         return self._roots(o, d)[0]
+
+    def certified_roots(self, o, d):
+        """The exact tangents float64 can name: a ray in the plane z = ±r (d_z = 0 and o_z = ±r
+        exactly) has φ = √((ρ − R)² + r²) − r ≥ 0 along it, = 0 where ρ = R; its line meets the
+        circle ρ = R iff its distance to the z axis, |o_x d_y − o_y d_x| / |d_xy|, is ≤ R, decided
+        exactly in rationals.  Other rays: not proven here (False)."""
+        from fractions import Fraction as Q
+
+        o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
+        out = np.zeros(o.shape[0], bool)
+        R = Q(float(self.major))
+        for i in np.flatnonzero((d[:, 2] == 0) & (np.abs(o[:, 2]) == self.minor)):
+            ox, oy, dx, dy = (Q(float(v)) for v in (o[i, 0], o[i, 1], d[i, 0], d[i, 1]))
+            m = ox * dy - oy * dx
+            out[i] = (dx != 0 or dy != 0) and m * m <= R * R * (dx * dx + dy * dy)
+        return out
 
     def first_hit(self, o, d, t_min: float = 0.0):
         """First crossing or tangent touch (double root) at t > t_min; inf for a miss."""

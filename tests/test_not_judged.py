@@ -63,12 +63,14 @@ def test_a_wrong_answer_on_a_judged_ray_still_counts():
     assert row["error_max"] == np.inf and row["reference_error_bound"] == 1e-15
 
 
-def test_tangent_rays_of_a_closed_form_are_flagged():
-    """torus.tangent: exact double roots, which float64 cannot tell from near misses: every ray is
-    flagged (NaN bound), none is judged."""
-    case = get_case("torus.tangent")
-    assert np.all(np.isnan(case.exact_t_error_bounds)) and not case.judged_mask.any()
-    assert case.exact_t_error_bound == 0.0
+def test_tangent_rays_are_flagged_unless_proven():
+    """An exactly tangent ray float64 cannot certify by a sign change is flagged (NaN bound) —
+    unless exact arithmetic proves the touch (torus.tangent: rays in the plane z = r); then it is
+    judged with the window bound, √(2δφ r)-sized."""
+    case = get_case("csg.complement.inside")  # ray 170: impact parameter exactly 1, a touch of the sphere
+    assert np.isnan(case.exact_t_error_bounds[170]) and (~case.judged_mask).sum() == 1
+    tangent = get_case("torus.tangent")
+    assert tangent.judged_mask.all() and 1e-9 < tangent.exact_t_error_bound < 1e-6
     grazing = get_case("torus.grazing.1e-6")
     assert grazing.judged_mask.all() and 0 < grazing.exact_t_error_bound < 1e-9
 
