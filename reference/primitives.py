@@ -122,8 +122,22 @@ class Sphere(Field):
         return out
 
     def first_hit(self, o, d, t_min: float = 0.0):
-        """First root > t_min; a tangent ray (double root) counts as a hit."""
+        """First root > t_min; a tangent ray (double root) counts as a hit.  Whether a ray whose
+        line passes within 1e-7 (relative) of the radius from the centre hits at all is decided
+        exactly (:meth:`certified_roots`), not by the rounded discriminant: a near miss the float64
+        discriminant calls a touch is a miss, a touch it calls a miss is a hit at −(f·d)/(d·d)."""
+        o, d = _points(o, "o"), _points(d, "d")
         t0, t1 = ray_sphere_roots(o, d, self.center, self.radius)
+        f = o - np.asarray(self.center, np.float64)
+        a = np.einsum("ij,ij->i", d, d)
+        b = np.einsum("ij,ij->i", f, d)
+        ell = np.linalg.norm(f - (b / a)[:, None] * d, axis=1)
+        near = np.flatnonzero(np.abs(ell - self.radius) <= 1e-7 * self.radius)
+        if near.size:
+            real = self.certified_roots(o[near], d[near])
+            centre = -b[near] / a[near]
+            t0[near] = np.where(real, np.where(np.isnan(t0[near]), centre, t0[near]), np.nan)
+            t1[near] = np.where(real, np.where(np.isnan(t1[near]), centre, t1[near]), np.nan)
         t = np.where(t0 > t_min, t0, np.where(t1 > t_min, t1, np.inf))
         return np.where(np.isnan(t), np.inf, t)
 

@@ -199,6 +199,8 @@ def test_closed_form_bound_covers_the_depth(measured, kind):
     m = measured[kind]
     r, flagged = _check(m, m["t_cf"], m["b_cf"], kind)
     assert np.sum(np.isfinite(m["t_cf"]) & ~flagged) > 60
+    if kind == "sphere":  # hit or miss of near-tangent rays decided in rationals: nothing to flag
+        assert not flagged.any()
     if kind == "torus":  # exact tangents in the plane z = r: proven in rationals, judged with the window bound
         exact_tangent = np.isinf(m["k"])
         assert exact_tangent.sum() > 100 and not flagged[exact_tangent].any()
