@@ -2,7 +2,8 @@
 
 Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantity).  Verdicts:
 
-* ``not comparable``: the case versions differ (the case changed), or either side was not
+* ``not comparable``: the case versions differ (the case changed), the number of rays the
+  reference flags (``n_not_judged``, left out of the errors) differs, or either side was not
   measured because its run's time budget ran out; for timing also when the
   machines differ (``environment.machine_key``: the rows' own ``machine_key`` where both rows
   record one — a cluster run's rows record their worker's — else the runs') or either side has
@@ -154,6 +155,15 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
         if any(str(x.get("reason", "")).startswith(OVER_BUDGET) for x in (b, n)):
             rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
                          "note": "not measured: over the run's time budget"})
+            continue
+        nj_b, nj_n = (_num(x.get("n_not_judged"), float("nan")) for x in (b, n))
+        if b["outcome"] == "ok" and n["outcome"] == "ok" and (nj_b if np.isfinite(nj_b) else 0) != (
+                nj_n if np.isfinite(nj_n) else 0):
+            # the reference judges other rays now (bench.metrics.judged_rays): errors over different
+            # ray sets are not comparable
+            rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
+                         "error_base": b.get("error_max"), "error_new": n.get("error_max"),
+                         "note": f"rays not judged (the reference flags them) {nj_b:g} → {nj_n:g}"})
             continue
         acc = accuracy_verdict(b, n, rtol, atol_eps)
         machines = same_machine and same_row_machine(b, n)

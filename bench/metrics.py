@@ -40,6 +40,15 @@ Root finders also report ``error_iterate_median``: the median over rays that hit
 the returned iterate whatever its status (the convergence plot's y: a budget that ran out still
 leaves an iterate whose error shrinks with the budget).
 
+Rays the reference flags (``case.judged_mask`` False: the reference has no certified answer, e.g.
+a declared Lipschitz bound seen to be false, or a near-tangent ray float64 cannot call a hit or a
+miss; :attr:`reference.cases.Case.exact_t_error_bounds`) are *not judged*: left out of the depth
+errors, of ``n_false_hit``/``n_false_miss`` and of ``color_vs_surface``, and counted in
+``n_not_judged``.  ``reference_error_bound`` is the largest per-ray depth bound of the judged rays.
+A row with ``n_not_judged > 0`` was not fully checked: :func:`bench.summary.which_to_pick` never
+picks it, :mod:`bench.stability` counts its rays as not judged, :mod:`bench.compare` calls it not
+comparable when the count changed.
+
 Honesty rules: a root finder's false hit or false miss has e = inf (a max error cannot hide a
 wrong answer); a non-finite output on a ray whose status says ``CONVERGED`` (a silent NaN) has
 e = inf; rays a method *declined* with a failure status (e.g. ``ILL_CONDITIONED`` for grazing
@@ -158,26 +167,47 @@ def depth_errors(res: RayResult, exact_t: np.ndarray) -> np.ndarray:
     return e
 
 
+def judged_rays(case) -> np.ndarray:
+    """The rays a method's depth, hit or miss is judged on: those whose reference answer is
+    certified (``case.judged_mask``: a finite per-ray depth bound and a depth that is not NaN;
+    :attr:`reference.cases.Case.judged_mask`).  A case without that mask (a stand-in in a test)
+    judges every ray whose depth is not NaN."""
+    exact_t = np.asarray(case.exact_t, np.float64)
+    mask = getattr(case, "judged_mask", None)
+    return ~np.isnan(exact_t) if mask is None else np.asarray(mask, bool) & ~np.isnan(exact_t)
+
+
 def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> list[dict]:
     exact_t = np.asarray(case.exact_t, np.float64)
-    e = depth_errors(res, exact_t)
+    judged = judged_rays(case)
+    e = depth_errors(res, exact_t)[judged]
     exact_hit = np.isfinite(exact_t)
     got_hit = res.status == Status.CONVERGED
-    mag = np.where(exact_hit, np.abs(np.where(exact_hit, exact_t, 0.0)), 0.0)
+    mag = np.where(exact_hit, np.abs(np.where(exact_hit, exact_t, 0.0)), 0.0)[judged]
     # The iterate's error whatever its status (a budget that ran out leaves a finite last
     # iterate): what a convergence plot in the step budget needs; the max error above stays inf.
-    it = np.abs(np.asarray(res.t, np.float64)[exact_hit] - exact_t[exact_hit])
+    jh = exact_hit & judged
+    it = np.abs(np.asarray(res.t, np.float64)[jh] - exact_t[jh])
     it = it[np.isfinite(it)]
-    # n_false_miss counts every ray that hits but is not CONVERGED; of those, the ones the method
-    # declined with a failure status (MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED…) are flagged, not
-    # silent: n_miss_declined lets a reader (bench.stability) tell them apart from reported MISSes.
-    # n_converged_nonfinite: CONVERGED with a non-finite t, a silent NaN.
+    # Rays the reference flags (no certified answer: a false Lipschitz bound, a near-tangent ray)
+    # are left out of the errors and of the false hit/miss counts, and counted in n_not_judged:
+    # a method's answer there can be neither right nor wrong (bench.summary never picks such a row).
+    # n_false_miss counts every judged ray that hits but is not CONVERGED; of those, the ones the
+    # method declined with a failure status (MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED…) are flagged,
+    # not silent: n_miss_declined lets a reader (bench.stability) tell them apart from reported
+    # MISSes.  n_converged_nonfinite: CONVERGED with a non-finite t, a silent NaN (on any ray).
+    bounds = getattr(case, "exact_t_error_bounds", None)
+    if bounds is not None:
+        ref_bound = float(np.max(np.asarray(bounds, np.float64)[judged], initial=0.0))
+    else:
+        ref_bound = float(getattr(case, "exact_t_error_bound", 0.0) or 0.0)
     row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
-           "n_false_hit": int(np.sum(got_hit & ~exact_hit)), "n_false_miss": int(np.sum(~got_hit & exact_hit)),
-           "n_miss_declined": int(np.sum(_declined(res) & exact_hit)),
+           "n_false_hit": int(np.sum(got_hit & ~exact_hit & judged)), "n_false_miss": int(np.sum(~got_hit & jh)),
+           "n_miss_declined": int(np.sum(_declined(res) & jh)),
            "n_converged_nonfinite": int(np.sum(got_hit & ~np.isfinite(np.asarray(res.t, np.float64)))),
+           "n_not_judged": int(np.sum(~judged)),
            "error_iterate_median": float(np.median(it)) if it.size else float("nan"),
-           "reference_error_bound": float(getattr(case, "exact_t_error_bound", 0.0) or 0.0)}
+           "reference_error_bound": ref_bound}
     return [row]
 
 
@@ -255,7 +285,7 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
     rows: list[dict] = []
     everywhere = ~_declined(res)
     refs = (("color_vs_integral", lambda: exact_color(case, spec, knobs, cache), everywhere),
-            ("color_vs_surface", lambda: (case.exact_surface_colors, 0.0), everywhere & case.hit_mask))
+            ("color_vs_surface", lambda: (case.exact_surface_colors, 0.0), everywhere & case.hit_mask & judged_rays(case)))
     for name, exact_fn, rays in refs:
         try:
             ex, bound = exact_fn()
@@ -348,4 +378,4 @@ def measure_accuracy(spec, res: RayResult, case, dtype: str, knobs: dict, cache:
 
 
 __all__ = ["FAMILY_METRICS", "NotApplicable", "Quantity", "depth_errors", "error_stats", "family_skip_reason",
-           "measure_accuracy", "primary_quantity", "work_stats"]
+           "judged_rays", "measure_accuracy", "primary_quantity", "work_stats"]

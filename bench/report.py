@@ -615,11 +615,12 @@ _STABILITY_RULE = (
     "✓ survived: no false hit, no hitting ray reported MISS, every CONVERGED depth within √ε(dtype)·max(1, T) "
     "(T the case's largest depth); ⚑ flagged: no wrong answer, but some rays declined with a failure status "
     "(MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED, UNCERTIFIED…) — counts as survived; ✗ failed: a silent wrong "
-    "answer or a failed configuration; — not run. Cells: mark · max depth error of the CONVERGED rays (— none "
-    "converged) · worst field evaluations per ray; default knobs. float32 cells are judged against the float64 "
-    "rays' exact depths. The Lipschitz methods certify their answers (docs/methods.md, \"What each root finder "
-    "can miss\"); the constant-step marchers (march_*) rely on no bound and may keep ✗ where a feature is "
-    "crossed twice within their step, their documented limit.")
+    "answer or a failed configuration; — not run; ? not judged: the reference flags every ray of the cell's cases "
+    "(e.g. exact tangents float64 cannot call a touch or a miss; rays it flags elsewhere are left out). Cells: "
+    "mark · max depth error of the CONVERGED rays (— none converged) · worst field evaluations per ray; default "
+    "knobs. float32 cells are judged against the float64 rays' exact depths. The Lipschitz methods certify their "
+    "answers (docs/methods.md, \"What each root finder can miss\"); the constant-step marchers (march_*) rely on "
+    "no bound and may keep ✗ where a feature is crossed twice within their step, their documented limit.")
 
 
 def _stability_md(cells: pd.DataFrame, note: str) -> list[str]:

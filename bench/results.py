@@ -14,7 +14,8 @@ process that measured the row: timings are comparable only between equal keys), 
 ``worker_pid`` (the dask worker's address and process id; empty in a single-process run) and
 ``task_s`` (wall seconds of the whole configuration on its process, closed-form unit and
 reference answers included: what :mod:`bench.cluster`'s spread and projection read), added the
-same way.
+same way; ``n_not_judged`` (depth rows: rays the reference flags, left out of the errors and of the
+false hit/miss counts, :func:`bench.metrics.judged_rays`; empty in older rows, read as 0), also.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ COLUMNS = [
     "schema_version", "run_id", "case_id", "case_version", "backend", "device", "dtype", "method", "family", "knob",
     "quantity", "unit", "outcome", "reason", "n_rays", "status_counts", "error_max", "error_p99", "error_median",
     "error_max_finite", "error_rel_max", "error_ulps_max", "error_max_eps", "n_checked", "n_declined",
-    "n_false_hit", "n_false_miss", "evals_per_ray", "evals_p99", "evals_max", "iterations_max",
+    "n_false_hit", "n_false_miss", "n_not_judged", "evals_per_ray", "evals_p99", "evals_max", "iterations_max",
     "first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_samples_s", "time_ratio_cf", "n_samples",
     "loops", "rounds", "error_iterate_median", "reference_error_bound", "reference_s", "knobs_json", "timing_note", "traceback", "driver_json",
     "machine_key", "worker", "worker_pid", "task_s",

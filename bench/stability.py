@@ -22,6 +22,11 @@ status histogram, and one verdict:
 * **failed** (✗) — a silent wrong answer (a false hit, a false miss reported as MISS, a
   CONVERGED ray over the tolerance or with a non-finite t), or the configuration failed.
 * **n/a** (—) — every configuration of the cell was skipped (with its reason).
+* **not judged** (?) — the configurations ran, but the reference flags every ray of the cell's
+  cases (no certified answer: e.g. exact tangent rays, where float64 cannot tell a touch from a
+  near miss; ``n_not_judged``, :func:`bench.metrics.judged_rays`).  Like n/a it is left out of the
+  scoreboard.  Where only some rays are flagged the cell is judged on the others and counts the
+  rest in ``n_not_judged``.
 
 ``bench.metrics`` counts in ``n_false_miss`` every hitting ray that is not CONVERGED, flagged
 ones included, and sets ``error_max`` = inf for them; the silent false misses are
@@ -43,7 +48,7 @@ import pandas as pd
 
 #: statuses that are answers (a hit, or no surface); every other status flags a ray
 ANSWER_STATUSES = ("CONVERGED", "MISS")
-MARKS = {"survived": "✓", "flagged": "⚑", "failed": "✗", "n/a": "—"}
+MARKS = {"survived": "✓", "flagged": "⚑", "failed": "✗", "n/a": "—", "not judged": "?"}
 #: the cell key
 CELL_KEY = ["method", "backend", "dtype", "family"]
 
@@ -107,10 +112,11 @@ def _statuses(v) -> dict[str, int]:
 def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
     """The verdict and numbers of one cell from its result rows (any number of cases)."""
     out = {"verdict": "n/a", "error_max": float("nan"), "tolerance": float("nan"), "n_false_hit": 0,
-           "n_false_miss": 0, "n_flagged": 0, "n_nonfinite": 0, "n_over_tol": 0, "evals_max": float("nan"),
+           "n_false_miss": 0, "n_flagged": 0, "n_nonfinite": 0, "n_over_tol": 0, "n_not_judged": 0,
+           "evals_max": float("nan"),
            "iterations_max": float("nan"), "statuses": {}, "cases": sorted(set(map(str, rows["case_id"]))),
            "reasons": []}
-    failed, errs, ok_rows = False, [], 0
+    failed, errs, ok_rows, judged_rows = False, [], 0, 0
     statuses: dict[str, int] = {}
     for _, r in rows.iterrows():
         outcome = str(r.get("outcome", ""))
@@ -122,6 +128,12 @@ def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
             out["reasons"].append(f"{r['case_id']}: skipped: {str(r.get('reason', ''))[:200]}")
             continue
         ok_rows += 1
+        n_nj = int(_num(r.get("n_not_judged")))
+        out["n_not_judged"] += n_nj
+        if n_nj and int(_num(r.get("n_checked"))) == 0:  # the reference flags every ray: nothing to judge
+            out["reasons"].append(f"{r['case_id']}: not judged: the reference flags all {n_nj} rays")
+            continue
+        judged_rows += 1
         tol = depth_tolerance(dtype, scale_of(str(r["case_id"])))
         out["tolerance"] = tol if math.isnan(out["tolerance"]) else max(out["tolerance"], tol)
         st = _statuses(r.get("status_counts"))
@@ -159,8 +171,10 @@ def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
     wrong = out["n_false_hit"] or out["n_false_miss"] or out["n_nonfinite"] or out["n_over_tol"]
     if failed or wrong:
         out["verdict"] = "failed"
-    elif ok_rows:
+    elif judged_rows:
         out["verdict"] = "flagged" if out["n_flagged"] else "survived"
+    elif ok_rows:
+        out["verdict"] = "not judged"
     return out
 
 
@@ -168,7 +182,7 @@ def stability_cells(df: pd.DataFrame, family_of=catalog_family, scale_of=catalog
     """One row per (method, backend, dtype, family) with :func:`judge_cell`'s columns; only
     root-finder depth rows (and their failed/skipped configuration rows) on adversarial cases."""
     cols = CELL_KEY + ["verdict", "mark", "error_max", "tolerance", "n_false_hit", "n_false_miss", "n_flagged",
-                       "n_nonfinite", "n_over_tol", "evals_max", "iterations_max", "statuses", "cases", "reasons"]
+                       "n_nonfinite", "n_over_tol", "n_not_judged", "evals_max", "iterations_max", "statuses", "cases", "reasons"]
     if df is None or not len(df):
         return pd.DataFrame(columns=cols)
     d = df.copy()
@@ -204,7 +218,7 @@ def scoreboard(cells: pd.DataFrame) -> pd.DataFrame:
     order = {f: i for i, f in enumerate(families())}
     rows = []
     for (backend, dtype), g in cells.groupby(["backend", "dtype"], sort=False):
-        judged = g[g["verdict"] != "n/a"]
+        judged = g[~g["verdict"].isin(["n/a", "not judged"])]
         fam_ok = judged.groupby("family")["verdict"].agg(lambda v: all(survived(x) for x in v))
         failed = sorted((f for f, ok in fam_ok.items() if not ok), key=lambda f: (order.get(f, len(order)), f))
         rows.append({"backend": backend, "dtypes": [str(dtype)],
@@ -240,8 +254,8 @@ def _fmt(v: float, fmt: str = ".1e") -> str:
 def cell_text(c) -> str:
     """Compact: mark, max CONVERGED depth error (one digit; — when no ray converged), worst field
     evaluations per ray (``✓ 2e-16 · 41``)."""
-    if c["verdict"] == "n/a":
-        return MARKS["n/a"]
+    if c["verdict"] in ("n/a", "not judged"):
+        return MARKS[c["verdict"]]
     ev = c["evals_max"]
     return f"{c['mark']} {_fmt(c['error_max'], '.0e')} · {'—' if math.isnan(ev) else int(ev)}"
 

@@ -6,12 +6,14 @@ by the report's first screen and by the CLI's closing summary, so both say the s
 *Which to pick*: for each method family (root, gradient, param_grad, render), each case and each
 error target, the fastest configuration (method × backend × dtype × knob setting) whose max
 error over every ray of the case, on the family's primary quantity (depth, normal angle, dt/dθ,
-colour against the rendering integral), is at or below the target, with no false hit or miss.
-"Fastest" is the median time in units of the closed-form ray–sphere intersection of the same
-rays measured in the same run (``time_ratio_cf``), so that cases of different sizes read alike;
-in an accuracy-only run (no timing) the cheapest in field evaluations per ray is taken instead,
-and the table says so.  Comparisons are made within one case only: a method measured on another
-case is not its competitor there.
+colour against the rendering integral), is at or below the target, with no false hit or miss and
+no ray the reference flags (a row with ``n_not_judged`` > 0 was not fully checked and is never
+picked; a case without another candidate reads ``not judged``).  "Fastest" is the median time in
+units of the closed-form ray–sphere intersection of the same rays measured in the same run
+(``time_ratio_cf``), so that cases of different sizes read alike; in an accuracy-only run (no
+timing) the cheapest in field evaluations per ray is taken instead, and the table says so.
+Comparisons are made within one case only: a method measured on another case is not its
+competitor there.
 """
 
 from __future__ import annotations
@@ -23,9 +25,12 @@ import pandas as pd
 
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 PICK_NOTE = ("Per method family and case, for each error target: the fastest configuration (method · backend · "
-             "dtype @ knobs) whose max error over every ray is at or below the target, with no false hit or miss; "
+             "dtype @ knobs) whose max error over every ray is at or below the target, with no false hit or miss "
+             "and no ray the reference flags ('not judged': some rays have no certified reference answer); "
              "its time as a multiple of the closed-form ray–sphere intersection of the same rays (× closed form) "
              "and its field evaluations per ray. 'untimed': an accuracy-only run, ranked by evaluations.")
+#: the pick of a case some of whose rays the reference flags (``n_not_judged``, bench.metrics)
+NOT_JUDGED = "not judged"
 #: the error targets every "fastest to target" table uses
 TARGETS = (1e-4, 1e-8, 1e-12)
 
@@ -113,18 +118,23 @@ def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
     Columns: family, case, target, pick (``method · backend · dtype``), knob, ``× closed form``,
     ``time [ms]``, ``evals/ray``, ``by`` (``time`` or ``evals`` when the run was untimed),
     ``candidates`` (configurations that reached the target).  A target no configuration reached
-    is a row with pick ``none reached`` and the best error seen."""
+    is a row with pick ``none reached`` and the best error seen.  Rows with rays the reference flags
+(``n_not_judged`` > 0, :func:`bench.metrics.judged_rays`) are never candidates; a case with such
+rows and no other candidate gets pick ``not judged`` and the number of flagged rays."""
     ok = ok_rows(df)
     if ok.empty:
         return pd.DataFrame(columns=["family", "case", "target", "pick", "knob", "× closed form", "time [ms]",
                                      "evals/ray", "by", "candidates"])
     ok = _primary(ok)
-    for c in ("n_false_hit", "n_false_miss"):
-        ok[c] = pd.to_numeric(ok.get(c, 0), errors="coerce").fillna(0)
-    clean = ok[(ok["n_false_hit"] == 0) & (ok["n_false_miss"] == 0)]
+    for c in ("n_false_hit", "n_false_miss", "n_not_judged"):
+        ok[c] = pd.to_numeric(ok[c], errors="coerce").fillna(0) if c in ok else 0
+    # a row with rays the reference flags was not fully checked: never a pick (it could be wrong
+    # exactly where nothing judged it); the table says so instead
+    clean = ok[(ok["n_false_hit"] == 0) & (ok["n_false_miss"] == 0) & (ok["n_not_judged"] == 0)]
     rows = []
     for (fam, cid), g in ok.groupby(["family", "case_id"], sort=True):
         gc = clean[(clean["family"] == fam) & (clean["case_id"] == cid)]
+        unjudged = int(g["n_not_judged"].max())
         timed = bool(np.isfinite(gc["time_ratio_cf"]).any())
         by = "time_ratio_cf" if timed else "evals_per_ray"
         for tgt in targets:
@@ -132,7 +142,10 @@ def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
             hit = hit[np.isfinite(hit[by])] if timed else hit
             row = {"family": fam, "case": cid, "target": tgt, "by": "time" if timed else "evals",
                    "candidates": int(len(hit))}
-            if hit.empty:
+            if hit.empty and unjudged:
+                row.update({"pick": NOT_JUDGED, "knob": f"{unjudged} ray(s) the reference flags: no configuration "
+                                                        "is fully checked"})
+            elif hit.empty:
                 best = g["error_max"].min()
                 row.update({"pick": "none reached", "knob": f"best error {best:.2g}" if np.isfinite(best) else
                             "every configuration had a false hit/miss or infinite error"})
@@ -155,8 +168,8 @@ def headline(picks: pd.DataFrame, target: float = 1e-8) -> list[str]:
     for fam, g in picks[picks["target"] == target].groupby("family", sort=True):
         parts = []
         for d in g.to_dict("records"):
-            if d["pick"] == "none reached":
-                parts.append(f"{d['case']} → none reached")
+            if d["pick"] in ("none reached", NOT_JUDGED):
+                parts.append(f"{d['case']} → {d['pick']}")
                 continue
             cost = (f"×{d['× closed form']:.3g}, " if d["by"] == "time" else "untimed, ") + f"{d['evals/ray']:.3g} evals/ray"
             parts.append(f"{d['case']} → {d['pick']} ({cost})")
@@ -181,8 +194,8 @@ def pick_grid(picks: pd.DataFrame) -> pd.DataFrame:
     rows: dict[tuple, dict] = {}
     for d in picks.to_dict("records"):
         row = rows.setdefault((d["family"], d["case"]), {"family": d["family"], "case": d["case"]})
-        if d["pick"] == "none reached":
-            cell = f"none reached ({d['knob']})"
+        if d["pick"] in ("none reached", NOT_JUDGED):
+            cell = f"{d['pick']} ({d['knob']})"
         else:
             cost = f"×{d['× closed form']:.3g}" if d["by"] == "time" else "untimed"
             knob = f" @ {d['knob']}" if d["knob"] and d["knob"] != "defaults" else ""

@@ -82,33 +82,58 @@ class Case:
 
     @property
     def exact_t(self) -> np.ndarray:
-        """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss.  Closed form where the
-        scene has exact hits, else the numerical reference (:mod:`reference.numerical`) whose
-        bound is :attr:`exact_t_error_bound`."""
+        """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss, NaN where the reference
+        has no answer (a Lipschitz bound seen to be false).  Closed form where the scene has exact
+        hits, else the numerical reference (:mod:`reference.numerical`); each ray's depth bound
+        is :attr:`exact_t_error_bounds`."""
         return self._exact_t_and_bound[0]
 
     @property
-    def exact_t_error_bound(self) -> float:
-        """Largest bound on |exact_t − true depth| over the rays: 0 for closed forms (their
-        float64 rounding is stated per answer in the README table), the numerical
-        reference's bisection bound otherwise."""
-        return self._exact_t_and_bound[1]
+    def exact_t_error_bounds(self) -> np.ndarray:
+        """Per ray, a bound on |exact_t − t*|, t* the first root of the real-number φ along the
+        real-number ray (:mod:`reference.depthbound`): the float64 φ's rounding over the slope
+        |dφ/dt|, widened to second order on grazing rays; 0 at a miss.  NaN where float64 cannot
+        certify a crossing there (a near-tangent ray, or a possible tangency the numerical scan
+        could not resolve) and inf where the reference has no answer: those rays are *flagged*
+        (:attr:`judged_mask` is False), and a method's answer there is not judged."""
+        return self._answer("t_bounds", self._depth_bounds)
 
     @property
-    def _exact_t_and_bound(self) -> tuple[np.ndarray, float]:
+    def judged_mask(self) -> np.ndarray:
+        """Rays whose reference answer is certified (a finite :attr:`exact_t_error_bounds`, a
+        depth that is not NaN): the rays a method's depth, hit or miss is judged on."""
+        return self._answer("judged", lambda: np.isfinite(self.exact_t_error_bounds) & ~np.isnan(self.exact_t))
+
+    @property
+    def exact_t_error_bound(self) -> float:
+        """The largest :attr:`exact_t_error_bounds` over the judged rays (0 when none is)."""
+        b = self.exact_t_error_bounds
+        return float(np.max(b[self.judged_mask], initial=0.0))
+
+    def _truth_scene(self) -> Field:
+        # a planted lie about L (DeclaredLipschitz) is not what certifies the truth: its child's
+        # own bound does (the lie itself is flagged by the reference: see the understated cases)
+        return self.scene.child if isinstance(self.scene, DeclaredLipschitz) else self.scene
+
+    @property
+    def _exact_t_and_bound(self) -> tuple[np.ndarray, np.ndarray | None]:
         def compute():
             if self.scene.info.exact_hits:
                 t = self.scene.first_hit(self.origins, self.directions, self.t_min)
-                return np.where(t <= self.t_max, t, np.inf), 0.0
+                return np.where(t <= self.t_max, t, np.inf), None  # bounds: _depth_bounds, on demand
             from .numerical import first_hit_numeric
 
-            # a planted lie about L (DeclaredLipschitz) is not what certifies the truth: its child's
-            # own bound does (the lie itself is flagged by the reference: see the understated cases)
-            truth = self.scene.child if isinstance(self.scene, DeclaredLipschitz) else self.scene
-            t, err = first_hit_numeric(truth, self.origins, self.directions, self.t_min, self.t_max)
-            return t, float(np.max(err, initial=0.0))
+            return first_hit_numeric(self._truth_scene(), self.origins, self.directions, self.t_min, self.t_max)
 
         return self._answer("t", compute)
+
+    def _depth_bounds(self) -> np.ndarray:
+        t, err = self._exact_t_and_bound
+        if err is not None:
+            return np.asarray(err, np.float64)
+        from .depthbound import depth_bounds
+
+        return depth_bounds(self._truth_scene(), self.origins, self.directions, t)
 
     @property
     def hit_mask(self) -> np.ndarray:
@@ -260,14 +285,36 @@ def case_ids() -> list[str]:
     return sorted(_FACTORIES)
 
 
+#: the cameras at scale (256² and 1024² rays) carry this tag; the 1024² ones also :data:`FULL_ONLY`
+LARGE = "large"
+#: the tag of the cases meant for the ``full`` suite only (1024² cameras)
+FULL_ONLY = "full"
+#: the image sizes of the cameras at scale, and their ids' suffixes
+LARGE_SIZES = (256, 1024)
+
+
+def large_tags(n: int) -> tuple[str, ...]:
+    """Tags of an n×n camera at scale: :data:`LARGE`, and :data:`FULL_ONLY` for 1024²."""
+    return ("camera", LARGE) + ((FULL_ONLY,) if n >= 1024 else ())
+
+
 def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Case]:
-    """All cases whose id matches the glob ``pattern`` and that carry every tag in ``tags``."""
+    """All cases whose id matches the glob ``pattern`` and that carry every tag in ``tags``.
+
+    Cases tagged :data:`LARGE` (cameras of 256² and 1024² rays: their references and a method's
+    run take seconds to minutes each, on the host-call scenes far more) are listed only when asked
+    for: ``tags`` containing ``large`` (or ``full``), or a pattern naming the id without a wildcard.
+    :func:`case_ids` and :func:`get_case` know every case."""
     out = []
+    want_large = bool(tags) and bool({LARGE, FULL_ONLY} & set(tags))
     for cid in case_ids():
-        if pattern and not any(fnmatch.fnmatchcase(cid, p) for p in pattern.split(",")):
+        pats = pattern.split(",") if pattern else []
+        if pattern and not any(fnmatch.fnmatchcase(cid, p) for p in pats):
             continue
         case = get_case(cid)
         if tags and not set(tags) <= set(case.tags):
+            continue
+        if LARGE in case.tags and not (want_large or cid in pats):
             continue
         out.append(case)
     return out
@@ -279,7 +326,9 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
 # ``lipschitz`` (a Lipschitz bound exists), ``csg``, ``transform``, ``grazing``, ``tangent``,
 # ``inside``, ``surface``, ``far``, ``scale``, ``thin``, ``parallel``, ``understated``,
 # ``wall`` (through a mesh's thin wall), ``edge`` (grazing a mesh's edges), ``mesh``, ``grid``,
-# ``camera``, ``mlp``, ``neural``, ``numerical`` (no closed-form hits), ``quick`` (the CI suite) and
+# ``camera``, ``mlp``, ``neural``, ``numerical`` (no closed-form hits), ``quick`` (the CI suite),
+# ``large`` (cameras of 256² and 1024² rays, listed by :func:`catalog` only when asked for), ``full``
+# (the 1024² ones, meant for the full suite only) and
 # ``stability`` (the one representative case per adversarial family that the stability plan
 # runs).  Tags are not part of a case's version.
 
@@ -474,6 +523,9 @@ def _register_all() -> None:
     # torus ----------------------------------------------------------------------------------
     _add("torus.camera.32x32", lambda: (Torus(1.0, 0.25), *_cam(32, eye=(0.0, -2.5, 1.8))), ("camera", "quick"),
          "torus R = 1, r = 0.25 seen obliquely by a 32×32 camera")
+    for n in LARGE_SIZES:
+        _add(f"torus.camera.{n}x{n}", lambda n=n: (Torus(1.0, 0.25), *_cam(n, eye=(0.0, -2.5, 1.8))), large_tags(n),
+             f"torus R = 1, r = 0.25 seen obliquely by a {n}×{n} camera (the 32×32 view at scale)")
 
     def _torus_grazing(k):
         rng = np.random.default_rng(20 + k)
@@ -560,6 +612,10 @@ def _register_all() -> None:
     _add("csg.union.camera.32x32",
          lambda: (Union(Torus(1.0, 0.25), Box((0.4, 0.4, 0.4))), *_cam(32, eye=(0.0, -2.5, 1.8))),
          ("camera", "quick"), "torus ∪ box, 32×32 camera")
+    for n in LARGE_SIZES:
+        _add(f"csg.union.camera.{n}x{n}",
+             lambda n=n: (Union(Torus(1.0, 0.25), Box((0.4, 0.4, 0.4))), *_cam(n, eye=(0.0, -2.5, 1.8))),
+             large_tags(n), f"torus ∪ box, {n}×{n} camera (the 32×32 view at scale)")
     _add("csg.difference.camera.32x32",
          lambda: (Difference(Box((0.7, 0.7, 0.7)), Sphere(radius=0.9)), *_cam(32, eye=(1.5, 1.2, 2.2))),
          ("camera",), "box minus a sphere (bites at the corners), 32×32 camera")

@@ -529,7 +529,8 @@ def _tangent_offsets(grid: GridSDF, centre_dirs, lateral, s_hit: float, s_miss: 
 
 
 #: the ids :func:`grid_cases` builds, registered in the catalog at import
-GRID_CASE_IDS = ("grid.torus32.camera.32x32", "grid.torus64.camera.32x32", "grid.torus64.grazing.1e-6")
+GRID_CASE_IDS = ("grid.torus32.camera.32x32", "grid.torus64.camera.32x32", "grid.torus64.grazing.1e-6",
+                 "grid.torus64.camera.256x256", "grid.torus64.camera.1024x1024")
 
 
 def grid_cases():
@@ -552,6 +553,12 @@ def grid_cases():
         out.append(make(f"grid.torus{k}.camera.32x32", g, o, d, ("camera",),
                         f"torus R = 1, r = 0.25 sampled on a {k}³ grid over [−1.4, 1.4]³ (trilinear), "
                         "seen obliquely by a 32×32 camera"))
+    from .cases import LARGE_SIZES, large_tags
+
+    for n in LARGE_SIZES:
+        o_n, d_n = _rays.pinhole(eye=(0.0, -2.5, 1.8), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=n, height=n)
+        out.append(make(f"grid.torus64.camera.{n}x{n}", grids[64], o_n, d_n, large_tags(n),
+                        f"the 64³ grid torus seen obliquely by a {n}×{n} camera (the 32×32 view at scale)"))
     rng = np.random.default_rng(90)
     m = 256
     phase = rng.uniform(0, 2 * np.pi, m)

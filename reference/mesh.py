@@ -11,6 +11,15 @@ vector pointing away from the surface outside, towards it inside); on the surfac
 outward unit face normal of the face containing x.  Curvature is zero on faces and undefined on
 edges, so none is offered.  The mesh has no differentiable parameters.
 
+Validation on construction (a mesh that is not a solid's boundary is a ValueError naming what
+is wrong and the fix): finite vertices, integer faces indexing them, no zero-area face,
+watertight (every edge shared by exactly two faces: ``trimesh.Trimesh.is_watertight``),
+consistently oriented (``is_winding_consistent``), outward (positive volume), no two faces
+crossing (libigl's exact ``copyleft.cgal.remesh_self_intersections`` in detect-only mode), and
+every shell with winding number 1 just inside and 0 just outside (no shell nested in one of the
+same orientation; a cavity faces inward).  A mesh passing these is the boundary of the solid
+{w = 1}, w the winding number, which is what the sign of φ below assumes.
+
 How each answer is computed (float64):
 
 * Unsigned distance, closest point c and closest face: libigl's AABB tree
@@ -81,6 +90,68 @@ _BARY_ZERO = 1e-9  # a barycentric coordinate of the closest point at or below t
 _BLOCK = 16
 
 
+def _check_solid_boundary(V: np.ndarray, F: np.ndarray, tm) -> None:
+    """Refuse a watertight, consistently oriented mesh that is still not the boundary of a solid.
+
+    1. Self-intersection: no two faces may meet except in the edge or vertex they share.  Decided
+       by libigl's ``copyleft.cgal.remesh_self_intersections(..., detect_only=True)`` (CGAL's exact
+       predicates, so no tolerance; Zhou, Grinspun, Zorin & Jacobson, "Mesh arrangements for solid
+       geometry", SIGGRAPH 2016).  Two overlapping closed shells in one face list pass the
+       watertight and winding checks, yet the unsigned distance then ignores the buried faces'
+       shell, and a point inside both shells can read φ > 0.
+    2. Nesting: every connected shell must have winding number 1 just inside and 0 just outside
+       (libigl's exact generalized winding number, Jacobson, Kavan & Sorkine-Hornung 2013, at one
+       face of each shell, offset by 1e-7 of the mesh's size along ∓ its normal).  A shell inside
+       another with the same (outward) orientation has winding number 2 inside: the solid is not
+       the set {w = 1} the sign of φ assumes; a cavity's shell must face inward."""
+    import igl
+
+    try:
+        from igl.copyleft import cgal
+    except ImportError:  # pragma: no cover - the mesh extra installs libigl with its CGAL module
+        cgal = None
+    if cgal is not None:
+        pairs = cgal.remesh_self_intersections(V, np.ascontiguousarray(F, np.int64), detect_only=True,
+                                                first_only=True)[2]
+        if len(pairs):
+            a, b = (int(i) for i in pairs[0])
+            raise ValueError(
+                f"faces intersect each other (e.g. faces {a} and {b} cross away from any shared edge): the mesh "
+                "is not the boundary of a solid (two overlapping shells in one face list, or a surface through "
+                "itself). Merge overlapping parts with a boolean union (igl.copyleft.cgal.mesh_boolean(VA, FA, "
+                "VB, FB, 'union') or trimesh.boolean.union) or resolve the crossings "
+                "(igl.copyleft.cgal.remesh_self_intersections)")
+    labels = _face_components(tm)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    area = np.linalg.norm(n, axis=1)
+    h = 1e-7 * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    probes, which = [], []
+    for k in np.unique(labels):
+        f = int(np.flatnonzero(labels == k)[np.argmax(area[labels == k])])  # its largest face
+        c, u = V[F[f]].mean(axis=0), n[f] / area[f]
+        probes += [c - h * u, c + h * u]
+        which.append((int(k), f))
+    w = np.asarray(igl.winding_number(V, F, np.asarray(probes)), np.float64).reshape(-1, 2)
+    bad = [(k, f, wi) for (k, f), wi in zip(which, w) if not (abs(wi[0] - 1) < 0.5 and abs(wi[1]) < 0.5)]
+    if bad:
+        k, f, wi = bad[0]
+        raise ValueError(
+            f"faces form {len(which)} shells and shell {k} (e.g. face {f}) has winding number {wi[0]:.0f} just "
+            f"inside and {wi[1]:.0f} just outside (a solid's boundary has 1 and 0): it is nested in another shell "
+            "with the same orientation. Reverse a cavity's faces (faces[:, ::-1] on that shell) so it faces inward, "
+            "or merge the shells with a boolean union")
+
+
+def _face_components(tm) -> np.ndarray:
+    """Connected component (by shared edges) of each face."""
+    import trimesh
+
+    labels = np.zeros(len(tm.faces), np.int64)
+    for k, comp in enumerate(trimesh.graph.connected_components(tm.face_adjacency, nodes=np.arange(len(tm.faces)))):
+        labels[np.asarray(comp, np.int64)] = k
+    return labels
+
+
 def _morton_order(p: np.ndarray) -> np.ndarray:
     """Indices sorting points ``p`` (n, 3) along a 10-bit-per-axis Morton (Z-order) curve."""
     lo, hi = p.min(axis=0), p.max(axis=0)
@@ -127,6 +198,7 @@ class MeshSDF(Field):
         if tm.volume <= 0:
             raise ValueError("faces is oriented inward (negative volume); reverse each face's vertex order "
                              "(faces[:, ::-1]) so normals point outward")
+        _check_solid_boundary(V, F, tm)
         self.vertices = V
         self.faces = F
         self.name = str(name)

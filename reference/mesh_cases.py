@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from . import rays as _rays
-from .cases import Case, _cam, _scene_tags, register_group
+from .cases import LARGE_SIZES, Case, _cam, _scene_tags, large_tags, register_group
 from .mesh import MeshSDF
 
 
@@ -86,7 +86,8 @@ def _blob_inside():
 #: the ids :func:`mesh_cases` builds, registered in the catalog without building them
 MESH_CASE_IDS = ("mesh.torus.camera.32x32", "mesh.torus.camera.16x16", "mesh.fin.camera.32x32", "mesh.fin.thin", "mesh.fin.parallel",
                  "mesh.blob.camera.32x32", "mesh.blob.inside",
-                 *(f"mesh.{name}.grazing.1e-{k}" for k in (3, 6, 9) for name in ("torus", "fin", "blob")))
+                 *(f"mesh.{name}.grazing.1e-{k}" for k in (3, 6, 9) for name in ("torus", "fin", "blob")),
+                 *(f"mesh.torus.camera.{n}x{n}" for n in LARGE_SIZES))
 
 
 def mesh_cases() -> list[Case]:
@@ -110,6 +111,9 @@ def mesh_cases() -> list[Case]:
         _case("mesh.blob.inside", blob, *_blob_inside(), ("inside",),
               "origins inside the blob (|o| ≤ 0.5), random directions: the first hit is the exit"),
     ]
+    for n in LARGE_SIZES:
+        out.append(_case(f"mesh.torus.camera.{n}x{n}", torus, *_cam(n, eye=(0.0, -2.5, 1.8)), large_tags(n),
+                         f"torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a {n}×{n} camera"))
     for k in (3, 6, 9):
         for name, mesh in (("torus", torus), ("fin", fin), ("blob", blob)):
             # the fin's (68 faces) 1e-6 edge rays stand for the family in the stability matrix

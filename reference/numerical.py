@@ -19,11 +19,20 @@ one:
    a neural SDF's on a box) is used, and checked, only inside the scene's ray bounds, which such
    a scene keeps inside its domain (outside them φ > 0, so nothing is missed there).
 
-Error bound per ray: the final bracket width (the float64 φ changes sign inside it; ≤ 2 ulp of
-t), i.e. the depth is exact for the field *as evaluated in float64*; how far that root is from
-the root of the real-number φ is |δφ|/|∂φ/∂t|, δφ the evaluation rounding.  Without a
-Lipschitz bound (``lipschitz=None``) step 2 is skipped and an interval narrower than the
-sample spacing can be missed: the result is then *not* certified (stated, never hidden).
+Certification allows for rounding: an interval counts as root-free only when
+|φ(a)| + |φ(b)| − δφ(a) − δφ(b) > L (b − a), δφ the float64 φ's evaluation error
+(:func:`reference.depthbound.phi_rounding`), since the real φ may be δφ nearer zero.  A ray whose
+uncertified intervals exceed :data:`MAX_PENDING` (near a tangency their number grows like 1/√w
+at width w) is flagged as a possible tangency, like one that reaches ``min_width``.
+
+Error bound per ray: a bound on the *depth*, |t − t*| with t* the root of the real-number φ on
+the real-number ray (:mod:`reference.depthbound`): the bisection bracket widened on each side
+until |φ̃| exceeds δφ there with opposite signs — about δφ/|dφ/dt| where the slope is not small,
+the second-order √(2δφ/|φ''|) on grazing rays.  Where φ̃ has the same sign beyond δφ on both
+sides (a near-tangent ray: float64 cannot tell a touch from a near miss) the bound is NaN: the
+ray is flagged, not judged.  Without a Lipschitz bound (``lipschitz=None``) step 2 is skipped,
+an interval narrower than the sample spacing can be missed, and the rounding model takes L = 1:
+the result is then *not* certified (stated, never hidden).
 """
 
 from __future__ import annotations
@@ -34,7 +43,12 @@ from typing import Any, Callable
 
 import numpy as np
 
+from . import depthbound as _depthbound
 from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label
+
+
+#: uncertified intervals one ray may have pending in the scan before it is flagged (module doc)
+MAX_PENDING = 1 << 15
 
 
 def _phi_along(scene, o, d, rows, t):
@@ -71,9 +85,12 @@ def lipschitz_violated(f0, f1, t0, t1, L: float, mag, gain: float = 1.0):
 
 def _magnitude(scene, o):
     """|o|₁ + |centre| + radius of the scene's bounding ball (per ray; 0 for the ball without one)."""
-    ball = scene.bounding_sphere()
-    extra = 0.0 if ball is None else float(np.linalg.norm(np.asarray(ball[0], np.float64)) + float(ball[1]))
-    return np.sum(np.abs(o), axis=1) + (extra if math.isfinite(extra) else 0.0)
+    return _depthbound.magnitude(scene, o)
+
+
+def _slack(f, t, L, mag, gain):
+    """δφ, the rounding of the float64 φ (:func:`reference.depthbound.phi_rounding`)."""
+    return _depthbound.phi_rounding(f, t, L, mag, gain)
 
 
 def _scan(scene, o, d, t0, t1, n_samples, lipschitz, min_width, all_crossings):
@@ -98,7 +115,11 @@ def _scan(scene, o, d, t0, t1, n_samples, lipschitz, min_width, all_crossings):
         gain = _rounding_gain(scene)
         violated |= live & np.any(lipschitz_violated(f[:, :-1], f[:, 1:], ts[:, :-1], ts[:, 1:], L, mag[:, None], gain),
                                   axis=1)
-        unc = (~change) & live[:, None] & (np.abs(f[:, 1:]) + np.abs(f[:, :-1]) <= L * (ts[:, 1:] - ts[:, :-1]))
+        # certified root-free only beyond φ's rounding δφ (reference.depthbound): the real φ can be
+        # δφ closer to zero than the float64 one at each end
+        slack = _slack(f, ts, L, mag[:, None], gain)
+        unc = (~change) & live[:, None] & (np.abs(f[:, 1:]) + np.abs(f[:, :-1]) - slack[:, 1:] - slack[:, :-1]
+                                           <= L * (ts[:, 1:] - ts[:, :-1]))
         rows, cols = np.nonzero(unc)
         pend = (rows, ts[rows, cols], ts[rows, cols + 1], f[rows, cols], f[rows, cols + 1])
         while pend[0].size:
@@ -117,12 +138,21 @@ def _scan(scene, o, d, t0, t1, n_samples, lipschitz, min_width, all_crossings):
                 sc = (flo > 0) != (fhi > 0)
                 for k in np.flatnonzero(sc):
                     brackets[r[k]].append((lo[k], hi[k], flo[k]))
-                still = ~sc & (np.abs(flo) + np.abs(fhi) <= L * (hi - lo))
+                still = ~sc & (np.abs(flo) + np.abs(fhi) - _slack(flo, lo, L, mag[r], gain)
+                               - _slack(fhi, hi, L, mag[r], gain) <= L * (hi - lo))
                 narrow = still & ((hi - lo) <= min_width)
                 unresolved[r[narrow]] = True
                 s = still & ~narrow
                 nxt.append((r[s], lo[s], hi[s], flo[s], fhi[s]))
             pend = tuple(np.concatenate([x[i] for x in nxt]) for i in range(5))
+            # Near a tangency the uncertified set shrinks like √w while the intervals narrow like w:
+            # their number grows as 1/√w.  A ray needing more than MAX_PENDING of them is flagged as
+            # a possible tangency (as one reaching min_width is) rather than subdivided for ever.
+            crowded = np.bincount(pend[0], minlength=n) > MAX_PENDING
+            if crowded.any():
+                unresolved |= crowded
+                keep = ~crowded[pend[0]]
+                pend = tuple(x[keep] for x in pend)
     return brackets, unresolved, violated
 
 
@@ -144,8 +174,7 @@ def _search_range(scene, o, d, t_min, t_max, L):
 def _rounding_gain(scene) -> float:
     """The largest ``rounding_gain`` of the scene's nodes (≥ 1), as the root finders take it
     (:func:`impls.core.methods_root.rounding_gain`)."""
-    gains = [float(getattr(node, "rounding_gain", 1.0)) for node in scene.walk()]
-    return max([1.0, *(g for g in gains if math.isfinite(g))])
+    return _depthbound.rounding_gain(scene)
 
 
 def _check(scene, o, d, t_min, t_max, n_samples):
@@ -179,8 +208,13 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
         first = [min(brackets[k]) for k in rows]
         lo, hi = _bisect(scene, o, d, rows, np.array([b[0] for b in first]), np.array([b[1] for b in first]),
                          np.array([b[2] for b in first]))
-        t[rows] = lo + (hi - lo) / 2
-        err[rows] = hi - lo
+        mid = lo + (hi - lo) / 2
+        t[rows] = mid
+        # the depth bound: the bracket widened by φ's rounding over the slope (reference.depthbound);
+        # a bracket the rounding could explain away (no certified real crossing: a near-tangent
+        # ray) is flagged, NaN.  Without a Lipschitz bound L = 1 scales the rounding model.
+        w_lo, w_hi, crossing, _ = _depthbound.enclose(scene, o[rows], d[rows], lo, hi, 1.0 if L is None else L)
+        err[rows] = np.where(crossing, np.maximum(mid - (lo - w_lo), (hi + w_hi) - mid), np.nan)
     err[unresolved] = np.nan
     t[violated], err[violated] = np.nan, np.inf
     return t, err

@@ -107,9 +107,37 @@ class Sphere(Field):
     def ray_intervals(self, o, d):
         return iv.from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
 
+    def certified_roots(self, o, d):
+        """Real roots exist iff the discriminant (f·d)² − (d·d)(f·f − r²), f = o − c, is ≥ 0:
+        decided exactly in rationals (``fractions.Fraction`` of the float64 inputs)."""
+        from fractions import Fraction as Q
+
+        c, r = [Q(float(v)) for v in np.asarray(self.center, np.float64)], Q(float(self.radius))
+        out = np.zeros(np.shape(o)[0], bool)
+        for i, (oi, di) in enumerate(zip(np.asarray(o, np.float64), np.asarray(d, np.float64))):
+            f = [Q(float(oi[k])) - c[k] for k in range(3)]
+            dd = [Q(float(x)) for x in di]
+            b = sum(f[k] * dd[k] for k in range(3))
+            out[i] = b * b - sum(x * x for x in dd) * (sum(x * x for x in f) - r * r) >= 0
+        return out
+
     def first_hit(self, o, d, t_min: float = 0.0):
-        """First root > t_min; a tangent ray (double root) counts as a hit."""
+        """First root > t_min; a tangent ray (double root) counts as a hit.  Whether a ray whose
+        line passes within 1e-7 (relative) of the radius from the centre hits at all is decided
+        exactly (:meth:`certified_roots`), not by the rounded discriminant: a near miss the float64
+        discriminant calls a touch is a miss, a touch it calls a miss is a hit at −(f·d)/(d·d)."""
+        o, d = _points(o, "o"), _points(d, "d")
         t0, t1 = ray_sphere_roots(o, d, self.center, self.radius)
+        f = o - np.asarray(self.center, np.float64)
+        a = np.einsum("ij,ij->i", d, d)
+        b = np.einsum("ij,ij->i", f, d)
+        ell = np.linalg.norm(f - (b / a)[:, None] * d, axis=1)
+        near = np.flatnonzero(np.abs(ell - self.radius) <= 1e-7 * self.radius)
+        if near.size:
+            real = self.certified_roots(o[near], d[near])
+            centre = -b[near] / a[near]
+            t0[near] = np.where(real, np.where(np.isnan(t0[near]), centre, t0[near]), np.nan)
+            t1[near] = np.where(real, np.where(np.isnan(t1[near]), centre, t1[near]), np.nan)
         t = np.where(t0 > t_min, t0, np.where(t1 > t_min, t1, np.inf))
         return np.where(np.isnan(t), np.inf, t)
 
@@ -292,6 +320,22 @@ class Torus(Field):
 
     def ray_intervals(self, o, d):
         return self._roots(o, d)[0]
+
+    def certified_roots(self, o, d):
+        """The exact tangents float64 can name: a ray in the plane z = ±r (d_z = 0 and o_z = ±r
+        exactly) has φ = √((ρ − R)² + r²) − r ≥ 0 along it, = 0 where ρ = R; its line meets the
+        circle ρ = R iff its distance to the z axis, |o_x d_y − o_y d_x| / |d_xy|, is ≤ R, decided
+        exactly in rationals.  Other rays: not proven here (False)."""
+        from fractions import Fraction as Q
+
+        o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
+        out = np.zeros(o.shape[0], bool)
+        R = Q(float(self.major))
+        for i in np.flatnonzero((d[:, 2] == 0) & (np.abs(o[:, 2]) == self.minor)):
+            ox, oy, dx, dy = (Q(float(v)) for v in (o[i, 0], o[i, 1], d[i, 0], d[i, 1]))
+            m = ox * dy - oy * dx
+            out[i] = (dx != 0 or dy != 0) and m * m <= R * R * (dx * dx + dy * dy)
+        return out
 
     def first_hit(self, o, d, t_min: float = 0.0):
         """First crossing or tangent touch (double root) at t > t_min; inf for a miss."""

@@ -253,6 +253,14 @@ class Field:
         interval — a measure-zero set of rays."""
         return first_hit_from_intervals(self.ray_intervals(o, d), t_min)
 
+    def certified_roots(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Per ray (rows of ``o``, ``d``): True where exact (rational) arithmetic on the float64
+        inputs proves that φ has a real root on the ray's line although float64 φ shows no sign
+        change near it — a tangent or near-tangent ray, whose closed-form depth is then judged with
+        the window bound of :func:`reference.depthbound.depth_bounds` instead of flagged.
+        Default: nothing proven (all False); the sphere and the torus override it."""
+        return np.zeros(np.shape(o)[0], bool)
+
     def jet(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Exact first-order jet at points ``x`` (n, 3), float64 numpy:
         ``(φ (n,), ∇ₓφ (n, 3), ∂φ/∂θ (n, P))`` with θ in :meth:`param_vector` order.

@@ -176,6 +176,8 @@ def test_case_hits_lie_on_the_surface():
     catalog's closed-form cases are held to; and the grazing family brackets the tangency (the
     rays offset outward miss, inward hit)."""
     for case in _cases().values():
+        if "large" in case.tags:  # the 32×32 view at 256² and 1024²: the same function, minutes of answers
+            continue
         m = case.hit_mask
         x = case.exact_points[m]
         phi, grad, _ = case.scene.jet(x)
