@@ -8,7 +8,7 @@
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default] [--no-peers] [--volume [--samples 256]]
     python -m bench sampling [--case sphere.camera.64x64,torus.camera.32x32] [--targets 1e-2,1e-3,1e-4]
-    python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
+    python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing] [--min-comparable 1]
     python -m bench claims [--out DIR] [--full] [--only ID ...]
     python -m bench cases [--tag grazing]
     python -m bench backends
@@ -67,6 +67,17 @@ def _seconds(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
     if not (math.isfinite(v) and v >= 0):
         raise argparse.ArgumentTypeError(f"must be a finite number of seconds ≥ 0, got {text}")
+    return v
+
+
+def _share(text: str) -> float:
+    """A share in (0, 1] (``--min-comparable``)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number; give a share in (0, 1], e.g. 0.9") from None
+    if not 0 < v <= 1:
+        raise argparse.ArgumentTypeError(f"must be a share in (0, 1] (1: every row of BASE), got {text}")
     return v
 
 
@@ -525,6 +536,11 @@ def cmd_compare(args) -> int:
         problems.append(f"{len(missing)} rows of BASE are missing in NEW (e.g. {ex['case_id']} {ex['backend']} "
                         f"{ex['method']} {ex['knob']}): a truncated or partial run? Compare whole runs, or pass "
                         "--allow-missing to compare only the rows NEW has")
+    compared, gated = cmp.coverage(res, allow_missing=args.allow_missing)
+    console.print(f"compared: {compared} of {gated} rows of BASE")
+    short = cmp.coverage_problem(res, args.min_comparable, allow_missing=args.allow_missing)
+    if short:
+        problems.append(short)
     if len(worse):
         console.print(f"[red]{len(worse)} regression(s)[/]")
     for p in problems:
@@ -884,6 +900,10 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--out", help="write the comparison table as csv")
     c.add_argument("--allow-missing", action="store_true", help="pass although rows of BASE are missing in NEW "
                    "(comparing a partial selection on purpose); by default missing rows fail the comparison")
+    c.add_argument("--min-comparable", type=_share, default=1.0, metavar="SHARE",
+                   help="fail unless at least this share of BASE's rows were compared (not 'not comparable': "
+                   "a changed case version, a row over a time budget); default 1 (all); a comparison of no row "
+                   "always fails")
     c.set_defaults(fn=cmd_compare)
 
     cl = sub.add_parser("claims", help="check the lecture's claims; writes claims.csv, plots and a report")

@@ -264,6 +264,18 @@ def _garbage_csv(tmp_path):
     return tmp_path / "garbage.csv"
 
 
+def _all_versions_changed(tmp_path):
+    """The baseline with every case_version changed and every error raised to 10: nothing is
+    comparable (issue 33, finding 1)."""
+    d = tmp_path / "changed"
+    shutil.copytree(ROOT / "reports" / "baseline", d)
+    df = pd.read_csv(d / "results.csv")
+    df["case_version"] = "0123456789ab"
+    df["error_max"] = 10.0
+    df.to_csv(d / "results.csv", index=False)
+    return d
+
+
 def _baseline_copy(tmp_path):
     shutil.copytree(ROOT / "reports" / "baseline", tmp_path / "b")
     return tmp_path / "b"
@@ -296,6 +308,10 @@ USER_ERRORS = {
                                                  "missing in NEW"),
     "compare against an incomplete run": (lambda t: ["compare", BASELINE, str(_incomplete_copy(t))], 1,
                                           "NEW is an incomplete run"),
+    "compare where no row is comparable": (lambda t: ["compare", BASELINE, str(_all_versions_changed(t))], 1,
+                                           "were comparable"),
+    "compare --min-comparable 0": (lambda t: ["compare", BASELINE, BASELINE, "--min-comparable", "0"], 2,
+                                   "--min-comparable"),
     "speed --side 0": (lambda t: ["speed", "--side", "0"], 2, "--side"),
     "speed --knobs '{bad json'": (lambda t: ["speed", "--knobs", "{bad json"], 2, "--knobs"),
     "speed --backend nosuch": (lambda t: ["speed", "--backend", "nosuch", "--side", "4"], 2, "--backend"),
