@@ -17,7 +17,8 @@
 Exit codes: 0 success; 1 the command ran but its answer is "no": a regression or an incomplete
 comparison (``compare``), a run that is incomplete (its ``--budget`` ran out) or in which no
 configuration ran (``run``), a claims check that failed (``claims``); 2 a usage error (a bad
-argument, an unknown backend, an ``--out`` that already holds results), reported as one line
+argument, an unknown backend, an ``--out`` that is not new or empty, a run directory another
+process is writing, a path that cannot be created), reported as one line
 ``error: …`` on stderr naming the argument and the fix.  Progress and summaries go to stdout,
 as lines when it is not a terminal (a live bar when it is).
 """
@@ -32,11 +33,6 @@ from pathlib import Path
 from .environment import ROOT
 
 DEFAULT_REPORTS = ROOT / "reports"
-
-#: files whose presence makes a directory a finished (or interrupted) run's: ``--out`` refuses it
-#: unless ``--resume`` (results are never overwritten; ``bench baseline`` rewrites its own folder)
-RUN_FILES = ("results.parquet", "results.csv", "environment.json", "claims.csv", "claims.md")
-
 
 def _error(message: str, code: int = 2) -> int:
     """One line on stderr, ``error: …`` (argparse's style and exit code 2 for usage errors)."""
@@ -91,10 +87,6 @@ def _json_dict(text: str) -> dict:
     return v
 
 
-def _existing_run_files(out: Path) -> list[str]:
-    return [name for name in RUN_FILES if (out / name).exists()]
-
-
 def _resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
     """{id: backend or Unavailable}, each loop driver given ``threads`` worker threads, or an
     error message when an id names nothing (a typo)."""
@@ -110,6 +102,19 @@ def _resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
     if unknown:
         return None, f"{flag}: " + "; ".join(b.reason for b in unknown)
     return backends, ""
+
+
+def _write_out_file(out: str, write) -> str:
+    """``write(path)`` for a file-valued ``--out``; "" or the error message naming ``--out`` (a
+    directory there, a parent that is a file, no permission)."""
+    path = Path(out)
+    if path.is_dir():
+        return f"--out: {path} is a directory; pass a file name"
+    try:
+        write(path)
+    except OSError as exc:
+        return f"--out: cannot write {path}: {exc.strerror or exc}; pass a file in a directory you can write"
+    return ""
 
 
 def _split(values: list[str] | None) -> list[str] | None:
@@ -281,12 +286,12 @@ def _start_executor(args, lines):
 
 
 def cmd_run(args) -> int:
-    held: list = []  # the cluster executor, once started: closed whatever happens
+    held: list = []  # the run directory's lock and the cluster executor, once taken: closed whatever happens
     try:
         return _cmd_run(args, held)
     finally:
-        for executor in held:
-            executor.close()
+        for thing in reversed(held):  # the executor, then the run directory's lock
+            thing.close()
 
 
 #: ``bench run`` options that define a run's plan and how its rows are measured: recorded in
@@ -388,12 +393,12 @@ def _cmd_run(args, held: list) -> int:
                       "`python -m bench cases` lists the cases")
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
-    if out.exists() and not out.is_dir():
-        return _error(f"--out: {out} is a file; pass a directory for the run's files")
-    held = _existing_run_files(out) if out.is_dir() else []
-    if held and not args.resume:
-        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. "
-                      "Pass another --out, or --resume to finish an interrupted run there.")
+    from .rundir import claim_out
+
+    try:  # this process is the run directory's one writer from here on (bench.rundir)
+        held.append(claim_out(out, resume=args.resume))
+    except ValueError as exc:  # OutError, LockHeld
+        return _error(str(exc))
     from impls import registry
 
     ids = _split(args.backend) or registry.default_ids()
@@ -516,7 +521,9 @@ def cmd_compare(args) -> int:
     counts = {col: res[col].value_counts().to_dict() for col in ("accuracy", "timing")}
     worse = res[(res["accuracy"] == "worse") | ((res["timing"] == "worse") & args.timing)]
     if args.out:
-        write_text(Path(args.out), res.to_csv(index=False))
+        err = _write_out_file(args.out, lambda path: write_text(path, res.to_csv(index=False)))
+        if err:
+            return _error(err)
     if len(worse):
         from rich.markup import escape
 
@@ -559,9 +566,13 @@ def cmd_claims(args) -> int:
     from .runner import new_run_id
     from .environment import collect
 
+    from .rundir import make_dir
+
     out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
-    if out.exists() and not out.is_dir():
-        return _error(f"--out: {out} is a file; pass a directory")
+    try:
+        make_dir(out)
+    except ValueError as exc:
+        return _error(str(exc))
     held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
     if held:
         return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
@@ -708,18 +719,24 @@ def cmd_extract(args) -> int:
 
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / f"extract-{run_id}"
-    if out.exists() and any(out.iterdir()):
-        return _error(f"--out: {out} is not empty; results are never overwritten, pass another --out")
     if args.case:
-        cases = catalog(args.case)
+        try:
+            cases = catalog(args.case)
+        except ValueError as exc:
+            return _error(f"--case: {exc}")
         if not cases:
             return _error(f"--case: no case matches {args.case!r}; `python -m bench cases` lists them")
     else:
         cases = None
+    from .rundir import claim_out
+
+    try:
+        lock = claim_out(out)  # new or empty, created, and this process's alone until it exits
+    except ValueError as exc:
+        return _error(str(exc))
     resolutions = tuple(args.resolution or (16, 32, 64, 128))
     rows = extraction.run_extraction(cases, resolutions=resolutions, repeats=args.repeats, run_id=run_id,
                                      progress=lambda line: print(line, flush=True))
-    out.mkdir(parents=True, exist_ok=True)
     df = to_frame(rows)
     write_results(df, out)
     image = extraction.plot(df, out / "extraction.png")
@@ -727,6 +744,7 @@ def cmd_extract(args) -> int:
     write_atomic(out / "extraction.md", lambda tmp: Path(tmp).write_text(md, encoding="utf-8"))
     print(md)
     print(f"wrote {out / 'results.csv'}, {out / 'extraction.md'}" + (f", {image}" if image else ""))
+    lock.release()
     return 0
 
 
@@ -767,7 +785,9 @@ def cmd_speed(args) -> int:
         if args.out:
             from .results import write_json
 
-            write_json(Path(args.out), rows)
+            err = _write_out_file(args.out, lambda path: write_json(path, rows))
+            if err:
+                return _error(err)
         return 0
     notes: list[str] = []
     rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {},
@@ -786,7 +806,9 @@ def cmd_speed(args) -> int:
     if args.out:
         from .results import write_json
 
-        write_json(Path(args.out), rows)
+        err = _write_out_file(args.out, lambda path: write_json(path, rows))
+        if err:
+            return _error(err)
     return 0
 
 
@@ -815,8 +837,13 @@ def cmd_sampling(args) -> int:
     if args.out:
         from .results import write_atomic
 
+        from .rundir import RunLock, make_dir
+
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
+        try:  # a run directory's one writer: not while its run (or another study) writes it
+            lock = RunLock(make_dir(out)).acquire()
+        except (ValueError, OSError) as exc:
+            return _error(str(exc) if isinstance(exc, ValueError) else f"--out: cannot lock {out}: {exc}")
         write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
         print(f"wrote {out / sampling.FILE}")
         if (out / "environment.json").exists():  # a run directory: its report gains the section
@@ -824,6 +851,7 @@ def cmd_sampling(args) -> int:
 
             build_from_dir(out)
             print(f"rebuilt {out / 'report.html'}")
+        lock.release()
     return 0
 
 
