@@ -33,6 +33,8 @@ from pathlib import Path
 from .environment import ROOT
 
 DEFAULT_REPORTS = ROOT / "reports"
+#: ``bench run --max-time`` when not given (raised to ``--min-time`` when that is larger)
+DEFAULT_MAX_TIME_S = 5.0
 
 def _error(message: str, code: int = 2) -> int:
     """One line on stderr, ``error: …`` (argparse's style and exit code 2 for usage errors)."""
@@ -296,10 +298,11 @@ def cmd_run(args) -> int:
 
 #: ``bench run`` options that define a run's plan and how its rows are measured: recorded in
 #: environment.json (``run_options``) and restored by ``--resume``, so a resumed run finishes the
-#: plan it started (``--case '*'`` stays the catalog sweep without retyping it).  The timing-sample
+#: plan it started, its stages (claims, stability) included (``--case '*'`` stays the catalog sweep without retyping it).  The timing-sample
 #: options (--min-time, --min-repeats, --max-time, --timeout, --rounds), --budget, --cluster and
 #: --scheduler are per session: a resume may change them, as the budget hint says.
-RESUMED_OPTIONS = ("suite", "case", "method", "dtype", "backend", "cases", "threads", "allocator", "accuracy_only")
+RESUMED_OPTIONS = ("suite", "case", "method", "dtype", "backend", "cases", "threads", "allocator", "accuracy_only",
+                   "no_claims", "no_stability")
 
 
 def _flag(dest: str) -> str:
@@ -308,8 +311,10 @@ def _flag(dest: str) -> str:
 
 def _shown(dest: str, value) -> str:
     """An option as the user would type it: ``--case 'box.*'``, ``--dtype 'float32,float64'``, ``no --case``."""
-    if value is None:
+    if value is None or value is False:
         return "no " + _flag(dest)
+    if value is True:
+        return _flag(dest)
     return f"{_flag(dest)} {','.join(value) if isinstance(value, list) else value!r}"
 
 
@@ -353,9 +358,43 @@ def _run_options(args, backend_ids) -> str:
     return json.dumps(rec, sort_keys=True)
 
 
+#: ``bench run`` options given as lists or globs: given, they must name something
+LIST_OPTIONS = ("case", "method", "dtype", "backend", "cases", "rerun_case")
+
+
+def _empty_option(args, dests) -> str | None:
+    """An error for the first of ``dests`` given but empty (``--method ''`` would otherwise mean
+    "all"), or None."""
+    for dest in dests:
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        items = _split(value) if isinstance(value, list) else [v for v in str(value).split(",") if v.strip()]
+        if not items:
+            return (f"{_flag(dest)}: given empty ({value!r}); name what you mean (`python -m bench cases` / "
+                    f"`backends` list them), or leave {_flag(dest)} out for the default")
+    return None
+
+
+def _contradictions(args) -> str | None:
+    """An error naming two ``bench run`` options that cannot both hold, or None."""
+    if args.min_time is not None and args.max_time is not None and args.min_time > args.max_time:
+        return (f"--min-time {args.min_time:g} and --max-time {args.max_time:g}: at least {args.min_time:g} s of "
+                f"timed calls cannot fit in at most {args.max_time:g} s; give --min-time ≤ --max-time")
+    if args.rounds > 1 and args.accuracy_only:
+        return (f"--rounds {args.rounds} and --accuracy-only: an accuracy-only run takes no timing samples to pool "
+                "over rounds; drop one")
+    if args.rerun_case and not args.resume:
+        return "--rerun-case without --resume: a new run runs every case anyway; add --resume --out DIR, or drop it"
+    return None
+
+
 def _cmd_run(args, held: list) -> int:
     from .environment import configure_threads
 
+    err = _empty_option(args, LIST_OPTIONS) or _contradictions(args)
+    if err:
+        return _error(err)
     if args.resume and args.out:
         err = _restore_run_options(args)
         if err:
@@ -413,8 +452,12 @@ def _cmd_run(args, held: list) -> int:
     try:
         min_time = suite.min_time_s if args.min_time is None else args.min_time
         min_repeats = suite.min_repeats if args.min_repeats is None else args.min_repeats
+        max_time = max(DEFAULT_MAX_TIME_S, min_time) if args.max_time is None else args.max_time
+        if min_time > max_time:  # a suite's --min-time above an explicit --max-time
+            return _error(f"--max-time {max_time:g}: below the suite's --min-time {min_time:g}; give --max-time ≥ "
+                          f"{min_time:g} or a smaller --min-time")
         policy = TimingPolicy(min_repeats=min_repeats, min_time_s=min_time, timeout_s=args.timeout,
-                              accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, min_time))
+                              accuracy_only=args.accuracy_only, max_time_s=max_time)
     except ValueError as exc:
         return _error(str(exc))
     budget = suite.budget_s if args.budget is None else (args.budget or None)
@@ -442,7 +485,7 @@ def _cmd_run(args, held: list) -> int:
                             budget_s=budget,
                             rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
                             else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout,
-                            executor=executor)
+                            executor=executor, rerun_cases=_split(args.rerun_case))
         except ValueError as exc:
             return _error(str(exc))
     env = json.loads((out / "environment.json").read_text())
@@ -878,7 +921,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--out", help="output directory (default: reports/<run-id>/)")
     r.add_argument("--min-time", type=_seconds, default=None, help="seconds of timed calls per configuration "
                    "(default: the suite's, 0.05 quick, 0.1 full)")
-    r.add_argument("--max-time", type=_seconds, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
+    r.add_argument("--max-time", type=_seconds, default=None, help="seconds of timed calls per configuration at most "
+                   f"(default {DEFAULT_MAX_TIME_S:g}, or --min-time if larger; ≥ --min-time)")
     r.add_argument("--min-repeats", type=_int_at_least(1), default=None, help="timing samples per configuration at least "
                    "(default: the suite's, 3 quick, 5 full)")
     r.add_argument("--timeout", type=_seconds, default=120.0, help="hard limit per configuration in seconds; past it the "
@@ -890,7 +934,11 @@ def main(argv: list[str] | None = None) -> int:
                    "(deterministic, for baselines)")
     r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR, with the plan "
                    "options it recorded (--suite, --case, --method, --dtype, --backend, --cases, --threads, "
-                   "--allocator, --accuracy-only); the timing-sample options, --budget and --cluster are this session's")
+                   "--allocator, --accuracy-only, --no-claims, --no-stability); every case is checked against the content hash "
+                   "it was run with (see --rerun-case); the timing-sample options, --budget and --cluster are this session's")
+    r.add_argument("--rerun-case", action="append", metavar="GLOB", help="with --resume: run these cases (globs on "
+                   "ids, comma-separated) again from scratch when their content changed since the run started (their "
+                   "old rows are dropped); without it a changed case refuses the resume, naming it")
     r.add_argument("--rounds", type=_int_at_least(1), default=1, help="time the whole plan this many times, round after round, "
                    "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
     r.add_argument("--budget", type=_seconds, default=None, help="wall-clock guard against a hang, in seconds "
