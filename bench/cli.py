@@ -778,8 +778,12 @@ def cmd_extract(args) -> int:
     except ValueError as exc:
         return _error(str(exc))
     resolutions = tuple(args.resolution or (16, 32, 64, 128))
-    rows = extraction.run_extraction(cases, resolutions=resolutions, repeats=args.repeats, run_id=run_id,
-                                     progress=lambda line: print(line, flush=True))
+    from .heartbeat import Heartbeat
+
+    lines = _ProgressLines(periodic=False)
+    with Heartbeat(lines.line) as beat:  # a line as each configuration starts, and every 30 s of it
+        rows = extraction.run_extraction(cases, resolutions=resolutions, repeats=args.repeats, run_id=run_id,
+                                         progress=beat.say, stage=beat.stage)
     df = to_frame(rows)
     write_results(df, out)
     image = extraction.plot(df, out / "extraction.png")
@@ -856,37 +860,47 @@ def cmd_speed(args) -> int:
 
 
 def cmd_sampling(args) -> int:
+    """Samples per volume sampler to colour error targets (:mod:`bench.sampling`).  Every argument
+    is checked before the costly reference integrals (one ``error:`` line, exit 2); progress lines
+    come as each stage starts and at least every 30 s of it; ``--out`` is locked (a run directory
+    has one writer) for the whole command."""
     from . import sampling
     from .environment import ROOT
+    from .references import NotApplicable
 
-    cases = _split([args.case]) if args.case else list(sampling.DEFAULT_CASES)
+    cases = [c.strip() for c in args.case.split(",") if c.strip()] if args.case is not None \
+        else list(sampling.DEFAULT_CASES)
     try:
-        targets = tuple(float(t) for t in _split([args.targets])) if args.targets else sampling.DEFAULT_TARGETS
+        targets = (tuple(float(t) for t in args.targets.split(",") if t.strip()) if args.targets is not None
+                   else sampling.DEFAULT_TARGETS)
     except ValueError:
         return _error(f"--targets: {args.targets!r} must be comma-separated numbers, e.g. 1e-2,1e-3")
-    if not targets or not all(t > 0 for t in targets):
-        return _error(f"--targets: {args.targets!r} must be positive numbers")
-    from reference.cases import get_case
+    try:
+        sampling.check_arguments(cases, targets, args.sharpness)
+    except ValueError as exc:
+        return _error(str(exc))
+    lock = None
+    if args.out:
+        from .rundir import RunLock, make_dir
 
-    for cid in cases:
-        try:
-            get_case(cid)
-        except (KeyError, ValueError) as exc:
-            return _error(f"--case: {exc}")
-    df = sampling.sampling_table(cases, targets, density=args.density, sharpness=args.sharpness, max_rays=args.max_rays,
-                                 n_max=args.n_max, disk=ROOT / "reports" / ".refcache",
-                                 progress=None if args.quiet else (lambda line: print(line, flush=True)))
+        try:  # before minutes of work: a path that cannot be written, or a run directory being written
+            lock = RunLock(make_dir(Path(args.out))).acquire()
+        except ValueError as exc:
+            return _error(str(exc))
+        except OSError as exc:
+            return _error(f"--out: cannot lock {args.out}: {exc.strerror or exc}; pass a directory you can write")
+    lines = _ProgressLines(periodic=False)
+    try:
+        df = sampling.sampling_table(cases, targets, density=args.density, sharpness=args.sharpness,
+                                     max_rays=args.max_rays, n_max=args.n_max, disk=ROOT / "reports" / ".refcache",
+                                     progress=None if args.quiet else lines.line)
+    except NotApplicable as exc:  # e.g. a density model with no continuous integral at these settings
+        return _error(f"--case/--density/--sharpness: no rendering integral to sample towards: {exc}")
     print(sampling.markdown(df))
     if args.out:
         from .results import write_atomic
 
-        from .rundir import RunLock, make_dir
-
         out = Path(args.out)
-        try:  # a run directory's one writer: not while its run (or another study) writes it
-            lock = RunLock(make_dir(out)).acquire()
-        except (ValueError, OSError) as exc:
-            return _error(str(exc) if isinstance(exc, ValueError) else f"--out: cannot lock {out}: {exc}")
         write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
         print(f"wrote {out / sampling.FILE}")
         if (out / "environment.json").exists():  # a run directory: its report gains the section
@@ -1052,7 +1066,7 @@ def main(argv: list[str] | None = None) -> int:
     sm.add_argument("--case", help="case ids, comma-separated (default: sphere.camera.64x64,torus.camera.32x32)")
     sm.add_argument("--targets", help="colour error targets, comma-separated (default 1e-2,1e-3,1e-4)")
     sm.add_argument("--density", default="nerf", choices=("nerf", "volsdf", "neus"), help="density model (default nerf)")
-    sm.add_argument("--sharpness", type=float, default=50.0, help="density sharpness s (default 50)")
+    sm.add_argument("--sharpness", type=float, default=50.0, help="density sharpness s, finite and > 0 (default 50)")
     sm.add_argument("--max-rays", type=_int_at_least(1), default=64, help="reference rays per case (default 64)")
     sm.add_argument("--n-max", type=_int_at_least(4), default=4096, help="largest N searched (default 4096)")
     sm.add_argument("--out", help="write sampling.csv there; a run directory's report then shows the table")
@@ -1060,7 +1074,13 @@ def main(argv: list[str] | None = None) -> int:
     sm.set_defaults(fn=cmd_sampling)
 
     args = p.parse_args(argv)
-    return args.fn(args)
+    try:
+        return args.fn(args)
+    except BrokenPipeError:  # stdout closed early (`| head`): stop quietly, as a pipe's reader expects
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 1
 
 
 if __name__ == "__main__":
