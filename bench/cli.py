@@ -609,16 +609,6 @@ def cmd_claims(args) -> int:
     from .runner import new_run_id
     from .environment import collect
 
-    from .rundir import make_dir
-
-    out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
-    try:
-        make_dir(out)
-    except ValueError as exc:
-        return _error(str(exc))
-    held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
-    if held:
-        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     if args.only:
         from .claims import claim_ids
 
@@ -626,6 +616,18 @@ def cmd_claims(args) -> int:
         unknown = [i for i in args.only if i not in known]
         if unknown:
             return _error(f"--only: unknown claim id(s) {', '.join(unknown)}; known ids are {', '.join(known)}")
+    from .rundir import RunLock, make_dir
+
+    out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
+    try:  # created, and this process's alone until it exits (a run directory has one writer)
+        RunLock(make_dir(out)).acquire()
+    except ValueError as exc:
+        return _error(str(exc))
+    except OSError as exc:
+        return _error(f"--out: cannot lock {out}: {exc.strerror or exc}; pass a directory you can write")
+    held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
+    if held:
+        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     console = _console()
     note = run_claims_into(out, quick=not args.full, console=console, only=args.only)
     if not (out / "environment.json").exists():

@@ -126,7 +126,7 @@ def test_out_paths_that_cannot_be_directories_are_one_error_line(tmp_path, targe
 
 @pytest.mark.parametrize("argv", [
     lambda t: ["extract", "--case", "sphere.camera.64x64", "--resolution", "8", "--out", str(t / "f" / "sub")],
-    lambda t: ["claims", "--only", "2", "--out", str(t / "f" / "sub")],
+    lambda t: ["claims", "--only", "3", "--out", str(t / "f" / "sub")],
     lambda t: ["compare", str(ROOT / "reports" / "baseline"), str(ROOT / "reports" / "baseline"), "--out",
                str(t / "f" / "sub.csv")],
     lambda t: ["speed", "--backend", "numpy", "--side", "4", "--no-peers", "--repeats", "1", "--out",
