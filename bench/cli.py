@@ -371,7 +371,8 @@ def _empty_option(args, dests) -> str | None:
             continue
         items = _split(value) if isinstance(value, list) else [v for v in str(value).split(",") if v.strip()]
         if not items:
-            return (f"{_flag(dest)}: given empty ({value!r}); name what you mean (`python -m bench cases` / "
+            shown = ",".join(value) if isinstance(value, list) else value
+            return (f"{_flag(dest)}: given empty ({shown!r}); name what you mean (`python -m bench cases` / "
                     f"`backends` list them), or leave {_flag(dest)} out for the default")
     return None
 
@@ -392,13 +393,16 @@ def _contradictions(args) -> str | None:
 def _cmd_run(args, held: list) -> int:
     from .environment import configure_threads
 
-    err = _empty_option(args, LIST_OPTIONS) or _contradictions(args)
+    err = _empty_option(args, LIST_OPTIONS)
     if err:
         return _error(err)
     if args.resume and args.out:
         err = _restore_run_options(args)
         if err:
             return _error(err)
+    err = _contradictions(args)  # after the restore: a resumed plan's options count too
+    if err:
+        return _error(err)
 
     configure_threads(args.threads)  # before any array library is imported
     if args.allocator == "tuned":
