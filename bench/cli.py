@@ -8,7 +8,7 @@
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
                           [--allocator tuned|default] [--no-peers] [--volume [--samples 256]]
     python -m bench sampling [--case sphere.camera.64x64,torus.camera.32x32] [--targets 1e-2,1e-3,1e-4]
-    python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing]
+    python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing] [--min-comparable 1]
     python -m bench claims [--out DIR] [--full] [--only ID ...]
     python -m bench cases [--tag grazing]
     python -m bench backends
@@ -17,7 +17,8 @@
 Exit codes: 0 success; 1 the command ran but its answer is "no": a regression or an incomplete
 comparison (``compare``), a run that is incomplete (its ``--budget`` ran out) or in which no
 configuration ran (``run``), a claims check that failed (``claims``); 2 a usage error (a bad
-argument, an unknown backend, an ``--out`` that already holds results), reported as one line
+argument, an unknown backend, an ``--out`` that is not new or empty, a run directory another
+process is writing, a path that cannot be created), reported as one line
 ``error: …`` on stderr naming the argument and the fix.  Progress and summaries go to stdout,
 as lines when it is not a terminal (a live bar when it is).
 """
@@ -32,11 +33,8 @@ from pathlib import Path
 from .environment import ROOT
 
 DEFAULT_REPORTS = ROOT / "reports"
-
-#: files whose presence makes a directory a finished (or interrupted) run's: ``--out`` refuses it
-#: unless ``--resume`` (results are never overwritten; ``bench baseline`` rewrites its own folder)
-RUN_FILES = ("results.parquet", "results.csv", "environment.json", "claims.csv", "claims.md")
-
+#: ``bench run --max-time`` when not given (raised to ``--min-time`` when that is larger)
+DEFAULT_MAX_TIME_S = 5.0
 
 def _error(message: str, code: int = 2) -> int:
     """One line on stderr, ``error: …`` (argparse's style and exit code 2 for usage errors)."""
@@ -70,6 +68,17 @@ def _seconds(text: str) -> float:
     return v
 
 
+def _share(text: str) -> float:
+    """A share in (0, 1] (``--min-comparable``)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number; give a share in (0, 1], e.g. 0.9") from None
+    if not 0 < v <= 1:
+        raise argparse.ArgumentTypeError(f"must be a share in (0, 1] (1: every row of BASE), got {text}")
+    return v
+
+
 def _json_dict(text: str) -> dict:
     try:
         v = json.loads(text)
@@ -78,10 +87,6 @@ def _json_dict(text: str) -> dict:
     if not isinstance(v, dict):
         raise argparse.ArgumentTypeError(f"must be a JSON object of knob → value, got {type(v).__name__}")
     return v
-
-
-def _existing_run_files(out: Path) -> list[str]:
-    return [name for name in RUN_FILES if (out / name).exists()]
 
 
 def _resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
@@ -99,6 +104,19 @@ def _resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
     if unknown:
         return None, f"{flag}: " + "; ".join(b.reason for b in unknown)
     return backends, ""
+
+
+def _write_out_file(out: str, write) -> str:
+    """``write(path)`` for a file-valued ``--out``; "" or the error message naming ``--out`` (a
+    directory there, a parent that is a file, no permission)."""
+    path = Path(out)
+    if path.is_dir():
+        return f"--out: {path} is a directory; pass a file name"
+    try:
+        write(path)
+    except OSError as exc:
+        return f"--out: cannot write {path}: {exc.strerror or exc}; pass a file in a directory you can write"
+    return ""
 
 
 def _split(values: list[str] | None) -> list[str] | None:
@@ -270,20 +288,21 @@ def _start_executor(args, lines):
 
 
 def cmd_run(args) -> int:
-    held: list = []  # the cluster executor, once started: closed whatever happens
+    held: list = []  # the run directory's lock and the cluster executor, once taken: closed whatever happens
     try:
         return _cmd_run(args, held)
     finally:
-        for executor in held:
-            executor.close()
+        for thing in reversed(held):  # the executor, then the run directory's lock
+            thing.close()
 
 
 #: ``bench run`` options that define a run's plan and how its rows are measured: recorded in
 #: environment.json (``run_options``) and restored by ``--resume``, so a resumed run finishes the
-#: plan it started (``--case '*'`` stays the catalog sweep without retyping it).  The timing-sample
+#: plan it started, its stages (claims, stability) included (``--case '*'`` stays the catalog sweep without retyping it).  The timing-sample
 #: options (--min-time, --min-repeats, --max-time, --timeout, --rounds), --budget, --cluster and
 #: --scheduler are per session: a resume may change them, as the budget hint says.
-RESUMED_OPTIONS = ("suite", "case", "method", "dtype", "backend", "cases", "threads", "allocator", "accuracy_only")
+RESUMED_OPTIONS = ("suite", "case", "method", "dtype", "backend", "cases", "threads", "allocator", "accuracy_only",
+                   "no_claims", "no_stability")
 
 
 def _flag(dest: str) -> str:
@@ -292,8 +311,10 @@ def _flag(dest: str) -> str:
 
 def _shown(dest: str, value) -> str:
     """An option as the user would type it: ``--case 'box.*'``, ``--dtype 'float32,float64'``, ``no --case``."""
-    if value is None:
+    if value is None or value is False:
         return "no " + _flag(dest)
+    if value is True:
+        return _flag(dest)
     return f"{_flag(dest)} {','.join(value) if isinstance(value, list) else value!r}"
 
 
@@ -337,13 +358,51 @@ def _run_options(args, backend_ids) -> str:
     return json.dumps(rec, sort_keys=True)
 
 
+#: ``bench run`` options given as lists or globs: given, they must name something
+LIST_OPTIONS = ("case", "method", "dtype", "backend", "cases", "rerun_case")
+
+
+def _empty_option(args, dests) -> str | None:
+    """An error for the first of ``dests`` given but empty (``--method ''`` would otherwise mean
+    "all"), or None."""
+    for dest in dests:
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        items = _split(value) if isinstance(value, list) else [v for v in str(value).split(",") if v.strip()]
+        if not items:
+            shown = ",".join(value) if isinstance(value, list) else value
+            return (f"{_flag(dest)}: given empty ({shown!r}); name what you mean (`python -m bench cases` / "
+                    f"`backends` list them), or leave {_flag(dest)} out for the default")
+    return None
+
+
+def _contradictions(args) -> str | None:
+    """An error naming two ``bench run`` options that cannot both hold, or None."""
+    if args.min_time is not None and args.max_time is not None and args.min_time > args.max_time:
+        return (f"--min-time {args.min_time:g} and --max-time {args.max_time:g}: at least {args.min_time:g} s of "
+                f"timed calls cannot fit in at most {args.max_time:g} s; give --min-time ≤ --max-time")
+    if args.rounds > 1 and args.accuracy_only:
+        return (f"--rounds {args.rounds} and --accuracy-only: an accuracy-only run takes no timing samples to pool "
+                "over rounds; drop one")
+    if args.rerun_case and not args.resume:
+        return "--rerun-case without --resume: a new run runs every case anyway; add --resume --out DIR, or drop it"
+    return None
+
+
 def _cmd_run(args, held: list) -> int:
     from .environment import configure_threads
 
+    err = _empty_option(args, LIST_OPTIONS)
+    if err:
+        return _error(err)
     if args.resume and args.out:
         err = _restore_run_options(args)
         if err:
             return _error(err)
+    err = _contradictions(args)  # after the restore: a resumed plan's options count too
+    if err:
+        return _error(err)
 
     configure_threads(args.threads)  # before any array library is imported
     if args.allocator == "tuned":
@@ -377,12 +436,12 @@ def _cmd_run(args, held: list) -> int:
                       "`python -m bench cases` lists the cases")
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
-    if out.exists() and not out.is_dir():
-        return _error(f"--out: {out} is a file; pass a directory for the run's files")
-    held = _existing_run_files(out) if out.is_dir() else []
-    if held and not args.resume:
-        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. "
-                      "Pass another --out, or --resume to finish an interrupted run there.")
+    from .rundir import claim_out
+
+    try:  # this process is the run directory's one writer from here on (bench.rundir)
+        held.append(claim_out(out, resume=args.resume))
+    except ValueError as exc:  # OutError, LockHeld
+        return _error(str(exc))
     from impls import registry
 
     ids = _split(args.backend) or registry.default_ids()
@@ -397,8 +456,12 @@ def _cmd_run(args, held: list) -> int:
     try:
         min_time = suite.min_time_s if args.min_time is None else args.min_time
         min_repeats = suite.min_repeats if args.min_repeats is None else args.min_repeats
+        max_time = max(DEFAULT_MAX_TIME_S, min_time) if args.max_time is None else args.max_time
+        if min_time > max_time:  # a suite's --min-time above an explicit --max-time
+            return _error(f"--max-time {max_time:g}: below the suite's --min-time {min_time:g}; give --max-time ≥ "
+                          f"{min_time:g} or a smaller --min-time")
         policy = TimingPolicy(min_repeats=min_repeats, min_time_s=min_time, timeout_s=args.timeout,
-                              accuracy_only=args.accuracy_only, max_time_s=max(args.max_time, min_time))
+                              accuracy_only=args.accuracy_only, max_time_s=max_time)
     except ValueError as exc:
         return _error(str(exc))
     budget = suite.budget_s if args.budget is None else (args.budget or None)
@@ -426,7 +489,7 @@ def _cmd_run(args, held: list) -> int:
                             budget_s=budget,
                             rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
                             else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout,
-                            executor=executor)
+                            executor=executor, rerun_cases=_split(args.rerun_case))
         except ValueError as exc:
             return _error(str(exc))
     env = json.loads((out / "environment.json").read_text())
@@ -505,7 +568,9 @@ def cmd_compare(args) -> int:
     counts = {col: res[col].value_counts().to_dict() for col in ("accuracy", "timing")}
     worse = res[(res["accuracy"] == "worse") | ((res["timing"] == "worse") & args.timing)]
     if args.out:
-        write_text(Path(args.out), res.to_csv(index=False))
+        err = _write_out_file(args.out, lambda path: write_text(path, res.to_csv(index=False)))
+        if err:
+            return _error(err)
     if len(worse):
         from rich.markup import escape
 
@@ -525,6 +590,11 @@ def cmd_compare(args) -> int:
         problems.append(f"{len(missing)} rows of BASE are missing in NEW (e.g. {ex['case_id']} {ex['backend']} "
                         f"{ex['method']} {ex['knob']}): a truncated or partial run? Compare whole runs, or pass "
                         "--allow-missing to compare only the rows NEW has")
+    compared, gated = cmp.coverage(res, allow_missing=args.allow_missing)
+    console.print(f"compared: {compared} of {gated} rows of BASE")
+    short = cmp.coverage_problem(res, args.min_comparable, allow_missing=args.allow_missing)
+    if short:
+        problems.append(short)
     if len(worse):
         console.print(f"[red]{len(worse)} regression(s)[/]")
     for p in problems:
@@ -543,12 +613,6 @@ def cmd_claims(args) -> int:
     from .runner import new_run_id
     from .environment import collect
 
-    out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
-    if out.exists() and not out.is_dir():
-        return _error(f"--out: {out} is a file; pass a directory")
-    held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
-    if held:
-        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     if args.only:
         from .claims import claim_ids
 
@@ -556,6 +620,18 @@ def cmd_claims(args) -> int:
         unknown = [i for i in args.only if i not in known]
         if unknown:
             return _error(f"--only: unknown claim id(s) {', '.join(unknown)}; known ids are {', '.join(known)}")
+    from .rundir import RunLock, make_dir
+
+    out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
+    try:  # created, and this process's alone until it exits (a run directory has one writer)
+        RunLock(make_dir(out)).acquire()
+    except ValueError as exc:
+        return _error(str(exc))
+    except OSError as exc:
+        return _error(f"--out: cannot lock {out}: {exc.strerror or exc}; pass a directory you can write")
+    held = [n for n in ("claims.csv", "claims.md") if (out / n).exists()]
+    if held:
+        return _error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     console = _console()
     note = run_claims_into(out, quick=not args.full, console=console, only=args.only)
     if not (out / "environment.json").exists():
@@ -692,18 +768,28 @@ def cmd_extract(args) -> int:
 
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / f"extract-{run_id}"
-    if out.exists() and any(out.iterdir()):
-        return _error(f"--out: {out} is not empty; results are never overwritten, pass another --out")
     if args.case:
-        cases = catalog(args.case)
+        try:
+            cases = catalog(args.case)
+        except ValueError as exc:
+            return _error(f"--case: {exc}")
         if not cases:
             return _error(f"--case: no case matches {args.case!r}; `python -m bench cases` lists them")
     else:
         cases = None
+    from .rundir import claim_out
+
+    try:
+        lock = claim_out(out)  # new or empty, created, and this process's alone until it exits
+    except ValueError as exc:
+        return _error(str(exc))
     resolutions = tuple(args.resolution or (16, 32, 64, 128))
-    rows = extraction.run_extraction(cases, resolutions=resolutions, repeats=args.repeats, run_id=run_id,
-                                     progress=lambda line: print(line, flush=True))
-    out.mkdir(parents=True, exist_ok=True)
+    from .heartbeat import Heartbeat
+
+    lines = _ProgressLines(periodic=False)
+    with Heartbeat(lines.line) as beat:  # a line as each configuration starts, and every 30 s of it
+        rows = extraction.run_extraction(cases, resolutions=resolutions, repeats=args.repeats, run_id=run_id,
+                                         progress=beat.say, stage=beat.stage)
     df = to_frame(rows)
     write_results(df, out)
     image = extraction.plot(df, out / "extraction.png")
@@ -711,6 +797,7 @@ def cmd_extract(args) -> int:
     write_atomic(out / "extraction.md", lambda tmp: Path(tmp).write_text(md, encoding="utf-8"))
     print(md)
     print(f"wrote {out / 'results.csv'}, {out / 'extraction.md'}" + (f", {image}" if image else ""))
+    lock.release()
     return 0
 
 
@@ -751,7 +838,9 @@ def cmd_speed(args) -> int:
         if args.out:
             from .results import write_json
 
-            write_json(Path(args.out), rows)
+            err = _write_out_file(args.out, lambda path: write_json(path, rows))
+            if err:
+                return _error(err)
         return 0
     notes: list[str] = []
     rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {},
@@ -770,37 +859,54 @@ def cmd_speed(args) -> int:
     if args.out:
         from .results import write_json
 
-        write_json(Path(args.out), rows)
+        err = _write_out_file(args.out, lambda path: write_json(path, rows))
+        if err:
+            return _error(err)
     return 0
 
 
 def cmd_sampling(args) -> int:
+    """Samples per volume sampler to colour error targets (:mod:`bench.sampling`).  Every argument
+    is checked before the costly reference integrals (one ``error:`` line, exit 2); progress lines
+    come as each stage starts and at least every 30 s of it; ``--out`` is locked (a run directory
+    has one writer) for the whole command."""
     from . import sampling
     from .environment import ROOT
+    from .references import NotApplicable
 
-    cases = _split([args.case]) if args.case else list(sampling.DEFAULT_CASES)
+    cases = [c.strip() for c in args.case.split(",") if c.strip()] if args.case is not None \
+        else list(sampling.DEFAULT_CASES)
     try:
-        targets = tuple(float(t) for t in _split([args.targets])) if args.targets else sampling.DEFAULT_TARGETS
+        targets = (tuple(float(t) for t in args.targets.split(",") if t.strip()) if args.targets is not None
+                   else sampling.DEFAULT_TARGETS)
     except ValueError:
         return _error(f"--targets: {args.targets!r} must be comma-separated numbers, e.g. 1e-2,1e-3")
-    if not targets or not all(t > 0 for t in targets):
-        return _error(f"--targets: {args.targets!r} must be positive numbers")
-    from reference.cases import get_case
+    try:
+        sampling.check_arguments(cases, targets, args.sharpness)
+    except ValueError as exc:
+        return _error(str(exc))
+    lock = None
+    if args.out:
+        from .rundir import RunLock, make_dir
 
-    for cid in cases:
-        try:
-            get_case(cid)
-        except (KeyError, ValueError) as exc:
-            return _error(f"--case: {exc}")
-    df = sampling.sampling_table(cases, targets, density=args.density, sharpness=args.sharpness, max_rays=args.max_rays,
-                                 n_max=args.n_max, disk=ROOT / "reports" / ".refcache",
-                                 progress=None if args.quiet else (lambda line: print(line, flush=True)))
+        try:  # before minutes of work: a path that cannot be written, or a run directory being written
+            lock = RunLock(make_dir(Path(args.out))).acquire()
+        except ValueError as exc:
+            return _error(str(exc))
+        except OSError as exc:
+            return _error(f"--out: cannot lock {args.out}: {exc.strerror or exc}; pass a directory you can write")
+    lines = _ProgressLines(periodic=False)
+    try:
+        df = sampling.sampling_table(cases, targets, density=args.density, sharpness=args.sharpness,
+                                     max_rays=args.max_rays, n_max=args.n_max, disk=ROOT / "reports" / ".refcache",
+                                     progress=None if args.quiet else lines.line)
+    except NotApplicable as exc:  # e.g. a density model with no continuous integral at these settings
+        return _error(f"--case/--density/--sharpness: no rendering integral to sample towards: {exc}")
     print(sampling.markdown(df))
     if args.out:
         from .results import write_atomic
 
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
         print(f"wrote {out / sampling.FILE}")
         if (out / "environment.json").exists():  # a run directory: its report gains the section
@@ -808,6 +914,7 @@ def cmd_sampling(args) -> int:
 
             build_from_dir(out)
             print(f"rebuilt {out / 'report.html'}")
+        lock.release()
     return 0
 
 
@@ -834,7 +941,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--out", help="output directory (default: reports/<run-id>/)")
     r.add_argument("--min-time", type=_seconds, default=None, help="seconds of timed calls per configuration "
                    "(default: the suite's, 0.05 quick, 0.1 full)")
-    r.add_argument("--max-time", type=_seconds, default=5.0, help="seconds of timed calls per configuration at most (default 5)")
+    r.add_argument("--max-time", type=_seconds, default=None, help="seconds of timed calls per configuration at most "
+                   f"(default {DEFAULT_MAX_TIME_S:g}, or --min-time if larger; ≥ --min-time)")
     r.add_argument("--min-repeats", type=_int_at_least(1), default=None, help="timing samples per configuration at least "
                    "(default: the suite's, 3 quick, 5 full)")
     r.add_argument("--timeout", type=_seconds, default=120.0, help="hard limit per configuration in seconds; past it the "
@@ -846,7 +954,11 @@ def main(argv: list[str] | None = None) -> int:
                    "(deterministic, for baselines)")
     r.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR, with the plan "
                    "options it recorded (--suite, --case, --method, --dtype, --backend, --cases, --threads, "
-                   "--allocator, --accuracy-only); the timing-sample options, --budget and --cluster are this session's")
+                   "--allocator, --accuracy-only, --no-claims, --no-stability); every case is checked against the content hash "
+                   "it was run with (see --rerun-case); the timing-sample options, --budget and --cluster are this session's")
+    r.add_argument("--rerun-case", action="append", metavar="GLOB", help="with --resume: run these cases (globs on "
+                   "ids, comma-separated) again from scratch when their content changed since the run started (their "
+                   "old rows are dropped); without it a changed case refuses the resume, naming it")
     r.add_argument("--rounds", type=_int_at_least(1), default=1, help="time the whole plan this many times, round after round, "
                    "and pool the samples (robust run-to-run timing comparisons on a shared machine; default 1)")
     r.add_argument("--budget", type=_seconds, default=None, help="wall-clock guard against a hang, in seconds "
@@ -884,6 +996,10 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--out", help="write the comparison table as csv")
     c.add_argument("--allow-missing", action="store_true", help="pass although rows of BASE are missing in NEW "
                    "(comparing a partial selection on purpose); by default missing rows fail the comparison")
+    c.add_argument("--min-comparable", type=_share, default=1.0, metavar="SHARE",
+                   help="fail unless at least this share of BASE's rows were compared (not 'not comparable': "
+                   "a changed case version, a row over a time budget); default 1 (all); a comparison of no row "
+                   "always fails")
     c.set_defaults(fn=cmd_compare)
 
     cl = sub.add_parser("claims", help="check the lecture's claims; writes claims.csv, plots and a report")
@@ -956,7 +1072,7 @@ def main(argv: list[str] | None = None) -> int:
     sm.add_argument("--case", help="case ids, comma-separated (default: sphere.camera.64x64,torus.camera.32x32)")
     sm.add_argument("--targets", help="colour error targets, comma-separated (default 1e-2,1e-3,1e-4)")
     sm.add_argument("--density", default="nerf", choices=("nerf", "volsdf", "neus"), help="density model (default nerf)")
-    sm.add_argument("--sharpness", type=float, default=50.0, help="density sharpness s (default 50)")
+    sm.add_argument("--sharpness", type=float, default=50.0, help="density sharpness s, finite and > 0 (default 50)")
     sm.add_argument("--max-rays", type=_int_at_least(1), default=64, help="reference rays per case (default 64)")
     sm.add_argument("--n-max", type=_int_at_least(4), default=4096, help="largest N searched (default 4096)")
     sm.add_argument("--out", help="write sampling.csv there; a run directory's report then shows the table")
@@ -964,7 +1080,13 @@ def main(argv: list[str] | None = None) -> int:
     sm.set_defaults(fn=cmd_sampling)
 
     args = p.parse_args(argv)
-    return args.fn(args)
+    try:
+        return args.fn(args)
+    except BrokenPipeError:  # stdout closed early (`| head`): stop quietly, as a pipe's reader expects
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 1
 
 
 if __name__ == "__main__":

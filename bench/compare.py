@@ -26,7 +26,9 @@ Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantit
 when it would gate fewer rows than BASE holds: rows of BASE ``missing`` in NEW (a truncated or
 partial run; ``--allow-missing`` accepts a partial selection on purpose), or either side
 incomplete (``complete: "false"`` in its environment.json, or rows not measured because a run's
-time budget ran out).  ``new`` rows never fail.
+time budget ran out).  ``new`` rows never fail.  It also fails when fewer than
+``--min-comparable`` (default 1: all) of BASE's rows got an accuracy verdict (:func:`coverage`):
+a gate that compared nothing (every case version changed) is not a pass.
 """
 
 from __future__ import annotations
@@ -178,3 +180,40 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
         rows.append({**key, "accuracy": acc, "error_base": b.get("error_max"), "error_new": n.get("error_max"),
                      "timing": tv, "time_ratio": ratio, "p_value": p, "note": note})
     return pd.DataFrame(rows)
+
+
+#: accuracy verdicts that compared a row (``missing``, ``new`` and ``not comparable`` did not)
+COMPARED = frozenset({"same", "better", "worse"})
+
+
+def coverage(res: pd.DataFrame, *, allow_missing: bool = False) -> tuple[int, int]:
+    """(compared, gated): how many of BASE's rows got an accuracy verdict (:data:`COMPARED`) and
+    how many were to be gated — every row of BASE, less those ``missing`` in NEW when
+    ``allow_missing`` (a partial selection compared on purpose).  ``new`` rows are not BASE's."""
+    acc = res["accuracy"] if len(res) else pd.Series(dtype=str)
+    of_base = acc[acc != "new"]
+    gated = of_base[of_base != "missing"] if allow_missing else of_base
+    return int(gated.isin(COMPARED).sum()), int(len(gated))
+
+
+def coverage_problem(res: pd.DataFrame, min_share: float = 1.0, *, allow_missing: bool = False) -> str:
+    """Why the comparison gated too little ("" when it did not): fewer than ``min_share`` (in
+    (0, 1]) of the rows :func:`coverage` counts were compared, or none at all (a comparison of
+    nothing never passes, whatever ``min_share``).  Names the count and the commonest reason."""
+    if not 0 < min_share <= 1:
+        raise ValueError(f"--min-comparable must be a share in (0, 1], got {min_share}")
+    compared, gated = coverage(res, allow_missing=allow_missing)
+    if gated and compared >= min_share * gated and compared > 0:
+        return ""
+    acc = res["accuracy"] if len(res) else pd.Series(dtype=str)
+    not_cmp = res[acc == "not comparable"]
+    why = ""
+    if len(not_cmp) and "note" in not_cmp:
+        notes = not_cmp["note"].fillna("").astype(str)
+        top = notes.str.replace(r"case version .*", "case version changed", regex=True).value_counts()
+        if len(top) and top.index[0]:
+            why = f"; most not comparable because: {top.index[0]} ({int(top.iloc[0])} rows)"
+    share = f"{100 * compared / gated:.1f} %" if gated else "0 %"
+    return (f"only {compared} of {gated} rows of BASE were comparable ({share}; required: "
+            f"{100 * min_share:g} %){why}: a gate that compares less than that proves nothing. Regenerate BASE "
+            "for the changed cases (python -m bench baseline), or pass --min-comparable SHARE to accept fewer")

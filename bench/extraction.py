@@ -148,7 +148,7 @@ def _iqr(a) -> float:
 
 
 def run_extraction(cases: Iterable | None = None, resolutions=(16, 32, 64, 128), repeats: int = 3, *,
-                   run_id: str = "", progress=None) -> list[dict]:
+                   run_id: str = "", progress=None, stage=None) -> list[dict]:
     """Marching cubes at each resolution on each case's scene, scored and timed: a list of
     result rows (:mod:`bench.results` schema; module docstring for the columns).
 
@@ -157,7 +157,10 @@ def run_extraction(cases: Iterable | None = None, resolutions=(16, 32, 64, 128),
     ``skipped`` and the reason; a case that raises gives outcome ``failed`` rows with the
     traceback, for that resolution, and the others go on.  ``repeats`` ≥ 1 timed extractions per
     resolution (the error is measured once, on the first: the mesh is deterministic).
-    ``progress``: called with a one-line string per configuration."""
+    ``progress``: called with a one-line string per configuration, when it is done; ``stage``
+    (default ``progress``): with one as it starts (a :meth:`bench.heartbeat.Heartbeat.stage`
+    keeps saying it while a slow one runs)."""
+    stage = stage or progress
     if not isinstance(repeats, (int, np.integer)) or repeats < 1:
         raise ValueError(f"repeats must be an integer ≥ 1, got {repeats!r}")
     res = [int(r) for r in resolutions]
@@ -183,6 +186,9 @@ def run_extraction(cases: Iterable | None = None, resolutions=(16, 32, 64, 128),
             continue
         for n in res:
             base = _base(case, n, run_id)
+            if stage:
+                stage(f"extract {case.id} N={n}: φ on {n}³ points and marching cubes ×{repeats}, then the distances "
+                      "to the exact surface")
             try:
                 runs = [extract(case.scene, n) for _ in range(repeats)]
                 first = runs[0]

@@ -492,6 +492,30 @@ def _one_per_family(cases: list, lead: tuple[str, ...] = (), shift: int = 0) -> 
     return out
 
 
+def check_case_versions(previous, cfgs: list[Config], rerun_cases: list[str] | None = None):
+    """The rows of a resumed run that may be kept: every planned case's recorded ``case_version``
+    must be its version now (its content hash, :attr:`reference.cases.Case.version`), else the
+    finished run would mix rows of two versions of one case (an unseeded user factory, an edited
+    module).  A changed case matching a glob of ``rerun_cases`` has its old rows dropped (it runs
+    again, whole); any other is a ValueError naming it, both versions and the fix.  Returns
+    ``previous`` less the dropped rows."""
+    if previous is None or not len(previous) or "case_version" not in previous.columns:
+        return previous
+    now = {c.case.id: str(c.case.version) for c in cfgs}
+    recorded = previous.groupby("case_id")["case_version"].agg(lambda v: sorted(set(map(str, v))))
+    changed = {cid: vs for cid, vs in recorded.items() if cid in now and vs != [now[cid]]}
+    rerun = {cid for cid in changed if any(fnmatch.fnmatchcase(cid, g) for g in rerun_cases or ())}
+    refused = sorted(set(changed) - rerun)
+    if refused:
+        shown = "; ".join(f"{cid} (recorded version {', '.join(changed[cid])}, now {now[cid]}: "
+                          f"{int((previous['case_id'] == cid).sum())} rows)" for cid in refused[:5])
+        more = f" and {len(refused) - 5} more" if len(refused) > 5 else ""
+        raise ValueError(f"--resume: {len(refused)} case(s) changed since the run started: {shown}{more}; their rows "
+                         f"would mix two versions of one case. Pass --rerun-case '{','.join(refused[:5])}' to drop "
+                         "their rows and run them again, or start a new run with another --out")
+    return previous[~previous["case_id"].isin(rerun)] if rerun else previous
+
+
 def _done_keys(df) -> set[tuple]:
     if df is None or not len(df):
         return set()
@@ -531,7 +555,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
         run_id: str | None = None, progress: Callable[..., None] | None = None,
         resume: bool = False, flush_s: float = 1.0, env_extra: dict | None = None,
         budget_s: float | None = None, rounds: int = 1, reference_cache_dir: Path | None = None,
-        reference_timeout_s: float = 30.0, executor: Any = None) -> "Any":
+        reference_timeout_s: float = 30.0, executor: Any = None, rerun_cases: list[str] | None = None) -> "Any":
     """Run the plan, writing ``results.*`` and ``environment.json`` to ``out_dir``; returns the frame.
 
     ``resume``: ``out_dir`` holds a partial run; its rows are kept, its run id reused, and only
@@ -557,6 +581,9 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     the rows kept, the files written and the budget's rules are the same, and this process stays
     the one writer of the run directory.  Each row records ``machine_key`` (and ``task_s``, the
     configuration's wall seconds on its process).
+    ``rerun_cases`` (globs on case ids; resume only): cases whose content changed since the run
+    started are run again, their old rows dropped; any other changed case refuses the resume
+    (:func:`check_case_versions`).
     """
     if rounds < 1:
         raise ValueError(f"--rounds must be ≥ 1, got {rounds}")
@@ -599,8 +626,10 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
             env.update(_versions(bid, b))
             if environment.driver_record(b):
                 env[f"backend.{bid}.driver"] = environment.driver_record(b)
-    write_json(out_dir / "environment.json", env)
     cfgs = plan(suite, list(backends), case_pattern, methods, dtypes)
+    if previous is not None:  # before the first write: a refused resume leaves the run as it was
+        previous = check_case_versions(previous, cfgs, rerun_cases)
+    write_json(out_dir / "environment.json", env)
     if not cfgs:
         raise ValueError(f"nothing to run: no case matches {case_pattern or suite.case_pattern!r} "
                          f"(tags {list(suite.case_tags)}) or no method matches --method; "

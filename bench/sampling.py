@@ -100,21 +100,65 @@ def smallest_n(error: Callable[[int], float], target: float, n_min: int = 4, n_m
     return found, found_e, best
 
 
+def check_arguments(case_ids, targets, sharpness: float) -> None:
+    """ValueError naming the argument (``--case``, ``--targets``, ``--sharpness``) when
+    :func:`sampling_table` could not run on them: no case, a case without a colour field ρ,
+    targets that are not finite and > 0, a sharpness that is not finite and > 0 (the density
+    s·sigmoid(−sφ) needs one).  Checked before anything costly runs."""
+    from reference.cases import get_case
+
+    if not list(case_ids):
+        raise ValueError("--case: no case given; name case ids, e.g. sphere.camera.64x64")
+    if not list(targets) or not all(math.isfinite(t) and t > 0 for t in targets):
+        raise ValueError(f"--targets: {list(targets)} must be finite numbers > 0, e.g. 1e-2,1e-3")
+    if not (math.isfinite(sharpness) and sharpness > 0):
+        raise ValueError(f"--sharpness: must be a finite number > 0 (the density's s), got {sharpness}")
+    for cid in case_ids:
+        try:
+            case = get_case(cid)
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"--case: {exc}") from None
+        if getattr(case, "color_field", None) is None:
+            raise ValueError(f"--case: {cid} has no colour field ρ, so it has no rendering integral to sample "
+                             "towards; pick a case with one (e.g. sphere.camera.64x64)")
+
+
 def sampling_table(case_ids=DEFAULT_CASES, targets=DEFAULT_TARGETS, *, density: str = "nerf",
                    sharpness: float = 50.0, variants=VARIANTS, n_min: int = 4, n_max: int = 4096, bisect: bool = True,
                    max_rays: int = 64, backend: str = "numpy", disk=None,
-                   progress: Callable[[str], None] | None = None) -> pd.DataFrame:
-    """One row per case × ray set × sampler × target (columns in the module docstring)."""
+                   progress: Callable[[str], None] | None = None, every_s: float = 30.0) -> pd.DataFrame:
+    """One row per case × ray set × sampler × target (columns in the module docstring).
+    ``progress(line)``: a line as each stage starts (a case's reference integral, each sampler's
+    search) and at least every ``every_s`` seconds while one runs (:class:`bench.heartbeat.Heartbeat`).
+    Arguments are checked first (:func:`check_arguments`); a reference the case cannot give is a
+    :class:`bench.references.NotApplicable` naming the case."""
     from reference.cases import get_case
 
+    from .heartbeat import Heartbeat
+
+    check_arguments(case_ids, targets, sharpness)
+    with Heartbeat(progress, every_s) as beat:
+        return _table(case_ids, targets, density, sharpness, variants, n_min, n_max, bisect, max_rays, backend, disk,
+                      beat, get_case)
+
+
+def _table(case_ids, targets, density, sharpness, variants, n_min, n_max, bisect, max_rays, backend, disk, beat,
+           get_case) -> pd.DataFrame:
+    """:func:`sampling_table`'s work, each stage announced on ``beat``."""
+    from .references import reference_rays
+
     rows = []
-    for cid in case_ids:
+    for k, cid in enumerate(case_ids, 1):
         case = get_case(cid)
+        beat.stage(f"sampling {cid} ({k}/{len(case_ids)}): the rendering integral on "
+                   f"{reference_rays(case.n_rays, max_rays).size} rays ({density}, s = {sharpness:g}; minutes for "
+                   "a mesh or a kinked field, cached in reports/.refcache)")
         errs = ColourErrors(case, density, sharpness, max_rays, backend, disk)
         for rayset, mask in errs.rays.items():
             if not mask.any():
                 continue
             for label, sampler, knobs in variants:
+                beat.stage(f"sampling {cid} · {rayset} · {label}: searching N for {len(targets)} target(s)")
                 extra = int(knobs.get("n_coarse", 32)) if sampler == "importance" else 0
                 for target in targets:
                     def error(n, sampler=sampler, knobs=knobs, mask=mask):
@@ -125,8 +169,7 @@ def sampling_table(case_ids=DEFAULT_CASES, targets=DEFAULT_TARGETS, *, density: 
                                  "target": target, "N": n, "samples": None if n is None else n + extra,
                                  "error_at_N": e_n, "best_error": best, "density": density, "sharpness": sharpness,
                                  "reference_bound": errs.reference_bound})
-                if progress:
-                    progress(f"{cid} · {rayset} · {label}: done")
+                beat.say(f"sampling {cid} · {rayset} · {label}: done")
     df = pd.DataFrame(rows)
     uni = df[df["sampler"] == "uniform"].set_index(["case_id", "rays", "target"])["samples"]
     key = list(zip(df["case_id"], df["rays"], df["target"]))

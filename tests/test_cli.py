@@ -264,6 +264,18 @@ def _garbage_csv(tmp_path):
     return tmp_path / "garbage.csv"
 
 
+def _all_versions_changed(tmp_path):
+    """The baseline with every case_version changed and every error raised to 10: nothing is
+    comparable (issue 33, finding 1)."""
+    d = tmp_path / "changed"
+    shutil.copytree(ROOT / "reports" / "baseline", d)
+    df = pd.read_csv(d / "results.csv")
+    df["case_version"] = "0123456789ab"
+    df["error_max"] = 10.0
+    df.to_csv(d / "results.csv", index=False)
+    return d
+
+
 def _baseline_copy(tmp_path):
     shutil.copytree(ROOT / "reports" / "baseline", tmp_path / "b")
     return tmp_path / "b"
@@ -289,6 +301,19 @@ USER_ERRORS = {
     "run that spends its --budget": (
         lambda t: ["run", "--backend", "numpy,tests.test_bench_fakes:SleepyBackend", "--budget", "2", "--out",
                    str(t / "o"), *ONE], 1, "INCOMPLETE"),
+    # issue 33, finding 8: contradictory or empty options are refused, naming them
+    "run --min-time 10 --max-time 1": (lambda t: ["run", "--min-time", "10", "--max-time", "1", "--out",
+                                                  str(t / "o"), *ONE], 2, "--min-time 10 and --max-time 1"),
+    "run --max-time below the suite's --min-time": (lambda t: ["run", "--max-time", "0.01", "--out", str(t / "o"),
+                                                               "--case", "sphere.camera.64x64"], 2, "--max-time"),
+    "run --method ''": (lambda t: ["run", "--method", "", "--out", str(t / "o")], 2, "--method"),
+    "run --backend ','": (lambda t: ["run", "--backend", ",", "--out", str(t / "o")], 2, "--backend"),
+    "run --case ''": (lambda t: ["run", "--case", "", "--out", str(t / "o")], 2, "--case"),
+    "run --dtype ''": (lambda t: ["run", "--dtype", "", "--out", str(t / "o")], 2, "--dtype"),
+    "run --rounds 3 --accuracy-only": (lambda t: ["run", "--rounds", "3", "--out", str(t / "o"), *ONE], 2,
+                                       "--rounds 3 and --accuracy-only"),
+    "run --rerun-case without --resume": (lambda t: ["run", "--rerun-case", "user.*", "--out", str(t / "o")], 2,
+                                          "--rerun-case"),
     "report on a missing directory": (lambda t: ["report", str(t / "nope")], 2, "RUN_DIR"),
     "report on a corrupt parquet": (lambda t: ["report", str(_corrupt_run(t))], 2, "RUN_DIR"),
     "compare with a garbage results.csv": (lambda t: ["compare", BASELINE, str(_garbage_csv(t))], 2, "BASE/NEW"),
@@ -296,6 +321,10 @@ USER_ERRORS = {
                                                  "missing in NEW"),
     "compare against an incomplete run": (lambda t: ["compare", BASELINE, str(_incomplete_copy(t))], 1,
                                           "NEW is an incomplete run"),
+    "compare where no row is comparable": (lambda t: ["compare", BASELINE, str(_all_versions_changed(t))], 1,
+                                           "were comparable"),
+    "compare --min-comparable 0": (lambda t: ["compare", BASELINE, BASELINE, "--min-comparable", "0"], 2,
+                                   "--min-comparable"),
     "speed --side 0": (lambda t: ["speed", "--side", "0"], 2, "--side"),
     "speed --knobs '{bad json'": (lambda t: ["speed", "--knobs", "{bad json"], 2, "--knobs"),
     "speed --backend nosuch": (lambda t: ["speed", "--backend", "nosuch", "--side", "4"], 2, "--backend"),

@@ -105,3 +105,35 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match="lack columns"):
         compare(pd.DataFrame({"x": [1]}), rows())
     assert set(COLUMNS) >= {"quantity", "error_ulps_max"}
+
+
+def test_a_comparison_of_nothing_does_not_pass():
+    """Finding 1 of issue 33: every case version changed, so no row was compared; with the
+    default rule (all of BASE compared) that is a failure naming the count, never a pass."""
+    from bench.compare import coverage, coverage_problem
+
+    base, new = rows(version="v1"), rows(version="v2", err=10.0)
+    res = compare(base, new)
+    assert coverage(res) == (0, 6)
+    why = coverage_problem(res)
+    assert "only 0 of 6 rows of BASE were comparable" in why and "case version changed (6 rows)" in why
+    assert "0 of 6" in coverage_problem(res, 0.01)  # no share lets nothing pass
+
+
+def test_the_comparable_share_is_a_stated_threshold():
+    from bench.compare import coverage, coverage_problem
+
+    base = rows(n=10)
+    new = rows(n=10, seed=1)
+    new.loc[:2, "case_version"] = "v2"  # 3 of 10 cases changed
+    res = compare(base, new)
+    assert coverage(res) == (7, 10)
+    assert "only 7 of 10" in coverage_problem(res)  # default: all
+    assert coverage_problem(res, 0.7) == "" and "only 7 of 10" in coverage_problem(res, 0.71)
+    # rows missing in NEW count against the share, unless a partial selection is allowed
+    res = compare(base, new.iloc[5:])
+    assert coverage(res) == (5, 10) and coverage(res, allow_missing=True) == (5, 5)
+    assert coverage_problem(res, allow_missing=True) == ""
+    assert "0 of 0" in coverage_problem(compare(base, new.iloc[:0]), allow_missing=True)
+    with pytest.raises(ValueError, match="--min-comparable"):
+        coverage_problem(res, 0.0)

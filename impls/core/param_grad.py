@@ -46,7 +46,10 @@ def theta0(backend, scene, like):
 def _guard(xp, status, g, d, min_cos):
     gd = xp.sum(g * d, axis=-1)
     cos = gd / xp.sqrt(xp.sum(g * g, axis=-1))
-    return gd, xp.astype(xp.where((status == CONV) & ~(xp.abs(cos) >= min_cos), ILL, status), xp.int32)
+    # grazing where cos is a number below min_cos; a NaN cos (∇φ not finite, or zero) is left to
+    # ``finish``, which makes it NON_FINITE (ILL_CONDITIONED keeps its value, so a NaN there would
+    # be a NaN under a status that promises a value)
+    return gd, xp.astype(xp.where((status == CONV) & (xp.abs(cos) < min_cos), ILL, status), xp.int32)
 
 
 def _finish_dt(xp, status, dt, t, cost):
@@ -109,7 +112,7 @@ def dt_unrolled(backend, scene, o, d, *, t_min, t_max, t_hit, steps, min_cos):
 
     th0 = theta0(backend, scene, o)
     t = t_of(th0)
-    far = ~(t <= t_max)  # left the range, or NaN
+    far = t > t_max  # left the range (a NaN depth is not a miss: hit_points makes it NON_FINITE)
     x, status = hit_points(xp, o, d, xp.where(far, xp.full_like(t, float("inf")), t))
     status = xp.astype(xp.where((status == CONV) & far, MISS, status), xp.int32)
     reached = xp.abs(scene.value(x, xp)) * inv_lip <= UNROLLED_TOL

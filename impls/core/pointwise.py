@@ -15,22 +15,28 @@ lecture 'Properties - Normal' and 'Mean Curvature'):
 * ``gaussian_curvature``  K = κ1κ2 = ∇φᵀ adj(H) ∇φ / |∇φ|⁴, adj the adjugate (cofactor matrix of
   the symmetric H).
 
-Status per ray: CONVERGED where the outputs are finite; MISS where t_hit is not finite (no
-hit to evaluate at; outputs NaN); BAD_INPUT for a non-finite ray or a zero direction (every
-float output NaN, ``t`` included); NON_FINITE where ∇φ is not finite or zero.
+Status per ray, with the values of the README's table (:func:`finish`): CONVERGED where the
+outputs are finite; MISS where t_hit is +inf (no hit to evaluate at: ``t = inf``, outputs NaN);
+NON_FINITE where t_hit is NaN or −inf (a depth that is no number: what a root finder reports
+for NON_FINITE, BAD_INPUT or LIPSCHITZ_VIOLATED) or ∇φ is not finite or zero (``t`` and every
+output NaN); BAD_INPUT for a non-finite ray or a zero direction (every float output NaN, ``t``
+included).
 """
 
 from __future__ import annotations
 
-from .rootfind import BAD, CONV, MISS, NONF, bad_rays
+import math
+
+from .rootfind import BAD, CONV, MISS, NONF, bad_rays, final_t
 
 
 def hit_points(xp, o, d, t_hit):
     """x = o + t d where t_hit is finite (0 elsewhere, so nothing non-finite is evaluated) and the
-    initial status of every ray."""
+    initial status of every ray: CONVERGED, MISS where t_hit = +inf, NON_FINITE where it is NaN
+    or −inf, BAD_INPUT for a non-finite ray."""
     ok_t = xp.isfinite(t_hit)
     t = xp.where(ok_t, t_hit, xp.zeros_like(t_hit))
-    status = xp.where(ok_t, CONV, MISS)
+    status = xp.where(ok_t, CONV, xp.where(t_hit == math.inf, MISS, NONF))
     status = xp.astype(xp.where(bad_rays(xp, o, d), BAD, status), xp.int32)
     o = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
     d = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
@@ -39,7 +45,9 @@ def hit_points(xp, o, d, t_hit):
 
 def finish(xp, status, values: dict, t_hit, cost):
     """Mark non-finite outputs NON_FINITE, blank outputs of rays that are not CONVERGED (NaN);
-    ``t`` is ``t_hit`` except on BAD_INPUT rays, where it is NaN like every other output."""
+    ``t`` as a root finder reports it (:func:`impls.core.rootfind.final_t`): ``inf`` on MISS, NaN
+    on NON_FINITE and BAD_INPUT (like every other output), ``t_hit`` otherwise (ILL_CONDITIONED
+    and MAX_ITER keep their value, :mod:`impls.core.param_grad`)."""
     finite = None
     for v in values.values():
         f = xp.isfinite(v) if v.ndim == 1 else xp.all(xp.isfinite(v), axis=tuple(range(1, v.ndim)))
@@ -50,8 +58,7 @@ def finish(xp, status, values: dict, t_hit, cost):
     for k, v in values.items():
         mask = ok if v.ndim == 1 else xp.reshape(ok, (-1,) + (1,) * (v.ndim - 1))
         out[k] = xp.where(mask, v, xp.full_like(v, float("nan")))
-    t = xp.where(status == BAD, xp.full_like(t_hit, float("nan")), t_hit)
-    out.update(t=t, status=status, iterations=xp.zeros_like(status), evals=xp.full_like(status, cost))
+    out.update(t=final_t(xp, t_hit, status), status=status, iterations=xp.zeros_like(status), evals=xp.full_like(status, cost))
     return out
 
 
