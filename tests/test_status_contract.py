@@ -3,16 +3,17 @@
 The table ("Values by status, the same on every backend"): CONVERGED — finite outputs; MISS —
 ``t = inf``, colour and opacity 0; BAD_INPUT, NON_FINITE, LIPSCHITZ_VIOLATED — every float
 output NaN (``t`` included); MAX_ITER — ``t`` the last iterate, other outputs NaN;
-ILL_CONDITIONED — the value.  :func:`violations` checks it ray by ray on what any method of any
+UNCERTIFIED — ``t`` inf or a depth, other outputs NaN; ILL_CONDITIONED — the value.
+:func:`violations` checks it ray by ray on what any method of any
 backend returns; the tests feed it the hostile inputs that broke it:
 
 * a field that is NaN along the whole ray (every method family): the answer is NON_FINITE, never
   a MISS (before: the point-wise methods, given the NaN depth a root finder reports for it, said
   MISS with ``t = NaN``, and NON_FINITE with ``t = t_hit``);
-* rays that meet no surface, with no ray bound and ``t_max = inf``: a MISS (``t = inf``) or
-  MAX_ITER, never NON_FINITE (sphere tracing and the hybrid march still end NON_FINITE when
-  |x|² overflows and φ becomes +inf: the fix belongs in ``impls/core/rootfind.py``, see
-  :data:`ROOTFIND_OVERFLOW`).
+* rays that meet no surface, with no ray bound and ``t_max = inf``: a MISS (``t = inf``),
+  MAX_ITER or (a certified method whose steps near the surface were not all covered)
+  UNCERTIFIED, never NON_FINITE: where |x|² overflows and φ becomes +inf on a search with no
+  end, the ray has left every finite depth.
 """
 
 from __future__ import annotations
@@ -71,6 +72,8 @@ def violations(r, outputs: tuple[str, ...]) -> list[str]:
         check(s, np.isnan(t) & np.all([nan(v) for v in outs.values()] or [True], axis=0),
               "have a t or output that is not NaN")
     check(Status.MAX_ITER, np.all([nan(v) for v in outs.values()] or [True], axis=0), "have an output that is not NaN")
+    check(Status.UNCERTIFIED, ~np.isnan(t) & (t != -np.inf) & np.all([nan(v) for v in outs.values()] or [True], axis=0),
+          "have a NaN or -inf t, or an output that is not NaN")
     known = {int(s) for s in Status if s != Status.IN_PROGRESS}
     if not set(st.tolist()) <= known:
         bad.append(f"status codes {sorted(set(st.tolist()) - known)} are not impls.Status values")
@@ -188,25 +191,15 @@ def test_pointwise_methods_on_a_nan_field_are_non_finite_with_t_nan(bid, method)
 
 # -- no surface, no bound -------------------------------------------------------------------------
 
-#: root finders that step by |φ|/L: on a ray with no end their steps grow with t until |x|²
-#: overflows and φ = +inf, which ends the ray NON_FINITE; the fix is in impls/core/rootfind.py
-#: (SphereTrace.step, MarchRefine.step_march and step_ladder: φ = +inf on a ray whose search has no
-#: end, hi = inf, is a MISS), which another change owns
-ROOTFIND_OVERFLOW = {"sphere_trace", "hybrid_secant", "hybrid_chandrupatla"}
-
-
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
-@pytest.mark.parametrize("method", [pytest.param(m, marks=pytest.mark.xfail(
-    strict=True, reason="rootfind.py: φ = +inf (|x|² overflowed) on a ray with no end is NON_FINITE, "
-    "not a MISS; fix in SphereTrace.step / MarchRefine.step_march / step_ladder")) if m in ROOTFIND_OVERFLOW else m
-    for m in ROOTS])
+@pytest.mark.parametrize("method", ROOTS)
 @pytest.mark.parametrize("bid", BACKEND_IDS)
 def test_rays_with_no_surface_and_no_bound_are_a_miss_or_max_iter(bid, method, dtype):
     o, d = rays_missing_ball()
     r = _run(resolve_or_skip(bid), method, UNBOUNDED_BALL, o, d, t_max=math.inf, dtype=dtype)
     assert violations(r, METHODS[method].outputs) == []
     names = {Status(int(s)).name for s in np.asarray(r.status)}
-    assert names <= {"MISS", "MAX_ITER"}, names
+    assert names <= {"MISS", "MAX_ITER", "UNCERTIFIED"}, names
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])

@@ -329,6 +329,10 @@ class SphereTrace(_Search):
         f_new, _, cost = ev(o, d, t_eval, False)
         iters = s["iterations"] + 1
         fin = xp.isfinite(f_new)
+        # φ = +inf on a search with no end: the point left the range where φ is representable, which
+        # is empty space; the ray has left every finite depth (a MISS, not NON_FINITE)
+        beyond = (f_new == math.inf) & (hi == math.inf)
+        out = out | beyond
         unres = unresolved(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
         r_new = certified_radius(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
         # a resolved sign change within the range, against the side the ray is on (a crossing past
@@ -357,7 +361,7 @@ class SphereTrace(_Search):
         covered = (tb + rb >= hi) | (t_eval - r_new <= tb + rb)
         unc_miss = miss & (unc | ~covered)
         # the step's two ends are evaluated: a slope above L shows the declared bound is false
-        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, mag, self.gain)
+        lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, mag, self.gain) & ~beyond
         # (a ray that left has no depth to lose to a non-finite φ: it is a MISS, or flagged)
         stay = retry & ~give_up
         status = _verdict(xp, ~fin & ~out, conv, iters >= self.max_steps, miss=miss & ~unc_miss, lipv=lipv,
@@ -750,6 +754,7 @@ class MarchRefine(_Search):
         f_n, df_n, cost = ev(o, d, t_n, self.deriv)
         zero = f_n == 0
         fin = xp.isfinite(f_n)
+        beyond = (f_n == math.inf) & (hi == math.inf)  # (as in SphereTrace.step: past every finite depth)
         mag = _magnitude(xp, o, self.scale)
         cross = fin & (zero | ((f_n > 0) != (f > 0)))
         rc = rc_n = unres = None
@@ -761,14 +766,14 @@ class MarchRefine(_Search):
             unres = unresolved(xp, f_n, t_n, rule.inv_lip, mag, self.rg) & (t_n <= hi)
             cross = cross & ~unres
         # at hi, or past every finite depth (t_max = inf and no ray bound): the ray left
-        gone = (t_n >= hi) | ~xp.isfinite(t_n)
+        gone = (t_n >= hi) | ~xp.isfinite(t_n) | beyond
         miss = ~cross & gone
         # converged at once: a bracket no wider than xtol (or, marching by constant steps, φ = 0
         # exactly; for a certifying rule that point is unresolved)
         conv = cross & (zero | (t_n - t <= self.xtol))
-        nonf = ~fin & xp.isfinite(t_n)
+        nonf = ~fin & xp.isfinite(t_n) & ~beyond
         # the step's two ends are evaluated: a slope above the declared L shows it is false here
-        lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check, mag, self.gain)
+        lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check, mag, self.gain) & ~beyond
         t_land = t_n
         ok, new, loose = rule.judge(xp, s, cross, rc, rc_n, h, t_n)
         if ok is not None:  # a step that does not stand: the ray stays where it was
@@ -850,10 +855,11 @@ class MarchRefine(_Search):
 
         Te, Fe, Tpe, Fpe = at(T), at(F), at(Tp), at(Fp)
         cross_e = stopped & at(cross)
-        nonf = stopped & ~at(finite) & xp.isfinite(Te)
-        lipv = stopped & at(violated) if rule.check is not None else None
+        beyond_e = stopped & (Fe == math.inf) & (hi == math.inf)  # (as in SphereTrace.step)
+        nonf = stopped & ~at(finite) & xp.isfinite(Te) & ~beyond_e
+        lipv = stopped & at(violated) & ~beyond_e if rule.check is not None else None
         onto = cross_e | ~stopped  # the ray moves onto sample e; otherwise it stays at e's start
-        miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te)
+        miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te) | beyond_e
         iters = s["iterations"] + 1
         new = {}
         if rule.certifies:
