@@ -39,6 +39,29 @@ THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NU
 RECORDED_VARS = THREAD_VARS + ("XLA_FLAGS",)
 
 
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/isobench``, else ``~/.cache/isobench`` (the XDG base directory rule)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "isobench"
+
+
+def configure_caches(cache_dir: Path | None) -> dict[str, str]:
+    """Persistent caches between runs, all under one directory, set up *before* any backend is
+    imported: ``jax/`` (jax's persistent compilation cache, :mod:`impls.jax.backend`), ``numba/``
+    (numba's on-disk cache and the generated kernel modules, :mod:`impls.numba.driver`) and
+    ``reference/`` (costly reference answers, :mod:`bench.references`).  ``None`` (``--no-cache``):
+    none of them is read or written, every kernel is compiled afresh.  Returns the record for
+    environment.json (``cache_dir``)."""
+    from impls.cache import CACHE_ENV
+    if cache_dir is None:
+        os.environ[CACHE_ENV] = ""
+        return {"cache_dir": "none (--no-cache)"}
+    cache_dir = Path(cache_dir).expanduser().resolve()
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    os.environ[CACHE_ENV] = str(cache_dir)
+    return {"cache_dir": str(cache_dir)}
+
+
 def configure_driver(backend, threads: int) -> None:
     """Give a backend's loop driver ``threads`` worker threads where its settings have them
     (``backend.settings``: the numpy/torch compacting driver; jax's masked driver has none, XLA

@@ -20,8 +20,16 @@ import pytest
 from filelock import FileLock
 from hypothesis import settings
 
-from impls import registry
-from impls.protocol import Declined
+from bench.environment import configure_caches, default_cache_dir
+
+# compiled kernels (jax, numba) kept in the user's isobench cache directory, as the bench commands
+# keep them (and the commands the tests start use the same one by default): the session's
+# processes share them, and a later session reuses them.  Set before any backend is imported.
+if "ISOBENCH_CACHE_DIR" not in os.environ:
+    configure_caches(default_cache_dir())
+
+from impls import registry  # noqa: E402
+from impls.protocol import Declined  # noqa: E402
 
 # CI runs hypothesis derandomized so a red build is reproducible.
 settings.register_profile("ci", derandomize=True, deadline=None, max_examples=60)

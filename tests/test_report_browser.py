@@ -48,6 +48,7 @@ def _rows():
     return pd.DataFrame(rows)
 
 
+@pytest.mark.slow  # starts a headless browser
 @pytest.mark.skipif(BROWSER is None, reason="no headless browser (apt-get install chromium; .ci/run does)")
 def test_first_screen_holds_the_summary_and_which_to_pick(tmp_path):
     env = {"run_id": "r-browser", "suite": "quick", "commit": "abc123", "cpu": "test cpu", "complete": "true"}
