@@ -36,7 +36,7 @@ def _cpu_model() -> str:
 
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-RECORDED_VARS = THREAD_VARS + ("XLA_FLAGS",)
+RECORDED_VARS = THREAD_VARS + ("OMP_WAIT_POLICY", "XLA_FLAGS")
 
 
 def default_cache_dir() -> Path:
@@ -95,6 +95,13 @@ def configure_threads(n: int) -> dict[str, str]:
     for var in THREAD_VARS:
         if not os.environ.get(var):
             os.environ[var] = done[var] = str(n)
+    if not os.environ.get("OMP_WAIT_POLICY"):
+        # OpenMP threads that wait for work sleep instead of spinning.  torch's intra-op pool
+        # (and OpenMP BLAS) spin at every parallel region's barrier by default; with more than
+        # one thread on a machine whose cores are busy, a spinning thread holds the core its
+        # partner needs, and a torch configuration took 10-20× longer than with one thread
+        # (docs/performance.md, "torch under load").  Passive waiting costs a wake-up per region.
+        os.environ["OMP_WAIT_POLICY"] = done["OMP_WAIT_POLICY"] = "PASSIVE"
     if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
         # XLA's CPU client spreads element-wise work over its Eigen thread pool; off = one thread
         flags = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()

@@ -20,7 +20,13 @@ import pytest
 from filelock import FileLock
 from hypothesis import settings
 
-from bench.environment import configure_caches, default_cache_dir
+from bench.environment import configure_caches, configure_threads, default_cache_dir
+
+# one thread per library, OpenMP threads waiting passively, as the bench commands run (set before
+# torch, jax or a BLAS starts its thread pool): pytest-xdist already runs one worker per core, and
+# more threads per worker only fight over the cores (10-20× slower torch under load;
+# docs/performance.md, "torch under load")
+configure_threads(1)
 
 # compiled kernels (jax, numba) kept in the user's isobench cache directory, as the bench commands
 # keep them (and the commands the tests start use the same one by default): the session's
