@@ -54,6 +54,16 @@ def extra_backend_ids(value: str | None = None) -> list[str]:
 
 BACKEND_IDS = list(dict.fromkeys(registry.default_ids() + extra_backend_ids()))
 
+#: libraries whose every test configuration compiles kernels (XLA, LLVM): the tests parametrized
+#: over backends run them in the slow tier (CI's whole gate), so `-m "not slow"` checks the
+#: eager backends only
+COMPILING_LIBS = ("jax", "numba")
+
+
+def backend_params(ids: list[str]) -> list:
+    """``ids`` as pytest parameters, those of :data:`COMPILING_LIBS` marked slow."""
+    return [pytest.param(b, marks=pytest.mark.slow) if b.split(":")[0] in COMPILING_LIBS else b for b in ids]
+
 ROOT = Path(__file__).resolve().parent.parent
 
 #: the limit on a child process the tests start: a guard against a process that hangs, not a
@@ -130,6 +140,6 @@ def resolve_or_skip(backend_id: str):
     return b
 
 
-@pytest.fixture(scope="session", params=BACKEND_IDS)
+@pytest.fixture(scope="session", params=backend_params(BACKEND_IDS))
 def backend(request):
     return resolve_or_skip(request.param)

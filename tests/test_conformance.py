@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from impls import METHODS, Declined, Status, registry
-from tests.conftest import BACKEND_IDS, resolve_or_skip
+from tests.conftest import BACKEND_IDS, backend_params, resolve_or_skip
 from reference import Sphere
 from reference.rendering import SineColor, render_exact
 from reference.rays import normalize, pinhole
@@ -134,7 +134,7 @@ def camera(n=12):
 
 # -- backends: built-ins, entry points, and plug-in specs from the environment -------------------
 
-@pytest.fixture(scope="module", params=BACKEND_IDS)
+@pytest.fixture(scope="module", params=backend_params(BACKEND_IDS))
 def any_backend(request):
     return resolve_or_skip(request.param)
 

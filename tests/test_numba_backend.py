@@ -19,6 +19,9 @@ from impls import METHODS, Declined, Status, registry
 from reference import Box, Sphere, Torus, Transform, Union, get_case
 from reference.rays import pinhole
 
+#: numba compiles kernels for nearly every test here (the slow tier; CI runs it)
+pytestmark = pytest.mark.slow
+
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 needs_numba = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed (pip install -e '.[numba]')")
 
