@@ -58,6 +58,7 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     assert (out / "report.html").exists()
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path):
     """``--resume`` restores the recorded ``--case``/``--method``/``--backend``: typing the hint the
     run prints (``--resume --out DIR``) finishes a ``--case`` sweep, not the suite's default cases;

@@ -295,6 +295,7 @@ def silhouette_rays(ball, n=64, delta_min=1e-12):
     return c + b[:, None] * u - 3.0 * d, d
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("method", ROOT_METHODS)
 @pytest.mark.parametrize("scene_name", ["sphere", "union"])
 def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, method, scene_name):
