@@ -390,6 +390,24 @@ def _contradictions(args) -> str | None:
     return None
 
 
+def _configure_caches(args) -> dict[str, str]:
+    """Set up the persistent caches (``--cache-dir``, ``--no-cache``) before any backend is
+    imported (:func:`bench.environment.configure_caches`); returns the environment record."""
+    from .environment import configure_caches, default_cache_dir
+
+    if args.no_cache:
+        return configure_caches(None)
+    return configure_caches(Path(args.cache_dir) if args.cache_dir else default_cache_dir())
+
+
+def _reference_cache(args) -> Path | None:
+    """Where a run keeps costly reference answers: ``<cache dir>/reference`` (None with
+    ``--no-cache`` or ``--no-reference-cache``)."""
+    from impls.cache import subdir
+
+    return None if args.no_reference_cache else subdir("reference")
+
+
 def _cmd_run(args, held: list) -> int:
     from .environment import configure_threads
 
@@ -405,6 +423,7 @@ def _cmd_run(args, held: list) -> int:
         return _error(err)
 
     configure_threads(args.threads)  # before any array library is imported
+    cache_record = _configure_caches(args)  # before any backend is imported
     if args.allocator == "tuned":
         from .environment import tune_allocator
 
@@ -485,10 +504,11 @@ def _cmd_run(args, held: list) -> int:
             df = runner.run(suite, backends, out, case_pattern=args.case, methods=_split(args.method),
                             dtypes=_split(args.dtype), policy=policy, run_id=run_id, progress=progress,
                             resume=args.resume, env_extra={"threads": str(args.threads),
-                                                           "run_options": _run_options(args, backends)},
+                                                           "run_options": _run_options(args, backends),
+                                                           **cache_record},
                             budget_s=budget,
-                            rounds=args.rounds, reference_cache_dir=None if args.no_reference_cache
-                            else DEFAULT_REPORTS / ".refcache", reference_timeout_s=args.reference_timeout,
+                            rounds=args.rounds, reference_cache_dir=_reference_cache(args),
+                            reference_timeout_s=args.reference_timeout,
                             executor=executor, rerun_cases=_split(args.rerun_case))
         except ValueError as exc:
             return _error(str(exc))
@@ -669,6 +689,7 @@ def cmd_baseline(args) -> int:
         # when accuracy does
         for col in ("first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_ratio_cf"):
             df[col] = float("nan")
+        df["compile_cache"] = None  # whether a kernel was in the cache depends on the machine's history
         df.to_csv(Path(tmp) / "run" / "results.csv", index=False)
         for name in ("results.csv", "environment.json"):
             write_atomic(out / name, lambda p, src=Path(tmp) / "run" / name: shutil.copyfile(src, p))
@@ -972,7 +993,11 @@ def main(argv: list[str] | None = None) -> int:
                    "rendering integral for one case and density); past it that quantity is skipped with the reason, "
                    "and that density is not retried in this run (default 30, 0: none)")
     r.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
-                   "rendering integral) instead of reusing reports/.refcache/")
+                   "rendering integral) instead of reusing those kept in the cache directory")
+    r.add_argument("--cache-dir", help="where compiled kernels (jax, numba) and costly reference answers are kept "
+                   "between runs (default: $XDG_CACHE_HOME/isobench, else ~/.cache/isobench; recorded as cache_dir)")
+    r.add_argument("--no-cache", action="store_true", help="a cold start: no persistent cache is read or written, "
+                   "every kernel is compiled afresh")
     r.add_argument("--cluster", metavar="local:N", help="run the configurations as tasks on a dask LocalCluster of N "
                    "single-threaded worker processes (bench/cluster.py; N × --threads ≤ cores unless --accuracy-only); "
                    "results, resume and the report are those of a run in one process, each row records its worker")

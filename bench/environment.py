@@ -36,7 +36,30 @@ def _cpu_model() -> str:
 
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-RECORDED_VARS = THREAD_VARS + ("XLA_FLAGS",)
+RECORDED_VARS = THREAD_VARS + ("OMP_WAIT_POLICY", "XLA_FLAGS")
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/isobench``, else ``~/.cache/isobench`` (the XDG base directory rule)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "isobench"
+
+
+def configure_caches(cache_dir: Path | None) -> dict[str, str]:
+    """Persistent caches between runs, all under one directory, set up *before* any backend is
+    imported: ``jax/`` (jax's persistent compilation cache, :mod:`impls.jax.backend`), ``numba/``
+    (numba's on-disk cache and the generated kernel modules, :mod:`impls.numba.driver`) and
+    ``reference/`` (costly reference answers, :mod:`bench.references`).  ``None`` (``--no-cache``):
+    none of them is read or written, every kernel is compiled afresh.  Returns the record for
+    environment.json (``cache_dir``)."""
+    from impls.cache import CACHE_ENV
+    if cache_dir is None:
+        os.environ[CACHE_ENV] = ""
+        return {"cache_dir": "none (--no-cache)"}
+    cache_dir = Path(cache_dir).expanduser().resolve()
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    os.environ[CACHE_ENV] = str(cache_dir)
+    return {"cache_dir": str(cache_dir)}
 
 
 def configure_driver(backend, threads: int) -> None:
@@ -72,6 +95,13 @@ def configure_threads(n: int) -> dict[str, str]:
     for var in THREAD_VARS:
         if not os.environ.get(var):
             os.environ[var] = done[var] = str(n)
+    if not os.environ.get("OMP_WAIT_POLICY"):
+        # OpenMP threads that wait for work sleep instead of spinning.  torch's intra-op pool
+        # (and OpenMP BLAS) spin at every parallel region's barrier by default; with more than
+        # one thread on a machine whose cores are busy, a spinning thread holds the core its
+        # partner needs, and a torch configuration took 10-20× longer than with one thread
+        # (docs/performance.md, "torch under load").  Passive waiting costs a wake-up per region.
+        os.environ["OMP_WAIT_POLICY"] = done["OMP_WAIT_POLICY"] = "PASSIVE"
     if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
         # XLA's CPU client spreads element-wise work over its Eigen thread pool; off = one thread
         flags = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()

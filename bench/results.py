@@ -37,7 +37,7 @@ COLUMNS = [
     "n_false_hit", "n_false_miss", "n_not_judged", "evals_per_ray", "evals_p99", "evals_max", "iterations_max",
     "first_call_s", "compile_s", "time_median_s", "time_iqr_s", "time_samples_s", "time_ratio_cf", "n_samples",
     "loops", "rounds", "error_iterate_median", "reference_error_bound", "reference_s", "knobs_json", "timing_note", "traceback", "driver_json",
-    "machine_key", "worker", "worker_pid", "task_s",
+    "machine_key", "worker", "worker_pid", "task_s", "compile_cache",
 ]
 #: the reason of a configuration skipped because its run's time budget ran out (prefix)
 OVER_BUDGET = "over the run's time budget"

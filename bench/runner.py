@@ -298,6 +298,7 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
             prep, timing, out = _prepare_and_time(cfg, backend, policy)
             raw = _backend_call(backend, "Prepared.result(out)", lambda: prep.result(out))
             compile_s = _compile_s(prep)
+            compile_cache = getattr(prep, "compile_cache", None)
         res = check_result(raw, case.n_rays, tuple(spec.outputs))
         counts = status_counts(res.status)
         quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
@@ -313,6 +314,7 @@ def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_tim
         "status_counts": json.dumps(counts, sort_keys=True),
         "first_call_s": timing.first_call_s,
         "compile_s": compile_s if compile_s is not None else max(timing.first_call_s - timing.median_s, 0.0),
+        "compile_cache": compile_cache if compile_cache in ("compiled", "reused") else None,
         "time_median_s": timing.median_s, "time_iqr_s": timing.iqr_s,
         "time_samples_s": json.dumps(timing.samples_s), "time_ratio_cf": timing.median_s / cf_time,
         "n_samples": len(timing.samples_s), "loops": timing.loops,

@@ -188,6 +188,9 @@ class ArrayBackend:
     def synchronize(self, out: Any = None) -> None:
         """Block until device work (of ``out``, or all queued work) is done."""
 
+    #: set by :meth:`compile` where the backend knows: "compiled" or "reused" (``Prepared.compile_cache``)
+    last_compile_cache: str | None = None
+
     def compile(self, fn: Callable, *example_args: Any) -> tuple[Callable, float | None]:
         """Compile ``fn`` for ``example_args``; returns (callable, compile seconds or None)."""
         return fn, None
@@ -241,7 +244,9 @@ class ArrayBackend:
         def fn(o, d, th):
             return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), t_hit=th, **extra, **knobs)
 
+        self.last_compile_cache = None  # compile() may say whether it reused a kernel
         run_fn, compile_s = self.compile(fn, o, d, th)
+        compile_cache = self.last_compile_cache
 
         def result(out: Any) -> RayResult:
             out = {k: self.to_numpy(v) for k, v in out.items()}
@@ -249,7 +254,7 @@ class ArrayBackend:
                              iterations=out.pop("iterations").astype(np.int32), evals=out.pop("evals").astype(np.int32),
                              outputs=out)
 
-        return Prepared(run=lambda: run_fn(o, d, th), result=result, compile_s=compile_s)
+        return Prepared(run=lambda: run_fn(o, d, th), result=result, compile_s=compile_s, compile_cache=compile_cache)
 
 
 def timed_compile(compile_thunk: Callable[[], Callable]) -> tuple[Callable, float]:

@@ -128,12 +128,15 @@ class Prepared:
     """A method bound to a scene, rays, dtype and knobs, ready to be timed.
 
     ``run()`` -> native output (work queued or done on the device); ``result(native)`` ->
-    :class:`RayResult`.  ``compile_s`` is set by backends that compile ahead of time.
+    :class:`RayResult`.  ``compile_s`` is set by backends that compile ahead of time;
+    ``compile_cache`` by those that keep compiled kernels: "compiled" (compiled for this call),
+    "reused" (taken from a cache, on disk or in this process), None (not stated).
     """
 
     run: Callable[[], Any]
     result: Callable[[Any], RayResult]
     compile_s: float | None = None
+    compile_cache: str | None = None
 
 
 @runtime_checkable

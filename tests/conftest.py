@@ -10,13 +10,32 @@ itself is broken (e.g. a syntax error under ``impls/``), and that is a test fail
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
+from filelock import FileLock
 from hypothesis import settings
 
-from impls import registry
-from impls.protocol import Declined
+from bench.environment import configure_caches, configure_threads, default_cache_dir
+
+# one thread per library, OpenMP threads waiting passively, as the bench commands run (set before
+# torch, jax or a BLAS starts its thread pool): pytest-xdist already runs one worker per core, and
+# more threads per worker only fight over the cores (10-20× slower torch under load;
+# docs/performance.md, "torch under load")
+configure_threads(1)
+
+# compiled kernels (jax, numba) kept in the user's isobench cache directory, as the bench commands
+# keep them (and the commands the tests start use the same one by default): the session's
+# processes share them, and a later session reuses them.  Set before any backend is imported.
+if "ISOBENCH_CACHE_DIR" not in os.environ:
+    configure_caches(default_cache_dir())
+
+from impls import registry  # noqa: E402
+from impls.protocol import Declined  # noqa: E402
 
 # CI runs hypothesis derandomized so a red build is reproducible.
 settings.register_profile("ci", derandomize=True, deadline=None, max_examples=60)
@@ -34,6 +53,68 @@ def extra_backend_ids(value: str | None = None) -> list[str]:
 
 
 BACKEND_IDS = list(dict.fromkeys(registry.default_ids() + extra_backend_ids()))
+
+#: libraries whose every test configuration compiles kernels (XLA, LLVM): the tests parametrized
+#: over backends run them in the slow tier (CI's whole gate), so `-m "not slow"` checks the
+#: eager backends only
+COMPILING_LIBS = ("jax", "numba")
+
+
+def backend_params(ids: list[str]) -> list:
+    """``ids`` as pytest parameters, those of :data:`COMPILING_LIBS` marked slow."""
+    return [pytest.param(b, marks=pytest.mark.slow) if b.split(":")[0] in COMPILING_LIBS else b for b in ids]
+
+ROOT = Path(__file__).resolve().parent.parent
+
+#: the limit on a child process the tests start: a guard against a process that hangs, not a
+#: measure of speed.  Far beyond what any of these commands needs on a loaded machine, so no test
+#: result depends on the machine's speed (DESIGN.md: "No test depends on the machine's speed").
+HANG_GUARD_S = 3 * 3600.0
+
+
+def bench_cli(*args, cwd=None, env=None) -> subprocess.CompletedProcess:
+    """``python -m bench ARGS`` in a fresh interpreter, output captured (only a hang is bounded)."""
+    return subprocess.run([sys.executable, "-m", "bench", *map(str, args)], cwd=cwd or ROOT, env=env,
+                          capture_output=True, text=True, timeout=HANG_GUARD_S)
+
+
+def _shared_dir(tmp_path_factory, worker_id: str) -> Path:
+    """A folder shared by every process of this pytest session: the session's base temporary
+    folder, or under pytest-xdist the parent of the workers' ones (one per session, not shared
+    with other sessions)."""
+    base = tmp_path_factory.getbasetemp()
+    return base if worker_id == "master" else base.parent
+
+
+def shared_run(tmp_path_factory, worker_id: str, name: str, *args) -> tuple[Path, str]:
+    """Run ``python -m bench run --out DIR ARGS`` once per pytest session, whichever test file
+    or xdist worker asks first, and share it: the others wait on a file lock and read what the
+    first wrote (the run directory and its stdout).  Returns ``(DIR, stdout)``; a failed run
+    fails every test that uses it, with its output."""
+    root = _shared_dir(tmp_path_factory, worker_id)
+    out, record = root / f"shared-{name}", root / f"shared-{name}.json"
+    with FileLock(str(root / f"shared-{name}.lock")):
+        if not record.exists():
+            p = bench_cli("run", "--out", out, *args)
+            record.write_text(json.dumps({"returncode": p.returncode, "stdout": p.stdout, "stderr": p.stderr}))
+    got = json.loads(record.read_text())
+    assert got["returncode"] == 0, got["stdout"][-5000:] + got["stderr"][-5000:]
+    return out, got["stdout"]
+
+
+#: the quick suite as CI runs it in the tests: every backend, shortened timing, no claims
+QUICK_ARGS = ("--suite", "quick", "--min-time", "0.02", "--min-repeats", "3", "--no-claims")
+
+
+@pytest.fixture(scope="session")
+def quick_run_and_stdout(tmp_path_factory, worker_id):
+    """The quick suite run once per session (stdout piped, as in CI: progress comes as lines)."""
+    return shared_run(tmp_path_factory, worker_id, "quick", *QUICK_ARGS)
+
+
+@pytest.fixture(scope="session")
+def quick_run(quick_run_and_stdout):
+    return quick_run_and_stdout[0]
 
 
 @pytest.hookimpl(wrapper=True)
@@ -59,6 +140,6 @@ def resolve_or_skip(backend_id: str):
     return b
 
 
-@pytest.fixture(scope="session", params=BACKEND_IDS)
+@pytest.fixture(scope="session", params=backend_params(BACKEND_IDS))
 def backend(request):
     return resolve_or_skip(request.param)

@@ -35,6 +35,7 @@ def test_torch_gradcheck(scene):
     assert torch.autograd.gradcheck(lambda th: param_grad.unrolled_depth(xp, scene, o, d, 0.0, 12, th), (th,))
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("scene", SCENES, ids=lambda s: s.kind)
 def test_jax_check_grads(scene):
     pytest.importorskip("jax")
@@ -108,6 +109,7 @@ def test_torch_render_surface_gradient_is_the_hit_depth_gradient(scene):
     assert torch.autograd.gradcheck(lambda t: color(t, _SineColorField()), (thr,), eps=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("scene", DIFF_SCENES, ids=lambda s: s.kind)
 def test_jax_render_surface_gradient_is_the_hit_depth_gradient(scene):
     pytest.importorskip("jax")

@@ -67,6 +67,7 @@ def test_bad_arguments_name_the_argument(backend):
         backend.prepare("sphere_trace", case.scene, case.origins, case.directions, dtype="int8")
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 def test_backends_agree_with_each_other():
     case = get_case(CASE)
     results = {}

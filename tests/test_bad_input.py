@@ -315,6 +315,7 @@ def test_malformed_rays_torch(rays):
 @SETTINGS
 @given(bad=st.lists(st.sampled_from(["nan_o", "inf_o", "zero_d", "nan_d", "inf_d", "ok"]), min_size=4, max_size=4),
        method=st.sampled_from(SMALL_METHODS))
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 def test_flagged_rays_jax_fixed_shape(bad, method):
     """jax compiles per shape: 4 rays, the kind of each drawn."""
     b = _backend("jax:cpu")

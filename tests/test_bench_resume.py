@@ -9,19 +9,23 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from bench.results import read_results
+from tests.conftest import HANG_GUARD_S
 
 ROOT = Path(__file__).resolve().parent.parent
 KEY = ["case_id", "backend", "dtype", "method", "knob", "quantity"]
 
 
+@pytest.mark.slow
 def test_killed_run_is_finished_by_resume(tmp_path):
     out = tmp_path / "run"
     args = [sys.executable, "-m", "bench", "run", "--suite", "quick", "--backend", "numpy", "--out", str(out),
             "--no-progress", "--no-claims"]
     p = subprocess.Popen(args + ["--min-time", "1.0", "--min-repeats", "3"], cwd=ROOT, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + HANG_GUARD_S
     while not (out / "results.parquet").exists() and time.monotonic() < deadline and p.poll() is None:
         time.sleep(0.05)
     p.send_signal(signal.SIGKILL)
@@ -32,7 +36,7 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     assert env["complete"] == "false" and len(partial) > 0
 
     q = subprocess.run(args[:-1] + ["--resume", "--min-time", "0.01", "--min-repeats", "3"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+                       capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert q.returncode == 0, q.stdout + q.stderr
     full = read_results(out)
     env2 = json.loads((out / "environment.json").read_text())
@@ -54,6 +58,7 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     assert (out / "report.html").exists()
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path):
     """``--resume`` restores the recorded ``--case``/``--method``/``--backend``: typing the hint the
     run prints (``--resume --out DIR``) finishes a ``--case`` sweep, not the suite's default cases;
@@ -65,12 +70,12 @@ def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path
     base = [sys.executable, "-m", "bench", "run", "--out", str(out), "--no-progress", "--no-claims"]
     first = subprocess.run(base + ["--backend", "numpy", "--case", "box.inside,cylinder.parallel", "--method",
                                    "march_bisect,normal", "--accuracy-only", "--budget", "0.001"],
-                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+                           cwd=ROOT, capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert first.returncode == 1 and "INCOMPLETE" in first.stderr, first.stdout + first.stderr
     recorded = json.loads(json.loads((out / "environment.json").read_text())["run_options"])
     assert recorded["case"] == "box.inside,cylinder.parallel" and recorded["backend"] == ["numpy"]
 
-    again = subprocess.run(base + ["--resume"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    again = subprocess.run(base + ["--resume"], cwd=ROOT, capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert again.returncode == 0, again.stdout + again.stderr
     full = read_results(out)
     plan = runner.plan(get_suite("quick"), ["numpy"], "box.inside,cylinder.parallel", ["march_bisect", "normal"], None)
@@ -79,12 +84,12 @@ def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path
     assert (full["n_samples"].fillna(0) == 0).all()  # --accuracy-only was restored too: no timing samples
 
     clash = subprocess.run(base + ["--resume", "--case", "box.*"], cwd=ROOT, capture_output=True, text=True,
-                           timeout=300)
+                           timeout=HANG_GUARD_S)
     assert clash.returncode == 2 and "--case: the run in" in clash.stderr and "'box.inside,cylinder.parallel'" in \
         clash.stderr, clash.stderr
     same = subprocess.run(base + ["--resume", "--backend", "numpy", "--method", "march_bisect", "--method", "normal"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+                          cwd=ROOT, capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert same.returncode == 0 and "error:" not in same.stderr, same.stderr  # the recorded options, retyped
     narrower = subprocess.run(base + ["--resume", "--dtype", "float64"], cwd=ROOT, capture_output=True, text=True,
-                              timeout=300)
+                              timeout=HANG_GUARD_S)
     assert narrower.returncode == 2 and "--dtype: the run in" in narrower.stderr, narrower.stderr

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from impls import METHODS, Declined, Status, registry
-from tests.conftest import BACKEND_IDS, resolve_or_skip
+from tests.conftest import BACKEND_IDS, backend_params, resolve_or_skip
 from reference import Sphere
 from reference.rendering import SineColor, render_exact
 from reference.rays import normalize, pinhole
@@ -134,7 +134,7 @@ def camera(n=12):
 
 # -- backends: built-ins, entry points, and plug-in specs from the environment -------------------
 
-@pytest.fixture(scope="module", params=BACKEND_IDS)
+@pytest.fixture(scope="module", params=backend_params(BACKEND_IDS))
 def any_backend(request):
     return resolve_or_skip(request.param)
 
@@ -295,6 +295,7 @@ def silhouette_rays(ball, n=64, delta_min=1e-12):
     return c + b[:, None] * u - 3.0 * d, d
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("method", ROOT_METHODS)
 @pytest.mark.parametrize("scene_name", ["sphere", "union"])
 def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, method, scene_name):

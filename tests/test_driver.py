@@ -65,6 +65,7 @@ def test_driver_settings_are_validated_and_recorded(backend_id):
         b.configure(no_such_setting=1)
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_newton"])
 def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     """The jax driver (impls.jax.driver.run_loop: chunks, batches compacted level by level,

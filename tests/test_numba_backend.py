@@ -19,6 +19,9 @@ from impls import METHODS, Declined, Status, registry
 from reference import Box, Sphere, Torus, Transform, Union, get_case
 from reference.rays import pinhole
 
+#: numba compiles kernels for nearly every test here (the slow tier; CI runs it)
+pytestmark = pytest.mark.slow
+
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 needs_numba = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed (pip install -e '.[numba]')")
 
@@ -245,7 +248,7 @@ def test_float32_is_not_offered(nb):
 
 def test_compiles_once_per_scene_structure(nb):
     """The kernels are cached by the scene's structure (its generated source): the same scene, or one
-    of the same structure with other numbers, reuses them (compile time ≈ 0) and gives its own answers."""
+    of the same structure with other numbers, reuses them (``compile_cache``) and gives its own answers."""
     from impls.numba import driver, fields
 
     o, d = pinhole(eye=(0, 0, 3.0), look_at=(0, 0, 0), fov_deg=40, width=8, height=8)
@@ -257,8 +260,8 @@ def test_compiles_once_per_scene_structure(nb):
     first = nb.prepare("hybrid_secant", a, o, d, t_max=10.0)
     assert driver.kernels(ka.key) is driver.kernels(kb.key)
     again = nb.prepare("hybrid_secant", b, o, d, t_max=10.0)
-    assert again.compile_s < 0.05 <= first.compile_s or again.compile_s < 0.1 * first.compile_s, (
-        first.compile_s, again.compile_s)
+    # the first may have come from the disk cache of an earlier session: "compiled" or "reused"
+    assert first.compile_cache in ("compiled", "reused") and again.compile_cache == "reused"
     for scene, prep in ((a, first), (b, again)):
         r = prep.result(prep.run())
         ref = run(registry.resolve("numpy"), "hybrid_secant", scene, o, d, t_max=10.0, ladder=0)

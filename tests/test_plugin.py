@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from impls import Backend, registry
+from tests.conftest import HANG_GUARD_S
 
 SPEC = "tests.plugin_backend:PluginBackend"
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,13 +43,14 @@ def test_broken_plugin_is_reported_not_fatal():
     assert isinstance(b, registry.Unavailable) and "NoSuchAttr" in b.reason
 
 
+@pytest.mark.slow  # a second pytest session
 def test_plugin_passes_the_conformance_suite():
     """Run tests/test_conformance.py for the plug-in only, in a fresh interpreter."""
     env = dict(os.environ, ISOBENCH_EXTRA_BACKENDS=SPEC)
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_conformance.py",
          "-k", "PluginBackend", "-W", "ignore::RuntimeWarning"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=HANG_GUARD_S,
     )
     tail = proc.stdout[-3000:] + proc.stderr[-2000:]
     assert proc.returncode == 0, tail

@@ -84,6 +84,7 @@ CURV_CASES = [c.id for c in catalog() if c.scene.info.exact_curvature and "camer
               and "scale" not in c.tags and "thin" not in c.tags and c.id != "neural.blob.camera.16x16.Llocal"]
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("cid", CURV_CASES)
 def test_curvatures_against_mpmath_finite_differences(cid):
     """κ1 + κ2 and κ1κ2 from the closed form against the implicit-surface formulas applied to a
@@ -156,6 +157,7 @@ DT_CASES = [c.id for c in catalog() if c.scene.info.exact_hit_param_grad and c.s
             and "neural" not in c.tags]
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("cid", DT_CASES)
 def test_dt_dtheta_matches_central_differences_of_the_exact_hit(cid):
     """dt/dθ (implicit differentiation with closed-form partials) against (t(θ + h) − t(θ − h))/2h

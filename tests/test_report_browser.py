@@ -18,6 +18,7 @@ import pandas as pd
 import pytest
 
 from bench import report
+from tests.conftest import HANG_GUARD_S
 
 BROWSER = next((shutil.which(b) for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)), None)
 
@@ -47,6 +48,7 @@ def _rows():
     return pd.DataFrame(rows)
 
 
+@pytest.mark.slow  # starts a headless browser
 @pytest.mark.skipif(BROWSER is None, reason="no headless browser (apt-get install chromium; .ci/run does)")
 def test_first_screen_holds_the_summary_and_which_to_pick(tmp_path):
     env = {"run_id": "r-browser", "suite": "quick", "commit": "abc123", "cpu": "test cpu", "complete": "true"}
@@ -56,7 +58,7 @@ def test_first_screen_holds_the_summary_and_which_to_pick(tmp_path):
     probe.write_text(page.replace("</body>", PROBE + "</body>"))
     out = subprocess.run([BROWSER, "--headless", "--no-sandbox", "--disable-gpu", "--window-size=1400,1000",
                           "--virtual-time-budget=5000", "--dump-dom", probe.as_uri()],
-                         capture_output=True, text=True, timeout=120)
+                         capture_output=True, text=True, timeout=HANG_GUARD_S)
     m = re.search(r"<pre id=\"probe\">(.*?)</pre>", out.stdout, re.S)
     assert m, f"the browser did not render the page: {out.stderr[-2000:]}"
     seen = json.loads(m.group(1).replace("&quot;", '"').replace("&amp;", "&").replace("&lt;", "<")

@@ -149,6 +149,7 @@ def test_a_ray_with_no_surface_and_no_bound_is_a_miss(backend, method):
     assert np.all(np.isinf(res.t))
 
 
+@pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
 @pytest.mark.parametrize("method", ROOT)
 def test_no_false_lipschitz_flag_anywhere_in_the_catalog(method):
     """No correct scene of the catalog is flagged; the cases whose declared bound is a planted

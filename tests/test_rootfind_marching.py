@@ -100,7 +100,7 @@ def test_extrapolation_crosses_a_shallow_approach_in_few_steps():
     assert np.all(far.iterations <= 10)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "jax:cpu"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("jax:cpu", marks=pytest.mark.slow)])
 def test_reach_changes_the_steps_not_the_hits(backend):
     """``reach`` bounds the extrapolated step; a step is accepted only if it crosses or is
     certified, so every reach finds the same crossings (torus ∪ box camera and grazing rays)."""

@@ -11,6 +11,7 @@ import pytest
 
 from reference import Case, Sphere, catalog, get_case
 from reference import user_cases
+from tests.conftest import HANG_GUARD_S
 
 MODULE = textwrap.dedent('''
     import numpy as np
@@ -75,6 +76,7 @@ def test_invalid_cases_are_refused_with_the_reason():
         user_cases.validate(object(), "t")
 
 
+@pytest.mark.slow  # three bench commands in fresh interpreters
 def test_a_user_case_runs_in_bench_run_from_outside_the_repository(tmp_path):
     """The documented way in: ``--cases module:attr`` with the module on the PYTHONPATH."""
     import os
@@ -86,14 +88,14 @@ def test_a_user_case_runs_in_bench_run_from_outside_the_repository(tmp_path):
     (mod_dir / "isobench_user_mod2.py").write_text(MODULE.format(prefix="user2", mod="isobench_user_mod2"))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(mod_dir), os.environ.get("PYTHONPATH", "")])}
     listed = subprocess.run([sys.executable, "-m", "bench", "cases", "--cases", "isobench_user_mod2:CASES",
-                             "--case", "user2.*"], capture_output=True, text=True, env=env, timeout=300)
+                             "--case", "user2.*"], capture_output=True, text=True, env=env, timeout=HANG_GUARD_S)
     assert listed.returncode == 0, listed.stderr
     assert "user2.blob.camera" in listed.stdout and "user" in listed.stdout
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "bench", "run", "--cases", "isobench_user_mod2:CASES",
                            "--case", "user2.*", "--backend", "numpy", "--method", "sphere_trace,hybrid_secant",
                            "--accuracy-only", "--no-claims", "--no-progress", "--out", str(out)],
-                          capture_output=True, text=True, env=env, timeout=600)
+                          capture_output=True, text=True, env=env, timeout=HANG_GUARD_S)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     df = pd.read_csv(out / "results.csv")
     rows = df[(df["case_id"] == "user2.blob.camera") & (df["quantity"] == "depth")]
@@ -101,5 +103,5 @@ def test_a_user_case_runs_in_bench_run_from_outside_the_repository(tmp_path):
     assert set(rows["outcome"]) == {"ok"}
     assert (rows["n_false_hit"] == 0).all() and (rows["n_false_miss"] == 0).all()
     bad = subprocess.run([sys.executable, "-m", "bench", "run", "--cases", "nosuchmodule_xyz:CASES", "--no-progress"],
-                         capture_output=True, text=True, env=env, timeout=300)
+                         capture_output=True, text=True, env=env, timeout=HANG_GUARD_S)
     assert bad.returncode == 2 and "--cases" in bad.stderr and "Traceback" not in bad.stderr

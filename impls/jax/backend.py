@@ -12,6 +12,35 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+
+def _persistent_cache() -> bool:
+    """Turn on jax's persistent compilation cache in ``<cache dir>/jax`` when the bench commands
+    set a cache directory (:mod:`impls.cache`), for every compiled program, however small or
+    quick to compile (jax's defaults keep only those that took ≥ 1 s to compile): a harness run
+    compiles hundreds of kernels of a fraction of a second to a few seconds each, and pays them
+    again on every run otherwise.  Returns whether it is on."""
+    from ..cache import subdir
+
+    where = subdir("jax")
+    if where is None:
+        return False
+    jax.config.update("jax_compilation_cache_dir", str(where))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    return True
+
+
+PERSISTENT_CACHE = _persistent_cache()
+_cache_hits = [0]
+
+
+def _count_hits(event: str, **kwargs) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _cache_hits[0] += 1
+
+
+jax.monitoring.register_event_listener(_count_hits)
+
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -71,9 +100,15 @@ class JaxBackend(ArrayBackend):
             (jax.device_put(0.0, self.jax_device) + 0).block_until_ready()
 
     def compile(self, fn, *example_args):
+        """``jax.jit(fn)`` lowered and compiled for ``example_args``: (compiled, seconds).  Whether
+        the executable came from the persistent cache is left in ``last_compile_cache``
+        ("reused" or "compiled"; None without a cache directory)."""
+        hits = _cache_hits[0]
         t0 = time.perf_counter()
         compiled = jax.jit(fn).lower(*example_args).compile()
-        return compiled, time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        self.last_compile_cache = None if not PERSISTENT_CACHE else ("reused" if _cache_hits[0] > hits else "compiled")
+        return compiled, took
 
     def versions(self):
         import jaxlib

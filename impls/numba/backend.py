@@ -93,9 +93,12 @@ class NumbaBackend(ArrayBackend):
 
     def compile(self, fn, o, d, th):
         """Compile by running ``fn`` on the first ray (numba compiles a kernel on its first call)."""
+        driver.LAST_COMPILE = None
         t0 = time.perf_counter()
         fn(o[:1], d[:1], None if th is None else th[:1])
-        return fn, time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        self.last_compile_cache = driver.LAST_COMPILE  # None: the method ran no compiled kernel
+        return fn, took
 
     def solve(self, method, scene, o, d, *, t_min, t_max, theta=None, **knobs):
         """The catalog's algorithm for ``method`` and ``knobs`` (:meth:`impls.methods.MethodSpec.algorithm`,

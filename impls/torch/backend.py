@@ -86,8 +86,9 @@ class TorchBackend(ArrayBackend):
                    "double backward, θ-Jacobians by torch.func.jacfwd",
                    "namespace: array_api_compat.torch with torch's own where, clip, isfinite and take_along_axis "
                    "(impls.torch.backend.xp_fast; per-call overhead)",
-                   "on a loaded 2-core machine torch's intra-op thread pool oversubscribes: set torch.set_num_threads(1) "
-                   "(or OMP_NUM_THREADS=1) for timings — measured 40× slower otherwise"),
+                   "on a machine whose cores are busy, torch's OpenMP intra-op threads spin at every parallel region's "
+                   "barrier: set OMP_WAIT_POLICY=PASSIVE and OMP_NUM_THREADS before torch is imported (the bench "
+                   "commands do, bench.environment.configure_threads) — measured 10-20× slower otherwise"),
         )
         super().__init__(device, settings)
         self.torch_device = torch.device(device)
