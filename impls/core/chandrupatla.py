@@ -115,13 +115,6 @@ class MarchChandrupatla(MarchRefine):
             # towards it from the last certified point, bisecting an earlier crossing it finds
             later = (status == CONV) & (s["u"] + self.rule.min_step < t)
             new.update(status=np.where(later, IN, status), a=np.where(later, t, s["a"]), b=np.where(later, t, s["b"]),
-                       cm=later, phase=np.full_like(s["iterations"], len(self.stages) - 1))
+                       cm=later, phase=np.where(later, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
         return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}
 
-    @property
-    def stages(self) -> tuple[str, ...]:
-        return super().stages + (("step_certify",) if self.rule.certifies else ())
-
-    def step_certify(self, xp, s, o, d, ev):
-        """The certification of :meth:`MarchRefine._certify` (bisection of an earlier crossing)."""
-        return MarchRefine.step_refine(self, xp, s, o, d, ev)

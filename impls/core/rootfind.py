@@ -346,17 +346,18 @@ class SphereTrace(_Search):
         # (the generic rounding model, without a mesh's gain: a depth known to a few of those is
         # what the dtype resolves; a probe repeated across an unresolved stretch widens it)
         res0 = 4.0 * resolution(xp, tb, mag, 1.0 if self.resolve else 0.0)
-        conv = cross & (gap <= s["pm"] * xp.maximum(self.tol * self.inv_lip, res0) + slack)
+        allow = s["pm"] * xp.maximum(self.tol * self.inv_lip, res0) + slack
+        conv = cross & (gap <= allow)
         coarse = cross & ~conv & near
         # a probe landing within φ's rounding says nothing: the ray stays and probes twice as far
         retry = near & unres & ~out
         give_up = retry & (s["pm"] >= 2.0 ** self.PROBE_RETRIES)
-        # a probe that stands without a sign change leaves up to its reach uncovered: up to d0 (the
-        # tolerance) a MISS is then uncertified; past it (a retried probe) a crossing pair may
-        # hide there, and the ray ends UNCERTIFIED
+        # a probe that stands without a sign change leaves up to its reach uncovered: within the
+        # allowance a MISS is then uncertified; past it (a probe whose reach φ's rounding widened) a
+        # crossing pair may hide there, and the ray ends UNCERTIFIED
         stood = near & ~cross & ~unres & ~out & (gap > 0)
         unc = s["unc"] | stood
-        give_up = give_up | (stood & (gap > d0 + slack)) | coarse
+        give_up = give_up | (stood & (gap > allow)) | coarse
         miss = out & ~cross
         covered = (tb + rb >= hi) | (t_eval - r_new <= tb + rb)
         unc_miss = miss & (unc | ~covered)
@@ -700,9 +701,8 @@ class MarchRefine(_Search):
 
     @property
     def stages(self) -> tuple[str, ...]:
-        if self.ladder > 1:
-            return ("step_march", "step_ladder", "step_refine")
-        return ("step_march", "step_refine")
+        march = ("step_march", "step_ladder") if self.ladder > 1 else ("step_march",)
+        return march + (("step_refine", "step_certify") if self.rule.certifies else ("step_refine",))
 
     @property
     def deriv(self) -> bool:
@@ -713,7 +713,8 @@ class MarchRefine(_Search):
         for it (:mod:`impls.core.driver`): the iterate, its counters and, for marching, the ray's
         end, for refinement the bracket, plus what the step rule and the refiner hold.
         ``status`` and ``phase`` are not among them: every step writes them afresh."""
-        keys = frozenset({"t", "f", "iterations", "evals"}) | self.refiner.holds(stage)
+        keys = frozenset({"t", "f", "iterations", "evals"}) | self.refiner.holds(
+            "step_refine" if stage == "step_certify" else stage)
         if stage in ("step_refine", "step_certify"):
             return keys | {"a", "b", "fa"} | (CERTIFY_STATE if self.rule.certifies else frozenset())
         return keys | {"hi"} | self.rule.holds(stage)
@@ -762,8 +763,9 @@ class MarchRefine(_Search):
             # certified radii (|φ|/L less φ's rounding); a landing within φ's rounding of 0 (in the
             # range) shows no side: no crossing is taken from it, and the ray ends UNCERTIFIED there
             rc = certified_radius(xp, f, t, rule.inv_lip, mag, self.rg)
-            rc_n = certified_radius(xp, f_n, t_n, rule.inv_lip, mag, self.rg)
-            unres = unresolved(xp, f_n, t_n, rule.inv_lip, mag, self.rg) & (t_n <= hi)
+            r_n, res_n = rule.radius(xp, f_n), resolution(xp, t_n, mag, self.rg)
+            rc_n = xp.maximum(r_n - res_n, 0.0)  # (certified_radius and unresolved, sharing their terms)
+            unres = (r_n <= res_n) & (t_n <= hi)
             cross = cross & ~unres
         # at hi, or past every finite depth (t_max = inf and no ray bound): the ray left
         gone = (t_n >= hi) | ~xp.isfinite(t_n) | beyond
@@ -890,18 +892,14 @@ class MarchRefine(_Search):
             new["df"] = xp.where(onto, at(DF), at(xp.concat([s["df"][:, None], DF[:, :-1]], axis=1)))
         return _typed(xp, dict(s, **new), s)
 
-    def step_refine(self, xp, s, o, d, ev):
-        """One refinement step of the bracket [a, b]; for a certifying step rule also the
-        certification that the bracket's crossing is the ray's first (see the class docstring and
-        :meth:`_certify`): a row in certification mode (``cm``) evaluates a certification sample
-        instead of the refiner's iterate."""
+    def _refine_step(self, xp, s, o, d, ev, c=None):
+        """The refiner's step on the bracket [a, b] (at ``c`` where given): ``(new state entries,
+        c, φ(c), same_a, closed)``."""
         t, f, a, b = s["t"], s["f"], s["a"], s["b"]
         mid = 0.5 * (a + b)
         i2 = s["iterations"] % 3 == 0  # a check of the bracket's progress (see the safeguards)
-        c = self.refiner.propose(xp, s, t, f, a, b, mid, i2, self.xtol)
-        if self.rule.certifies:
-            mag = _magnitude(xp, o, self.scale)
-            c = xp.where(s["cm"], self._certify_sample(xp, s, a, mag), c)
+        prop = self.refiner.propose(xp, s, t, f, a, b, mid, i2, self.xtol)
+        c = prop if c is None else c(prop)
         f_c, df_c, cost = ev(o, d, c, self.deriv)
         # fa is φ at the bracket's first end when it was formed: a moves only to points of φ's sign
         # there, so that sign (all that is used) never changes and fa, fb need no updates
@@ -913,14 +911,35 @@ class MarchRefine(_Search):
         nmid = 0.5 * (na + nb)
         closed = (f_c == 0) | (nb - na <= self.xtol) | (nmid <= na) | (nmid >= nb)
         t_out = self.refiner.report(xp, c, f_c, t, f, na, nb, closed)
-        iters = s["iterations"] + 1
-        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, iterations=iters, evals=s["evals"] + cost)
+        new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, iterations=s["iterations"] + 1, evals=s["evals"] + cost)
         new.update(self.refiner.after(xp, s, i2, a, b, df_c))
+        return new, c, f_c, same_a, closed
+
+    def step_refine(self, xp, s, o, d, ev):
+        """One refinement step of the bracket [a, b].  For a certifying step rule a closed bracket
+        is CONVERGED when the march's frontier ``u`` reaches its start to within ``min_step``
+        (:meth:`_certify`); otherwise the ray goes on to the certification stage with its answer."""
+        new, c, f_c, same_a, closed = self._refine_step(xp, s, o, d, ev)
+        conv = closed
         if self.rule.certifies:
-            conv = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
-        else:
-            conv = closed
-        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, iters >= self.max_steps)
+            lo = xp.where(f_c == 0, c, new["a"])
+            later = closed & (s["u"] + self.rule.min_step < lo)
+            conv = closed & ~later
+            new["cm"] = later
+            new["phase"] = xp.astype(later, xp.int32) + (len(self.stages) - 2)
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps)
+        return _typed(xp, dict(s, **new), s)
+
+    def step_certify(self, xp, s, o, d, ev):
+        """The certification stage (:meth:`_certify`): a row in certification mode (``cm``)
+        evaluates a certification sample instead of the refiner's iterate; a row whose sample
+        found an earlier crossing refines that bracket here, and is certified in turn."""
+        mag = _magnitude(xp, o, self.scale)
+        cm = s["cm"]
+        new, c, f_c, same_a, closed = self._refine_step(
+            xp, s, o, d, ev, c=lambda prop: xp.where(cm, self._certify_sample(xp, s, s["a"], mag), prop))
+        conv = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps)
         return _typed(xp, dict(s, **new), s)
 
     def _certify_sample(self, xp, s, a, mag):
@@ -957,9 +976,13 @@ class MarchRefine(_Search):
         rule = self.rule
         cm, u, cp = s["cm"], s["u"], s["cp"]
         rc = certified_radius(xp, f_c, c, rule.inv_lip, mag, self.rg)
-        side = same_a & (f_c != 0)
+        # a sample within φ's rounding of 0 shows no side: no earlier crossing is taken from it, and
+        # it extends the frontier only as far as the min_step allowance reaches (its sphere is empty)
+        unres = unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
+        side = (same_a & (f_c != 0)) | (cm & unres)
         earlier = cm & ~side
-        stands = side & (c - rc - u <= rule.min_step)
+        # (the allowance plus the rounding of the positions: a floor step of min_step must stand)
+        stands = side & (c - rc - u <= rule.min_step + (4.0 * _eps(c)) * xp.abs(c))
         u_n = xp.where(stands, xp.maximum(u, c + rc), u)
         adv = stands & (c > cp)
         lo = xp.where(cm, s["a"], xp.where(f_c == 0, c, new["a"]))
