@@ -473,6 +473,9 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     if kind == "sphere" or ic[I_CERT]:
         kernel = kernels(key)["phi_rays"]
         before = compile_state(kernel)
+        # compiled here, whether or not these rays evaluate φ (a run's first call compiles: prepare)
+        z = np.zeros((1, 3), o.dtype)
+        kernel(z, z, np.zeros(1, o.dtype), params, np.empty(1, o.dtype))
         out = _run_certified(kernel, params, alg, o, d)
     else:
         if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1:
@@ -502,7 +505,8 @@ def _run_certified(phi_rays, params: np.ndarray, alg, o: np.ndarray, d: np.ndarr
         if deriv:
             raise NotImplementedError("the certified methods evaluate φ only (no dφ/dt)")
         f = np.empty_like(t)
-        phi_rays(oo, dd, t, params, f)
+        # (contiguous copies: one compiled specialisation, whatever view the compacting driver passes)
+        phi_rays(np.ascontiguousarray(oo), np.ascontiguousarray(dd), np.ascontiguousarray(t), params, f)
         return f, None, 1
 
     return run_compacted_numpy(alg, o, d, ev, CompactingSettings(threads=1))
