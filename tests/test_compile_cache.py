@@ -45,14 +45,16 @@ def test_a_second_run_reuses_every_kernel_and_no_cache_compiles_afresh(tmp_path)
     ok = {k: df[df["outcome"] == "ok"] for k, df in runs.items()}
     assert len(ok["cold"]) and set(ok["cold"]["backend"]) == set(backends)
     # cold: each backend compiles (numba once per scene structure and kernel, reused by the other
-    # knob settings in the run; jax once per configuration)
-    cold = ok["cold"].groupby(["backend", "method"])["compile_cache"].agg(set)
+    # knob settings and by the other method sharing the kernel: the certified methods evaluate φ
+    # with one kernel; jax once per configuration)
+    cold = ok["cold"].groupby(["backend"])["compile_cache"].agg(set)
     assert all("compiled" in v and v <= {"compiled", "reused"} for v in cold), cold
+    assert set(ok["cold"].loc[ok["cold"]["backend"] == "jax:cpu", "compile_cache"]) <= {"compiled"}
     assert set(ok["warm"]["compile_cache"]) == {"reused"}, ok["warm"][["backend", "method", "compile_cache"]]
     # --no-cache: nothing from disk; numba compiles (and reuses within the run), jax states nothing
     none = ok["none"]
     assert none.loc[none["backend"] == "jax:cpu", "compile_cache"].isna().all()
-    assert all("compiled" in v for v in none[none["backend"] == "numba"].groupby("method")["compile_cache"].agg(set))
+    assert "compiled" in set(none.loc[none["backend"] == "numba", "compile_cache"]) or "numba" not in backends
     for name in ("warm", "none"):
         a, b = runs["cold"][SAME], runs[name][SAME]
         assert a.equals(b), (name, a.compare(b))

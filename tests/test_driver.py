@@ -114,26 +114,32 @@ def test_steps_read_only_what_they_declare(method):
     from impls.numpy import derivatives
 
     case = get_case("csg.union.camera.32x32")
-    knobs = {k.name: k.default for k in METHODS[method].knobs}
-    knobs["ladder_after"] = 2
-    alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
-    assert len(alg.stages) == 3
-    ev = derivatives.ray_eval(case.scene)
-    o, d = case.origins, case.directions
-    s = alg.init(np, o, d, ev)
     seen = set()
-    for _ in range(40):  # step every stage on its own rays, full state against declared entries
-        for k, name in enumerate(alg.stages):
-            rows = np.nonzero((s["status"] == rootfind.IN) & (s["phase"] == k))[0]
-            if not rows.size:
-                continue
-            seen.add(name)
-            sub = {key: v[rows] for key, v in s.items()}
-            full = getattr(alg, name)(np, sub, o[rows], d[rows], ev)
-            lean = getattr(alg, name)(np, {key: sub[key] for key in alg.reads(name)}, o[rows], d[rows], ev)
-            for key in lean:
-                np.testing.assert_array_equal(lean[key], full[key], err_msg=f"{name}: {key}")
-            assert {"status", "t", "iterations", "evals"} <= set(lean)
-            for key, v in full.items():
-                s[key][rows] = v
+    # ladder steps after 2 marching steps reach the ladder stage; the hybrid's certification stage
+    # follows long extrapolated crossings, which the default ladder_after (64) leaves to the march
+    for after in ((2, 64) if method == "hybrid_secant" else (2,)):
+        knobs = {k.name: k.default for k in METHODS[method].knobs}
+        knobs["ladder_after"] = after
+        alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
+        # march, ladder, refine (and, for the certified hybrid, certification)
+        assert len(alg.stages) == (4 if method == "hybrid_secant" else 3)
+        ev = derivatives.ray_eval(case.scene)
+        o, d = case.origins, case.directions
+        # (own copies: init shares one array among entries that start equal, and this loop writes
+        # rows in place, as no driver does)
+        s = {key: np.array(v, copy=True) for key, v in alg.init(np, o, d, ev).items()}
+        for _ in range(40):  # step every stage on its own rays, full state against declared entries
+            for k, name in enumerate(alg.stages):
+                rows = np.nonzero((s["status"] == rootfind.IN) & (s["phase"] == k))[0]
+                if not rows.size:
+                    continue
+                seen.add(name)
+                sub = {key: v[rows] for key, v in s.items()}
+                full = getattr(alg, name)(np, sub, o[rows], d[rows], ev)
+                lean = getattr(alg, name)(np, {key: sub[key] for key in alg.reads(name)}, o[rows], d[rows], ev)
+                for key in lean:
+                    np.testing.assert_array_equal(lean[key], full[key], err_msg=f"{name}: {key}")
+                assert {"status", "t", "iterations", "evals"} <= set(lean)
+                for key, v in full.items():
+                    s[key][rows] = v
     assert seen == set(alg.stages)
