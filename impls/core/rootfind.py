@@ -19,7 +19,9 @@ backend's ``ev(o, d, t, deriv) -> (f, df, cost)`` where ``df = dφ/dt = ⟨∇φ
 ``deriv``) and ``cost`` is the number of φ evaluations per ray it used (``evals``).
 
 Per-ray outputs: ``t`` (depth; ``inf`` for MISS, NaN for NON_FINITE, the last iterate for
-MAX_ITER), ``status`` (:class:`impls.protocol.Status`), ``iterations`` and ``evals``.
+MAX_ITER, ``inf`` or the unresolved depth for UNCERTIFIED), ``status``
+(:class:`impls.protocol.Status`), ``iterations`` and ``evals``.  What each method certifies and
+can miss: docs/methods.md, "What each root finder can miss".
 """
 
 from __future__ import annotations
@@ -199,7 +201,8 @@ def certified_radius(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
 
 def final_t(xp, t, status):
     """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, BAD_INPUT and
-    LIPSCHITZ_VIOLATED (no depth was found), ``t`` otherwise.  The steps
+    LIPSCHITZ_VIOLATED (no depth was found), ``t`` otherwise (UNCERTIFIED: the step set it to
+    ``inf`` or to the unresolved depth).  The steps
     leave a finished ray's ``t`` at its last point and the drivers map only the rays that
     finish (:func:`outputs`; the compacting driver on each step's leaving rows), which saves two
     full-size selects per step."""
@@ -259,10 +262,17 @@ class SphereTrace(_Search):
     if the unbounding spheres of two consecutive points do not overlap (r_k + r_{k−1} < t_k −
     t_{k−1}, r = |φ|/L) the relaxed step may have jumped over the surface, so the tracer goes
     back to the safe point t_{k−1} + r_{k−1} and continues with ω = 1; a point is accepted only
-    when that test passes, so over-relaxation never tunnels.  Converged when |φ| ≤ tol; MISS
-    when the next t exceeds t_max (or leaves the scene's ray bounds, see :func:`clip_to_bounds`);
-    MAX_ITER after ``max_steps`` steps; LIPSCHITZ_VIOLATED when a step's ends differ by more
-    than L times its length (the declared bound is false on that ray: :func:`lipschitz_violated`).
+    when that test passes, so over-relaxation never tunnels.  Radii are certified ones
+    (:func:`certified_radius`: |φ|/L less φ's rounding).  Near the surface (the radius within
+    δ₀ = max(tol/L, 4·rounding)) a step is a *probe* reaching δ past the sphere (δ = δ₀, doubled
+    each time a probe lands where φ is unresolved).  CONVERGED on a resolved sign change against
+    the ray's starting side whose bracket [t + r, t' − r'] is at most max(tol/L, 4·rounding)
+    (× the probe's doublings) wide, the depth the chord's zero in it; a coarser one is
+    UNCERTIFIED (the dtype cannot resolve the depth to tol).  MISS when the next t exceeds t_max
+    (or leaves the scene's ray bounds, see :func:`clip_to_bounds`), if no probe stood without a
+    sign change on the way (each leaves up to its reach uncovered), else UNCERTIFIED; MAX_ITER
+    after ``max_steps`` steps; LIPSCHITZ_VIOLATED when a step's ends differ by more than L
+    times its length (the declared bound is false on that ray: :func:`lipschitz_violated`).
     One φ evaluation at t_min (the start of the ray bounds, when that is later) plus one per
     step; a step that leaves the range is evaluated where it ends, within t_max (``probe``: the
     scene's bound holds everywhere), else at the end of the ray bounds, so that its slope is
@@ -645,9 +655,12 @@ class MarchRefine(_Search):
     unbounding spheres of its ends overlap, r_k + r_{k+1} ≥ h_k (Keinert et al., "Enhanced
     Sphere Tracing", 2014: every point of the step is then within r of one end, where |φ| > 0).
     An uncertified step without a sign change is rejected (the ray stays at t_k) and Δ_k is
-    halved, down to ``min_step``; a certified or crossing step doubles Δ_k back up to
-    ``overstep``.  So a crossing is missed only if its chord is shorter than ``min_step``; with
-    ``overstep`` = ``min_step`` this is the plain IDR march (no rejections).  Extrapolation
+    halved, down to ``min_step``, where it stands uncertified (then a MISS is UNCERTIFIED); a
+    step that stands doubles Δ_k back up to ``overstep``.  A crossing step proves a root, not
+    the first: its bracket is refined, then certified (stage ``step_certify``,
+    :meth:`_certify`).  So a crossing is missed only if it is one of a pair with chord shorter
+    than ``min_step`` in a stretch no certified sphere covered; with ``overstep`` = ``min_step``
+    this is the plain IDR march (no rejections).  Extrapolation
     (``extrapolate`` = e > 0): where |φ| fell over the last step without a sign change, the
     step is at least min(e·x, ``reach``), x = φ_k (t_k − t_{k−1})/(φ_{k−1} − φ_k) the
     distance to the zero of the secant through the last two points.  A shallow approach to a
