@@ -170,8 +170,8 @@ def test_bad_selection_is_a_clear_error(fake_methods):
 
 
 def test_default_sweep_derives_from_knobs():
-    spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t"), Knob("n_samples", 64, int, 1, "n"),
-                                      Knob("sharpness", 50.0, float, 0.0, "s")), (), "")
+    spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t", role="tolerance"), Knob("n_samples", 64, int, 1, "n", role="budget"),
+                                      Knob("sharpness", 50.0, float, 0.0, "s", role="setting")), (), "")
     sw = default_sweep(spec, "quick")
     assert all(set(k) == {"tol", "n_samples", "sharpness"} for k in sw)
     assert all(k["sharpness"] == 50.0 for k in sw)  # not a tolerance, no sweep hint: fixed
@@ -183,15 +183,15 @@ def test_default_sweep_derives_from_knobs():
     assert len(full) > len(sw) and max(k["n_samples"] for k in full) == 256
     assert len({json.dumps(k, sort_keys=True) for k in full}) == len(full)  # no duplicates
     # xtol is a tolerance; a seed is not a budget
-    spec2 = MethodSpec("m2", "render", (Knob("xtol", 1e-12, float, 0.0, "x"), Knob("seed", 0, int, 0, "seed"),
-                                        Knob("n_coarse", 32, int, 1, "n")), (), "")
+    spec2 = MethodSpec("m2", "render", (Knob("xtol", 1e-12, float, 0.0, "x", role="tolerance"), Knob("seed", 0, int, 0, "seed", role="seed"),
+                                        Knob("n_coarse", 32, int, 1, "n", role="budget")), (), "")
     sw2 = default_sweep(spec2, "quick")
     assert {k["seed"] for k in sw2} == {0}
     assert sorted({k["xtol"] for k in sw2}) == [1e-12, 1e-8, 1e-4]
     assert len({k["n_coarse"] for k in sw2}) == 3
     # an explicit hint wins
-    hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (dataclasses.make_dataclass(
-        "HKnob", [("sweep", tuple, (10.0, 100.0))], bases=(Knob,), frozen=True)("sharpness", 50.0, float, 0.0, "s"),))
+    hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (
+        Knob("sharpness", 50.0, float, 0.0, "s", role="setting", sweep=(10.0, 100.0)),))
     assert {k["sharpness"] for k in default_sweep(hinted)} == {50.0, 10.0, 100.0}
     # the real catalog: every method gets a non-empty sweep whose knobs validate
     for m in impls.methods.METHODS.values():
