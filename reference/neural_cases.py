@@ -96,8 +96,8 @@ def neural_cases() -> list[Case]:
     for n in LARGE_SIZES:
         out.append(_case(f"neural.blob.camera.{n}x{n}.Llocal", local, *_cam(n, fov=50.0), large_tags(n),
                          f"the network with its local bound {local.local_bound:.3g}, {n}×{n} camera (the 16×16 view "
-                         "at scale); hits from the certified numerical reference, ≈ 13 ms a ray on 2 shared cores (≈ 15 min at "
-                         "256², ≈ 4 h at 1024²)"))
+                         "at scale); hits from the certified numerical reference (its cost grows with the rays: "
+                         "minutes at 256², hours at 1024²)"))
     # grazing rays with the local bound: certifying a near miss at distance δ costs ~L/√δ
     # evaluations per ray (the reference halves intervals until |φ(a)| + |φ(b)| > L(b − a)),
     # 5× fewer than with the spectral bound
