@@ -6,7 +6,7 @@
                         [--cluster local:N | --scheduler ADDRESS]
     python -m bench spread RUN_DIR [--workers 1 2 64] [--overhead-s S] [--central-s S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
-                          [--allocator tuned|default] [--no-peers] [--volume [--samples 256]]
+                          [--allocator tuned|default] [--no-peers] [--volume [--samples 256]] [--mesh]
     python -m bench edges [--backend warp,mitsuba] [--mesh torus,fin] [--offsets 1e-2,1e-5,1e-9] [--out DIR]
     python -m bench sampling [--case sphere.camera.64x64,torus.camera.32x32] [--targets 1e-2,1e-3,1e-4]
     python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing] [--min-comparable 1]
@@ -839,6 +839,10 @@ def cmd_speed(args) -> int:
         args.side = 1024
     environment.configure_threads(args.threads)
     allocator = environment.tune_allocator() if args.allocator == "tuned" else "default"
+    if args.mesh:
+        if args.volume:
+            return _error("--mesh and --volume: choose one (mesh cameras are timed on root finders and engines)")
+        return _speed_mesh(args, allocator)
     ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
     bad = [(bid, b) for bid, b in ((bid, registry.resolve(bid)) for bid in ids) if isinstance(b, registry.Unavailable)]
     if bad:
@@ -876,6 +880,45 @@ def cmd_speed(args) -> int:
         print("peers (bench/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, bounding-sphere "
               "clip); peer:scipy = hybrid_secant's march on numpy + scipy find_root (hybrid_chandrupatla)")
     print(speed.format_rows(rows))
+    for line in notes:
+        print(line)
+    if args.out:
+        from .results import write_json
+
+        err = _write_out_file(args.out, lambda path: write_json(path, rows))
+        if err:
+            return _error(err)
+    return 0
+
+
+def _speed_mesh(args, allocator: str) -> int:
+    """``speed --mesh`` (:mod:`bench.speed_mesh`): engines (raycast, float32) and root finders
+    (``--method``, float64) on the three mesh cameras; default backends numpy, embree, open3d (an
+    unavailable one is a line, not an error: its engine is not installed here)."""
+    from impls import registry
+
+    from . import speed_mesh
+
+    ids = _split(args.backend) or list(speed_mesh.DEFAULT_BACKENDS)
+    unknown = [bid for bid in ids if getattr(registry.resolve(bid), "unknown", False)]
+    if unknown:
+        return _error(f"--backend: {', '.join(unknown)} name no backend; `python -m bench backends` lists them")
+    if args.knobs:
+        return _error("--knobs: not with --mesh (each method runs at its default knobs there)")
+    notes: list[str] = []
+    lines = _ProgressLines(periodic=False)
+    from .heartbeat import Heartbeat
+
+    with Heartbeat(lines.line) as beat:
+        rows = speed_mesh.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats,
+                                  peers=not args.no_peers, notes=notes, progress=beat.stage)
+    for row in rows:
+        row["threads"] = args.threads
+        row["allocator"] = allocator
+    print(f"mesh cameras, {args.side}² rays, {args.threads} thread(s); raycast (float32) where a backend offers it, "
+          f"else {args.method} (float64, default knobs); × unit = time / numpy closed-form sphere hit of the same rays")
+    print(speed_mesh.format_rows(rows))
+    print("versions: " + speed_mesh.versions_line(rows))
     for line in notes:
         print(line)
     if args.out:
@@ -1149,6 +1192,8 @@ def main(argv: list[str] | None = None) -> int:
                     "sphere tracer, scipy's Chandrupatla refiner)")
     sp.add_argument("--volume", action="store_true", help="volume rendering instead: each backend's volume_nerf_uniform "
                     "against the plain compositing compiled by torch.compile and jax.jit (bench/peers.py)")
+    sp.add_argument("--mesh", action="store_true", help="the three mesh cameras instead: engines (raycast, float32) and "
+                    "--method (float64) side by side, default backends numpy,embree,open3d (bench/speed_mesh.py)")
     sp.add_argument("--samples", type=_int_at_least(1), default=256, help="samples per ray with --volume (default 256)")
     sp.add_argument("--repeats", type=_int_at_least(1), default=3)
     sp.add_argument("--threads", type=_int_at_least(1), default=1, help="threads per library and worker threads of the numpy/torch "
