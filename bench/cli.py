@@ -834,6 +834,9 @@ def cmd_speed(args) -> int:
         METHODS[args.method].validate(dict(args.knobs or {}))
     except (ValueError, TypeError) as exc:
         return _error(f"--knobs: {exc}")
+    if args.method == "raycast" and not args.mesh:
+        return _error("--method raycast: an engine's query on meshes; time it with --mesh (the engines answer "
+                      "raycast there whatever --method says)")
     args.side_given = args.side is not None
     if args.side is None:
         args.side = 1024
