@@ -24,6 +24,7 @@ speed (performance lives in benchmarks, not in tests).
 from __future__ import annotations
 
 import importlib.metadata
+import importlib.util
 import json
 import time
 
@@ -114,12 +115,8 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
                                 "x_unit": float(np.median(ratios)), "compile_s": p.compile_s, "first_call_s": first,
                                 "error": ""}, t, flagged))
     if peers:
-        try:
-            import embreex  # noqa: F401
-
-            have = True
-        except ImportError:
-            have = False
+        have = importlib.util.find_spec("embreex") is not None
+        if not have:
             notes.append(f"{PEER}: skipped: embreex is not installed (pip install -c constraints.txt -e '.[engines]')")
         if have:
             versions = json.dumps({"trimesh": importlib.metadata.version("trimesh"),
@@ -131,10 +128,15 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
                 def call(case=case):
                     return trimesh_embree_first_hits(case.scene, case.origins, case.directions)
 
-                times, units, ratios, t = times_against_unit(call, unit_timer(case.origins, case.directions), repeats)
-                runs.append((name, {"scene": case.id, "backend": f"peer:{PEER}", "method": "intersects_location",
-                                    "dtype": "float32", "rays": case.n_rays, "versions": versions,
-                                    "time_s": float(np.median(times)), "unit_s": float(np.median(units)),
+                row = {"scene": case.id, "backend": f"peer:{PEER}", "method": "intersects_location",
+                       "dtype": "float32", "rays": case.n_rays, "versions": versions}
+                try:
+                    times, units, ratios, t = times_against_unit(call, unit_timer(case.origins, case.directions),
+                                                                 repeats)
+                except Exception as exc:  # the peer's failure is its row
+                    runs.append((name, {**row, "error": f"{type(exc).__name__}: {exc}"[:300]}, None, None))
+                    continue
+                runs.append((name, {**row, "time_s": float(np.median(times)), "unit_s": float(np.median(units)),
                                     "x_unit": float(np.median(ratios)), "compile_s": None, "first_call_s": None,
                                     "error": ""}, np.asarray(t, np.float64), np.zeros(case.n_rays, bool)))
     rows = []
