@@ -190,7 +190,7 @@ def engine_callables(ids: list[str], method: str = "hybrid_secant") -> tuple[dic
             return np.where(status == Status.CONVERGED, np.asarray(r.t, np.float64),
                             np.where(status == Status.MISS, np.inf, np.nan))
 
-        out[f"{eid} · {m} · {dtype}" if eid != b.id or m != "raycast" else eid] = (run, dtype)
+        out[b.id if m == "raycast" else f"{b.id} · {m} · {dtype}"] = (run, dtype)
     return out, notes
 
 

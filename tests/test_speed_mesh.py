@@ -16,7 +16,9 @@ from tests.conftest import bench_cli  # noqa: E402
 def test_speed_mesh_rows(tmp_path):
     from impls import registry
 
-    engine = "embree" if not isinstance(registry.resolve("embree"), registry.Unavailable) else None
+    # by its entry point when isobench is installed, else by its module (a checkout on PYTHONPATH)
+    engine = next((e for e in ("embree", "impls.embree.backend:EmbreeBackend")
+                   if not isinstance(registry.resolve(e), registry.Unavailable)), None)
     ids = "numpy" + (f",{engine}" if engine else "")
     out = tmp_path / "rows.json"
     p = bench_cli("speed", "--mesh", "--side", "8", "--repeats", "1", "--backend", ids, "--no-peers", "--out", out)
