@@ -32,6 +32,7 @@ def test_speed_mesh_rows(tmp_path):
     assert all(r["method"] == "hybrid_secant" and r["dtype"] == "float64" and r["err_max"] <= 1e-9 for r in num)
     if engine:
         eng = [r for r in rows if r["backend"] == engine]
+        assert len(eng) == 3
         assert all(r["method"] == "raycast" and r["dtype"] == "float32" and r["err_max"] <= 1e-4 for r in eng)
         assert "embreex" in p.stdout  # the versions line
 
