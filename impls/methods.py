@@ -122,6 +122,9 @@ class MethodSpec:
     #: built-in backend of another library leaves it out of ``methods()``, and the runner records
     #: such a configuration as skipped ("does not implement")
     libs: tuple[str, ...] | None = None
+    #: the dtypes the method computes in whatever a run asks (an engine's own precision); the planner
+    #: plans it in these (in those of them ``--dtype`` names, when it names any); None: the run's dtypes
+    dtypes: tuple[str, ...] | None = None
 
     def algorithm(self, scene, t_min: float, t_max: float, knobs: dict[str, Any], theta: Any = None, *,
                   ladder: int) -> Any:
@@ -240,6 +243,16 @@ def _specs() -> list[MethodSpec]:
             requires=(), build=methods_root.march_builder(refine), libs=_REFINE_LIBS.get(refine),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
+    # an engine's own ray query (impls/engine.py): no array-library backend runs it (libs=()), only
+    # the engine plug-ins whose methods() name it; float32, the precision the engines compute in
+    specs.append(MethodSpec(
+        name="raycast",
+        family="root",
+        knobs=(),
+        requires=(), libs=(), dtypes=("float32",),
+        description="the engine's own first-hit ray query (BVH over the mesh's triangles, or the engine's SDF-grid "
+        "intersector); no knobs; precision as the engine computes",
+    ))
     specs += [
         MethodSpec(
             name="normal", family="gradient", knobs=(), requires=("smooth",), needs_t_hit=True,

@@ -467,7 +467,9 @@ def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
     ids = {c.case.id for c in cfgs}
     expected = {c.id for c in catalog() if any(fnmatch.fnmatchcase(c.id, g) for g in ("mesh.*", "grid.*", "neural.*"))}
     assert ids == expected and len(expected) >= 10
-    assert {c.dtype for c in cfgs} == {"float64"}
+    # float64, but for a method that computes in its own dtype (an engine's raycast: float32)
+    assert {c.dtype for c in cfgs if METHODS[c.method].dtypes is None} == {"float64"}
+    assert {c.dtype for c in cfgs if c.method == "raycast"} == {"float32"}
     planned = {(c.case.id, c.method) for c in cfgs}
     for case in catalog():
         if case.id not in expected:
@@ -503,3 +505,23 @@ def test_costly_writes_are_spaced_so_writing_stays_a_small_share_of_the_run(fake
     gaps = np.diff(writes[:-1])  # the last write is the run's closing one, whenever it comes
     assert (gaps >= runner.FLUSH_COST_FACTOR * cost).all(), gaps
     assert len(read_results(tmp_path)) == len(df) and df.groupby(runner.CONFIG_KEY).ngroups == n_cfg
+
+
+def test_a_method_with_its_own_dtypes_is_planned_in_them():
+    """``MethodSpec.dtypes`` (raycast: float32): planned in those whatever the suite's dtypes; narrowed
+    to the ones ``--dtype`` names; with ``--dtype`` naming none of them, planned in the run's (and
+    skipped there with the reason, not silently left out)."""
+    from bench.suites import get_suite
+
+    suite = get_suite("quick")
+    assert suite.dtypes == ("float64",)
+    cfgs = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast", "hybrid_secant"], None)
+    assert {(c.method, c.dtype) for c in cfgs} == {("raycast", "float32"), ("hybrid_secant", "float64")}
+    both = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64", "float32"])
+    assert {c.dtype for c in both} == {"float32"}
+    only64 = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64"])
+    assert {c.dtype for c in only64} == {"float64"}
+    from impls import registry
+
+    reason = runner.skip_reason(only64[0], registry.resolve("numpy"))
+    assert "does not implement raycast" in reason and "engine" in reason
