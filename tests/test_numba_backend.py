@@ -296,3 +296,38 @@ def test_knobs_come_from_the_catalog(nb):
         nb.prepare("hybrid_secant", scene, o, d, xtol=-1.0)
     r = run(nb, "march_newton", scene, o, d, step=0.05)  # dφ/dt by central differences: 3 evaluations each
     assert np.all(r.evals[r.status == Status.CONVERGED] % 3 == 0)
+
+
+# -- the kernels: one template per step -------------------------------
+
+
+def test_each_step_is_written_once_and_both_kernels_are_generated_from_it():
+    """The one-ray kernel and the lanes kernel hold every line of the step templates (with the
+    ray's variables renamed: no suffix, ``_0`` … for the lanes), and the steps' arithmetic
+    appears nowhere else in the package: no hand-kept copy of a step remains."""
+    import re
+    from pathlib import Path
+
+    from impls.numba import template
+
+    one, lanes = template.one_ray_source(), template.lanes_source()
+    for name in ("START", "STEP", "LADDER"):
+        for line in getattr(template, name).strip("\n").splitlines():
+            line = line.strip()
+            if line.startswith("@EVAL"):
+                continue
+            assert re.sub(r"_K\b", "", line) in one, (name, line)
+            if name != "LADDER":  # (the lanes kernel has no ladder stage)
+                for k in range(template.LANES):
+                    assert re.sub(r"_K\b", f"_{k}", line) in lanes, (name, k, line)
+    assert lanes.count("= ev(p, ") == template.LANES and "ev_d(" not in lanes
+    # the march step, the crossing test, the secant and chord, the safeguard's lengthened step, the
+    # closed-bracket test: in the templates, and in no other module of the package
+    arithmetic = [r"_min\(\w+ \+ step", r"\(\w+ > 0\) != \(\w+ > 0\)", r"\w+ - \w+ \* \(\w+ - \w+\) / \(\w+ - \w+\)",
+                  r"\w+ \+ 0\.5 \* hh", r"<= xtol\) or \(\w+ <= \w+\) or \(\w+ >= \w+\)"]
+    steps = template.START + template.STEP + template.LADDER
+    for pattern in arithmetic:
+        assert re.search(pattern, steps), pattern
+        for path in Path(template.__file__).parent.glob("*.py"):
+            if path.name != "template.py":
+                assert not re.search(pattern, path.read_text()), (pattern, path.name)
