@@ -298,7 +298,51 @@ def test_knobs_come_from_the_catalog(nb):
     assert np.all(r.evals[r.status == Status.CONVERGED] % 3 == 0)
 
 
-# -- the kernels: one template per step -------------------------------
+# -- the kernels: one template per step, the refiners they compile -------------------------------
+
+
+def _march(method="march_secant", **knobs):
+    scene, _, _ = _scene("sphere")
+    spec = METHODS[method]
+    return spec.algorithm(scene, 0.0, 10.0, spec.validate(knobs), ladder=0)
+
+
+def test_the_refiners_are_mapped_explicitly_and_an_unknown_one_is_an_error():
+    """The kernels compile Bisect, Secant and Newton (0, 1, 2 in the configuration).  Any other
+    refiner — a user's subclass with its own proposal, or march_chandrupatla's scipy refinement
+    (a MarchRefine subclass whose refiner field is a placeholder Bisect) — is refused naming it and
+    what is compiled, instead of being run as another refiner's steps."""
+    import dataclasses
+
+    from impls.core.rootfind import Bisect, Newton, Secant
+    from impls.numba import driver
+
+    alg = _march()
+    for ref, k in ((Bisect(), 0), (Secant(), 1), (Newton(), 2)):
+        assert driver.configuration(dataclasses.replace(alg, refiner=ref))[2][driver.I_REFINER] == k
+
+    class DampedSecant(Secant):  # a user's refiner: another proposal
+        def _iterate(self, xp, s, t, f):
+            return t - 0.5 * f * (t - s["p"]) / (f - s["fp"])
+
+    with pytest.raises(NotImplementedError, match="DampedSecant is not one of them") as err:
+        driver.configuration(dataclasses.replace(alg, refiner=DampedSecant()))
+    assert "Bisect, Secant, Newton" in str(err.value)
+    with pytest.raises(NotImplementedError, match="MarchChandrupatla"):
+        driver.configuration(_march("march_chandrupatla"))
+
+
+def test_march_chandrupatla_is_not_offered_and_not_run_as_bisection(nb):
+    """The runner never reaches the kernels with scipy's refiner: the method is not offered
+    (``prepare`` refuses it: the run records the configuration as skipped), and solving it
+    directly is an error, not a bisection."""
+    scene, o, d = _scene("sphere")
+    assert "march_chandrupatla" not in nb.methods()
+    with pytest.raises(NotImplementedError, match="does not implement"):
+        nb.prepare("march_chandrupatla", scene, o, d, t_max=10.0)
+    knobs = METHODS["march_chandrupatla"].validate({})
+    with pytest.raises(NotImplementedError, match="MarchChandrupatla"):
+        nb.solve("march_chandrupatla", scene, o, d, t_min=0.0, t_max=10.0, **knobs)
 
 
 def test_each_step_is_written_once_and_both_kernels_are_generated_from_it():

@@ -16,7 +16,8 @@ The constant-step marchers run in compiled kernels generated from one template o
 with the same operations in the same order, so the same depths, statuses
 (:class:`impls.protocol.Status`), iteration and evaluation counts as the array drivers, the same
 Lipschitz-violation check (:func:`impls.core.rootfind.lipschitz_violated`) and the same certified
-convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or φ = 0).
+convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or φ = 0).  Only the
+refiners the template has are compiled (:data:`REFINERS`); another is an error, not a stand-in.
 Where the array drivers step every ray still iterating once per loop step (compacting or
 masking), these kernels run each ray to completion on its own (``prange`` over rays, threads
 ``NumbaSettings.threads``), with its state in registers: no per-step overhead, which is what the
@@ -37,7 +38,8 @@ import math
 import numpy as np
 
 from ..core.driver import _whole_at_least
-from ..core.rootfind import BAD, CONV, IN, LIPV, MAXI, MISS, NONF, Bisect, CertifiedStep, Newton, SphereTrace
+from ..core.rootfind import (BAD, CONV, IN, LIPV, MAXI, MISS, NONF, Bisect, CertifiedStep, ConstantStep, MarchRefine,
+                             Newton, Secant, SphereTrace)
 
 #: per-ray ladder samples where the knob leaves it to the driver (-1): none (module docstring)
 LADDER = 0
@@ -90,9 +92,33 @@ def _lip_eps(alg, dtype) -> float:
     return 16.0 * alg.gain * float(np.finfo(np.dtype(dtype)).eps)
 
 
+#: the refiners the kernels compile, by their number in the configuration (``I_REFINER``); by exact
+#: class: a subclass may change the proposal (``_iterate``), which the kernels would not follow
+REFINERS = {Bisect: 0, Secant: 1, Newton: 2}
+
+
+def compiled_refiner(alg) -> int:
+    """The kernels' number of the refiner of ``alg``, a ``MarchRefine`` (exactly: a subclass, such
+    as ``march_chandrupatla``'s, replaces its steps) with a ``ConstantStep`` rule; any other
+    algorithm or refiner is a NotImplementedError naming it and what the kernels compile (they
+    must not run another refiner's steps in its place)."""
+    compiled = ", ".join(c.__name__ for c in REFINERS)
+    if type(alg) is not MarchRefine or type(alg.rule) is not ConstantStep:
+        raise NotImplementedError(
+            f"the numba kernels compile MarchRefine with a ConstantStep rule (refiners {compiled}); got "
+            f"{type(alg).__name__} with {type(getattr(alg, 'rule', None)).__name__} (the certified methods run "
+            "the core algorithm: _run_certified)")
+    ref = type(alg.refiner)
+    if ref not in REFINERS:
+        raise NotImplementedError(f"the numba kernels compile the refiners {compiled}; {ref.__module__}."
+                                  f"{ref.__qualname__} is not one of them")
+    return REFINERS[ref]
+
+
 def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
     """``(kind, floats, ints)`` of a root finder built by the catalog: ``kind`` "sphere" or
-    "march", its numbers in the kernels' layout (index names ``F_*``, ``I_*``)."""
+    "march", its numbers in the kernels' layout (index names ``F_*``, ``I_*``).  A constant-step
+    marcher's refiner is mapped by :func:`compiled_refiner` (an unknown one is an error)."""
     fc = np.zeros(14)
     ic = np.zeros(8, np.int64)
     fc[F_TMIN], fc[F_TMAX], fc[F_SCALE], fc[F_LEPS] = alg.t_min, alg.t_max, alg.scale, _lip_eps(alg, dtype)
@@ -101,15 +127,15 @@ def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
         fc[F_INVLIP], fc[F_TOL], fc[F_OMEGA] = alg.inv_lip, alg.tol, alg.omega
         ic[I_PROBE] = alg.probe
         return "sphere", fc, ic
-    rule, ref = alg.rule, alg.refiner
+    rule = alg.rule
     fc[F_XTOL] = alg.xtol
     ic[I_LADDER], ic[I_LADDER_AFTER] = alg.ladder, alg.ladder_after
-    ic[I_REFINER] = 0 if isinstance(ref, Bisect) else (2 if isinstance(ref, Newton) else 1)
     if isinstance(rule, CertifiedStep):
         ic[I_CERT], ic[I_PROBE] = 1, rule.probe
         fc[F_INVLIP], fc[F_MINSTEP], fc[F_CAP] = rule.inv_lip, rule.min_step, rule.cap
         fc[F_EXTRA], fc[F_REACH] = rule.extrapolate, rule.reach
     else:
+        ic[I_REFINER] = compiled_refiner(alg)
         fc[F_STEP] = rule.step
         fc[F_MINSTEP] = rule.min_step
     if rule.check is not None:
