@@ -5,9 +5,13 @@ The algorithm is :class:`impls.core.rootfind.MarchRefine` with a ``ConstantStep`
 (``ladder`` steps evaluated together, judged pair by pair) and ``step_refine`` (the refiner's
 proposal c in the bracket [a, b], φ(c), the bracket update and the reported depth), with the
 refiners ``Bisect`` (c = (a + b)/2), ``Secant`` (c = t − φ(t)(t − p)/(φ(t) − φ(p))) and ``Newton``
-(c = t − φ(t)/φ'(t)), both safeguarded as ``_OneSided.propose``.  Each step is written here once,
-for one ray, with the same operations in the same order as the array step (floating-point results
-depend on the order), so the kernels give the array drivers' depths, statuses and counts.
+(c = t − φ(t)/φ'(t)), the last two safeguarded as ``_OneSided.propose`` (a step shorter than
+xtol/2 lengthened, after Brent, *Algorithms for Minimization without Derivatives*, 1973, ch. 4;
+bisection where the iterate leaves the bracket or the bracket stalls, after rtsafe, Press et al.,
+*Numerical Recipes*, 3rd ed. 2007, §9.4).
+Each step is written here once, for one ray, with the same operations in the same order as the
+array step (floating-point results depend on the order), so the kernels give the array drivers'
+depths, statuses and counts.
 
 A ray's iteration has one shape: the point its phase evaluates next (−1: the start, ``init``;
 0: a march step; 2: a refinement step), φ there, and the update of its state by that phase's
