@@ -12,8 +12,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 import bench.claims  # noqa: E402
-from bench import cli, report  # noqa: E402
-from bench.results import to_frame  # noqa: E402
+from bench.commands import cli  # noqa: E402
+from bench.report import build as report  # noqa: E402
+from bench.run.results import to_frame  # noqa: E402
 
 
 def frame():
@@ -114,8 +115,8 @@ def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch, capsys):
 
 
 def test_knob_labels_show_only_what_differs_from_the_defaults():
-    from bench.report import knob_label
-    from bench.results import knob_string
+    from bench.report.build import knob_label
+    from bench.run.results import knob_string
     from impls.methods import METHODS
 
     defaults = {k.name: k.default for k in METHODS["hybrid_secant"].knobs}
@@ -129,7 +130,7 @@ def test_knob_labels_show_only_what_differs_from_the_defaults():
 def _stability_rows():
     from impls.methods import METHODS
 
-    from bench.results import knob_string
+    from bench.run.results import knob_string
 
     knob = knob_string({k.name: k.default for k in METHODS["sphere_trace"].knobs})
     base = {"schema_version": 2, "case_version": "v", "method": "sphere_trace", "family": "root", "knob": knob, "knobs_json": "{}",
@@ -149,7 +150,7 @@ def _stability_rows():
 
 
 def test_report_stability_section_scoreboard_then_matrix_after_the_first_tables(tmp_path):
-    from bench.results import write_results
+    from bench.run.results import write_results
 
     write_results(_stability_rows(), tmp_path / report.STABILITY_DIR)
     report.build(frame(), {"run_id": "r"}, tmp_path)

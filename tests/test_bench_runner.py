@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import impls.methods
-from bench import runner
-from bench.results import read_results
-from bench.suites import Suite, default_sweep
-from bench.timing import TimingPolicy
+from bench.run import runner
+from bench.run.results import read_results
+from bench.run.suites import Suite, default_sweep
+from bench.run.timing import TimingPolicy
 from impls import METHODS, Unavailable
 from impls.methods import Knob, MethodSpec
 from reference import Sphere, get_case
@@ -71,12 +71,12 @@ def test_each_family_measures_the_planted_error(fake_methods):
 
 def test_render_without_a_reference_is_skipped_with_the_reason(fake_methods, monkeypatch):
     # every catalog case has a colour field now, so take it away to see the skip path
-    from bench import references
+    from bench.run import references
 
     def no_colour(case):
         raise references.NotApplicable(f"{case.id} has no colour field ρ (case.color_field)")
 
-    from bench import metrics
+    from bench.run import metrics
 
     monkeypatch.setattr(references, "color_field", no_colour)
     monkeypatch.setattr(metrics, "color_field", no_colour)
@@ -264,7 +264,7 @@ def colored_case():
 
 
 def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(fake_methods, monkeypatch, tmp_path):
-    from bench.references import ReferenceOptions
+    from bench.run.references import ReferenceOptions
     from tests.test_bench_fakes import FakeColor, fake_render_exact
 
     calls = []
@@ -391,7 +391,7 @@ def test_plan_spreads_cases_over_scene_families_and_limits_secondary_dtypes(fake
 
 
 def test_reference_rays_are_evenly_strided_and_include_both_ends():
-    from bench.references import reference_rays
+    from bench.run.references import reference_rays
 
     assert list(reference_rays(10, None)) == list(range(10))
     assert list(reference_rays(10, 32)) == list(range(10))
@@ -409,7 +409,7 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
     planned on them."""
     import fnmatch
 
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
     from reference import catalog
 
     suite = get_suite(suite_name)
@@ -440,7 +440,7 @@ def test_match_all_case_keeps_the_suites_cost_exclusions_and_named_cases_lift_th
     """``--case '*'`` (the catalog sweep) leaves out what the suite excludes for cost (dt/dθ by
     finite differences or unrolling on the neural SDF's 4481 weights: each runs past --timeout);
     ``--case 'neural.*'`` names those cases and plans them, with the knob sweep."""
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
 
     suite = get_suite("full")
     every = runner.plan(suite, ["numpy"], "*", ["dt_finite_diff", "dt_implicit"], None)
@@ -459,7 +459,7 @@ def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
     scene is smooth."""
     import fnmatch
 
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
     from reference import catalog
 
     suite = get_suite("workloads")
@@ -482,7 +482,7 @@ def test_costly_writes_are_spaced_so_writing_stays_a_small_share_of_the_run(fake
     """The results are rewritten whole, so a write's cost grows with the run: the runner waits
     FLUSH_COST_FACTOR × the last write's cost between writes (with flush_s = 0 it would write after
     every configuration), and the final write still holds every row."""
-    from bench import results
+    from bench.run import results
 
     cost, writes = 0.03, []
 

@@ -2,7 +2,7 @@
 
 (The reference answers come from the case — ``Case.exact_*`` of :mod:`reference.cases`, cached
 on the case — and the rendering integral, with its time limit and disk cache, from
-:mod:`bench.references`; this module turns them into errors.)
+:mod:`bench.run.references`; this module turns them into errors.)
 
 Every method returns a :class:`impls.protocol.RayResult`; what it is checked against depends on
 its family (:attr:`impls.methods.MethodSpec.family`) and on the per-ray outputs it declares
@@ -45,8 +45,8 @@ a declared Lipschitz bound seen to be false, or a near-tangent ray float64 canno
 miss; :attr:`reference.cases.Case.exact_t_error_bounds`) are *not judged*: left out of the depth
 errors, of ``n_false_hit``/``n_false_miss`` and of ``color_vs_surface``, and counted in
 ``n_not_judged``.  ``reference_error_bound`` is the largest per-ray depth bound of the judged rays.
-A row with ``n_not_judged > 0`` was not fully checked: :func:`bench.summary.which_to_pick` never
-picks it, :mod:`bench.stability` counts its rays as not judged, :mod:`bench.compare` calls it not
+A row with ``n_not_judged > 0`` was not fully checked: :func:`bench.report.summary.which_to_pick` never
+picks it, :mod:`bench.studies.stability` counts its rays as not judged, :mod:`bench.report.compare` calls it not
 comparable when the count changed.
 
 Honesty rules: a root finder's false hit or false miss has e = inf (a max error cannot hide a
@@ -191,10 +191,10 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
     it = it[np.isfinite(it)]
     # Rays the reference flags (no certified answer: a false Lipschitz bound, a near-tangent ray)
     # are left out of the errors and of the false hit/miss counts, and counted in n_not_judged:
-    # a method's answer there can be neither right nor wrong (bench.summary never picks such a row).
+    # a method's answer there can be neither right nor wrong (bench.report.summary never picks such a row).
     # n_false_miss counts every judged ray that hits but is not CONVERGED; of those, the ones the
     # method declined with a failure status (MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED…) are flagged,
-    # not silent: n_miss_declined lets a reader (bench.stability) tell them apart from reported
+    # not silent: n_miss_declined lets a reader (bench.studies.stability) tell them apart from reported
     # MISSes.  n_converged_nonfinite: CONVERGED with a non-finite t, a silent NaN (on any ray).
     bounds = getattr(case, "exact_t_error_bounds", None)
     if bounds is not None:
@@ -256,7 +256,7 @@ def _pointwise_quantities(res: RayResult, case, outputs: tuple[str, ...]) -> tup
                 qs.append(Quantity(name, "", got, ex, rays))
             else:
                 notes.append({"quantity": name, "skip": f"no reference for output {name!r} "
-                                                        f"(bench.metrics knows none; case.exact_{name} does not exist)"})
+                                                        f"(bench.run.metrics knows none; case.exact_{name} does not exist)"})
         except _SKIP as exc:
             notes.append({"quantity": "normal_angle" if name == "normal" else name, "skip": str(exc)})
     return qs, notes
@@ -276,7 +276,7 @@ def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict
 
 def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, spec) -> list[dict]:
     """``color_vs_integral`` (against the continuous rendering integral of the same density, on
-    the rays it is computed for: :func:`bench.references.reference_rays`) and ``color_vs_surface`` (against ρ(x*), rays that hit: the limit volume rendering is
+    the rays it is computed for: :func:`bench.run.references.reference_rays`) and ``color_vs_surface`` (against ρ(x*), rays that hit: the limit volume rendering is
     meant to approach)."""
     if "color" not in res.outputs:
         raise ValueError(f"render method returned no 'color' output (outputs: {sorted(res.outputs)})")

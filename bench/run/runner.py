@@ -1,7 +1,7 @@
 """The runner: plan (cases × methods × dtypes × knobs × backends), measure, record.
 
 Every planned configuration becomes rows, never nothing: ``ok`` (measured; one row per checked
-quantity, see :mod:`bench.metrics`), ``skipped`` (with the reason: backend unavailable, method
+quantity, see :mod:`bench.run.metrics`), ``skipped`` (with the reason: backend unavailable, method
 not implemented, dtype unsupported, scene lacks what the method needs, the backend declines the
 scene (``declines`` hook or :class:`impls.protocol.Declined` from ``prepare``), no reference answer) or
 ``failed`` (the exception, a wrong shape, a silent NaN or a timeout; the run goes on).
@@ -34,8 +34,7 @@ from reference.quadric import ray_sphere_roots
 from . import environment, references
 from .metrics import family_skip_reason, finite_rows, measure_accuracy, primary_quantity
 from .references import ReferenceOptions
-from .results import (OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, remove_temporaries, to_frame, write_json,
-                      write_results)
+from .results import (OVER_BUDGET, SCHEMA_VERSION, knob_string, read_results, remove_temporaries, to_frame, write_json, write_results)
 from .suites import Suite
 from .timing import Timeout, TimingPolicy, measure, time_limit
 
@@ -78,7 +77,7 @@ def closed_form_time(case: Case, policy: TimingPolicy) -> float:
 
 
 class Interrupted(RuntimeError):
-    """An executor (:mod:`bench.cluster`) could not finish the plan (its cluster went away): the
+    """An executor (:mod:`bench.run.cluster`) could not finish the plan (its cluster went away): the
     run keeps what finished, is marked incomplete with this message, and ``--resume`` finishes it."""
 
 
@@ -339,7 +338,7 @@ def over_budget_message(budget_s: float | None) -> str:
 def run_budgeted(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: Callable[[], float],
                  cache: dict, budget_s: float | None, left: float | None) -> tuple[list[dict], bool]:
     """One configuration under the run's budget, the same wherever it runs (this process, or a
-    dask worker of :mod:`bench.cluster`): ``left`` seconds of ``budget_s`` remain (None: no
+    dask worker of :mod:`bench.run.cluster`): ``left`` seconds of ``budget_s`` remain (None: no
     budget).  Returns (rows, over): with no budget left, one skipped :data:`OVER_BUDGET` row; else
     :func:`run_one` limited to the smaller of ``policy.timeout_s`` and ``left``, and a run the
     budget interrupted is such a row too ("interrupted in flight").  ``cf_time()`` gives the
@@ -526,7 +525,7 @@ def _done_keys(df) -> set[tuple]:
 
 def outcome_of(rows: list[dict]) -> str:
     """A configuration's outcome from its rows: ``ok`` if any quantity was measured, else
-    ``failed`` if any failed, else ``skipped`` (as ``bench.report.config_outcomes``)."""
+    ``failed`` if any failed, else ``skipped`` (as ``bench.report.build.config_outcomes``)."""
     outs = {r.get("outcome") for r in rows}
     return "ok" if "ok" in outs else "failed" if "failed" in outs else "skipped"
 
@@ -579,7 +578,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, *, case_pattern: 
     ``elapsed_s`` in environment.json is the sum over the run's sessions (``elapsed_sessions_s``),
     kept up to date at every flush so a killed session's time is not lost.
     ``executor`` (None: this process, one configuration after the other): runs the configurations
-    elsewhere, e.g. :class:`bench.cluster.ClusterExecutor` on a dask cluster; planning, resume,
+    elsewhere, e.g. :class:`bench.run.cluster.ClusterExecutor` on a dask cluster; planning, resume,
     the rows kept, the files written and the budget's rules are the same, and this process stays
     the one writer of the run directory.  Each row records ``machine_key`` (and ``task_s``, the
     configuration's wall seconds on its process).

@@ -15,7 +15,7 @@ Protocol (after pyperf and pytest-benchmark):
 Reported: every sample, their median and interquartile range, ``loops``.
 A hard limit on the whole configuration (:func:`time_limit`) turns a hang into a ``timeout`` row,
 in the main thread (a signal) and in any other thread (a watchdog: a dask worker runs its
-configurations in a thread, :mod:`bench.cluster`).
+configurations in a thread, :mod:`bench.run.cluster`).
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from .timing import times_against_unit
+from ..run.timing import times_against_unit
 
 TARGETS = {"numpy": 30.0, "jax:cpu": 20.0, "torch:cpu": 60.0}
 
@@ -79,7 +79,7 @@ def scenes(n_side: int):
 def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repeats: int = 3, knobs=None,
             t_max: float = 10.0, threads: int = 1, peers: bool = False, notes: list | None = None) -> list[dict]:
     """One row per scene × backend (see the module docstring), and with ``peers`` one per scene ×
-    peer (:mod:`bench.peers`: a numba per-ray sphere tracer, scipy's Chandrupatla), timed after
+    peer (:mod:`bench.studies.peers`: a numba per-ray sphere tracer, scipy's Chandrupatla), timed after
     the backends and scored the same way; a peer that cannot run here is a line in ``notes``.
 
     Backends run one after the other, each on every scene (jax, last by default, leaves XLA's
@@ -87,10 +87,10 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
     exact torus hits make about a million small arrays), so that neither disturbs the
     timings.  (With the default allocator, torus ∪ box numpy measured 0.75–0.79 s in a process
     of its own and 0.86–0.89 s after the other backends' runs; with the tuned one,
-    :func:`bench.environment.tune_allocator`, 0.43 s alone and 0.40–0.44 s after them.)"""
+    :func:`bench.run.environment.tune_allocator`, 0.43 s alone and 0.40–0.44 s after them.)"""
     from impls import Status, registry
 
-    from .environment import configure_driver
+    from ..run.environment import configure_driver
 
     runs = []
     cases = scenes(n_side)

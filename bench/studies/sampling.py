@@ -2,9 +2,9 @@
 within a target of the rendering integral (``python -m bench sampling``).
 
 For a case and a density model (NeRF density σ = s·sigmoid(−sφ), s = 50 by default), the
-reference is the continuous rendering integral C = ∫ T σ ρ dt of :func:`bench.references.exact_color`
+reference is the continuous rendering integral C = ∫ T σ ρ dt of :func:`bench.run.references.exact_color`
 (adaptive quadrature, error bound ≈ 1e-11) on ``max_rays`` rays strided through the case
-(:func:`bench.references.reference_rays`).  Each sampler (``volume_<density>_<sampler>``, numpy
+(:func:`bench.run.references.reference_rays`).  Each sampler (``volume_<density>_<sampler>``, numpy
 backend, no early termination) renders those rays with N samples; its error at N is the largest
 colour error ‖C_N − C‖₂ over the rays of a set: ``all`` the reference rays, or ``hits`` those
 whose exact first hit exists (the near-surface ``band`` sampler needs that hit t̂ and renders
@@ -43,7 +43,7 @@ class ColourErrors:
                  disk=None):
         from impls import METHODS, registry
 
-        from .references import ReferenceOptions, exact_color, reference_rays
+        from ..run.references import ReferenceOptions, exact_color, reference_rays
 
         self.case, self.density, self.sharpness = case, density, float(sharpness)
         self.backend = registry.resolve(backend)
@@ -129,12 +129,12 @@ def sampling_table(case_ids=DEFAULT_CASES, targets=DEFAULT_TARGETS, *, density: 
                    progress: Callable[[str], None] | None = None, every_s: float = 30.0) -> pd.DataFrame:
     """One row per case × ray set × sampler × target (columns in the module docstring).
     ``progress(line)``: a line as each stage starts (a case's reference integral, each sampler's
-    search) and at least every ``every_s`` seconds while one runs (:class:`bench.heartbeat.Heartbeat`).
+    search) and at least every ``every_s`` seconds while one runs (:class:`bench.run.heartbeat.Heartbeat`).
     Arguments are checked first (:func:`check_arguments`); a reference the case cannot give is a
-    :class:`bench.references.NotApplicable` naming the case."""
+    :class:`bench.run.references.NotApplicable` naming the case."""
     from reference.cases import get_case
 
-    from .heartbeat import Heartbeat
+    from ..run.heartbeat import Heartbeat
 
     check_arguments(case_ids, targets, sharpness)
     with Heartbeat(progress, every_s) as beat:
@@ -145,7 +145,7 @@ def sampling_table(case_ids=DEFAULT_CASES, targets=DEFAULT_TARGETS, *, density: 
 def _table(case_ids, targets, density, sharpness, variants, n_min, n_max, bisect, max_rays, backend, disk, beat,
            get_case) -> pd.DataFrame:
     """:func:`sampling_table`'s work, each stage announced on ``beat``."""
-    from .references import reference_rays
+    from ..run.references import reference_rays
 
     rows = []
     for k, cid in enumerate(case_ids, 1):
@@ -216,5 +216,5 @@ def section_md(run_dir) -> list[str]:
     r0 = df.iloc[0]
     return ["## Samples to a colour error target", "",
             f"Samples per ray each volume sampler needs for a colour error ≤ the target against the rendering "
-            f"integral ({r0['density']} density, s = {r0['sharpness']:g}; max over the rays of the set; `bench/sampling.py`).",
+            f"integral ({r0['density']} density, s = {r0['sharpness']:g}; max over the rays of the set; `bench/studies/sampling.py`).",
             "", markdown(df), ""]

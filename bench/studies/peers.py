@@ -6,7 +6,7 @@ Root finding (``python -m bench speed``, rows next to the backends' on the same 
   clip to the scene's bounding sphere (the chord of the ball, hit test b² − c ≥ 0), start at
   the chord's entry (or ``t_min``), step t ← t + φ(o + t d) (L = 1: both scenes are distance
   bounds), hit when φ < ``eps`` (1e-9), miss when t passes the chord's exit or ``t_max``,
-  MAX_ITER after ``max_steps`` (4096, ``hybrid_secant``'s budget).  φ is hand-written for the two scenes of :func:`bench.speed.scenes`
+  MAX_ITER after ``max_steps`` (4096, ``hybrid_secant``'s budget).  φ is hand-written for the two scenes of :func:`bench.studies.speed.scenes`
   (unit sphere; torus R = 1, r = 0.25 ∪ box of half size 0.4) and checked against the scene tree
   before use.  Compiled with ``numba.njit`` on one thread; compile time is reported apart.
   numba is optional: without it the row is skipped with the reason.
@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .timing import times_against_unit
+from ..run.timing import times_against_unit
 
 #: status codes of the per-ray tracer (isobench's, :class:`impls.protocol.Status`)
 _CONV, _MISS, _MAXI = 0, 2, -2
@@ -63,7 +63,7 @@ def _phi_torus_box(x, y, z):
     return min(torus, box)
 
 
-#: scene name of :func:`bench.speed.scenes` → scalar φ(x, y, z) written for the compiled peers
+#: scene name of :func:`bench.studies.speed.scenes` → scalar φ(x, y, z) written for the compiled peers
 SCALAR_PHI: dict[str, Callable[[float, float, float], float]] = {"sphere": _phi_sphere, "torus∪box": _phi_torus_box}
 
 
@@ -75,7 +75,7 @@ def check_scalar_phi(name: str, scene, n: int = 2000, seed: int = 0) -> None:
     got = np.array([SCALAR_PHI[name](*p) for p in x])
     err = float(np.max(np.abs(got - want)))
     if not err <= 1e-12:
-        raise ValueError(f"peer φ for {name!r} differs from the scene's by {err:.3g}; bench/peers.py is out of date")
+        raise ValueError(f"peer φ for {name!r} differs from the scene's by {err:.3g}; bench/studies/peers.py is out of date")
 
 
 def numba_tracer(numba, phi: Callable[[float, float, float], float]):
@@ -117,9 +117,9 @@ def numba_tracer(numba, phi: Callable[[float, float, float], float]):
 
 def root_peer_runs(cases: dict, repeats: int, t_max: float, unit_timer, eps: float = 1e-9,
                    max_steps: int = 4096, scipy_method: str = "hybrid_chandrupatla") -> tuple[list, list[str]]:
-    """Time the peers on ``cases`` (:func:`bench.speed.scenes`); returns (runs, skipped lines).
+    """Time the peers on ``cases`` (:func:`bench.studies.speed.scenes`); returns (runs, skipped lines).
 
-    ``runs``: ``(scene, label, RayResult, row)`` as :func:`bench.speed.measure` collects its
+    ``runs``: ``(scene, label, RayResult, row)`` as :func:`bench.studies.speed.measure` collects its
     backends' (scored there against the exact hits).  Each timed call is preceded by the
     time unit (``unit_timer(o, d)``), as the backends' are."""
     from impls import RayResult, registry
@@ -252,7 +252,7 @@ def volume_rows(backend_ids, cases: dict, n_samples: int = 256, repeats: int = 5
                 t_min: float = 0.0, t_max: float = 6.0, method: str = "volume_nerf_uniform") -> tuple[list[dict], list[str]]:
     """Rows of time (median, min, max of ``repeats``) and compile time apart, for every backend's
     ``method`` and the compiled plain compositing in torch and jax, on ``cases`` (name →
-    (scene, origins, directions), e.g. :func:`bench.speed.scenes`) with ``n_samples`` samples each; with each row
+    (scene, origins, directions), e.g. :func:`bench.studies.speed.scenes`) with ``n_samples`` samples each; with each row
     the largest colour difference from the numpy renderer's (the same sum: rounding only).
     Returns (rows, skipped lines)."""
     from impls import registry

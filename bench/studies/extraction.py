@@ -134,7 +134,7 @@ def default_cases() -> list:
 
 
 def _base(case, n: int | None, run_id: str) -> dict:
-    from .results import SCHEMA_VERSION
+    from ..run.results import SCHEMA_VERSION
 
     return {"schema_version": SCHEMA_VERSION, "run_id": run_id, "case_id": case.id,
             "case_version": getattr(case, "version", ""), "backend": "numpy", "device": "cpu", "dtype": "float64",
@@ -150,7 +150,7 @@ def _iqr(a) -> float:
 def run_extraction(cases: Iterable | None = None, resolutions=(16, 32, 64, 128), repeats: int = 3, *,
                    run_id: str = "", progress=None, stage=None) -> list[dict]:
     """Marching cubes at each resolution on each case's scene, scored and timed: a list of
-    result rows (:mod:`bench.results` schema; module docstring for the columns).
+    result rows (:mod:`bench.run.results` schema; module docstring for the columns).
 
     ``cases``: :class:`reference.cases.Case` objects (default :func:`default_cases`).  A case
     whose scene does not apply (:func:`applies`) gives one row per quantity with outcome
@@ -158,7 +158,7 @@ def run_extraction(cases: Iterable | None = None, resolutions=(16, 32, 64, 128),
     traceback, for that resolution, and the others go on.  ``repeats`` ≥ 1 timed extractions per
     resolution (the error is measured once, on the first: the mesh is deterministic).
     ``progress``: called with a one-line string per configuration, when it is done; ``stage``
-    (default ``progress``): with one as it starts (a :meth:`bench.heartbeat.Heartbeat.stage`
+    (default ``progress``): with one as it starts (a :meth:`bench.run.heartbeat.Heartbeat.stage`
     keeps saying it while a slow one runs)."""
     stage = stage or progress
     if not isinstance(repeats, (int, np.integer)) or repeats < 1:

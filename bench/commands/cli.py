@@ -30,7 +30,7 @@ import json
 import sys
 from pathlib import Path
 
-from .environment import ROOT
+from ..run.environment import ROOT
 
 DEFAULT_REPORTS = ROOT / "reports"
 #: ``bench run --max-time`` when not given (raised to ``--min-time`` when that is larger)
@@ -94,7 +94,7 @@ def _resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
     error message when an id names nothing (a typo)."""
     from impls import registry
 
-    from .environment import configure_driver
+    from ..run.environment import configure_driver
 
     backends = {bid: registry.resolve(bid) for bid in ids}
     for b in backends.values():
@@ -138,7 +138,7 @@ def run_claims_into(out: Path, *, quick: bool, console, only: list[str] | None =
     ``out``; never raises.  Returns a one-line note for the report and the console ("" when it
     worked)."""
     try:
-        from .claims import run_claims
+        from ..claims import run_claims
 
         df = run_claims(out, quick=quick, only=only)
         n = 0 if df is None else len(df)
@@ -189,8 +189,9 @@ class _ProgressLines:
 
 def _first_screen_lines(df, env: dict, out: Path) -> list[str]:
     """The report's answers in a few lines: which to pick at 1e-8, the stability scoreboard, the
-    claims' verdict counts (:func:`bench.summary.first_screen`); nothing if they cannot be made."""
-    from . import report, stability, summary
+    claims' verdict counts (:func:`bench.report.summary.first_screen`); nothing if they cannot be made."""
+    from ..report import build as report, summary
+    from ..studies import stability
 
     try:
         cells, _ = report.stability_section(df, out)
@@ -205,11 +206,11 @@ def _first_screen_lines(df, env: dict, out: Path) -> list[str]:
 def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list[str]]:
     """The closing lines (counts, failures, incompleteness, report path) and the exit code:
     0, or 1 when the run is incomplete (its --budget ran out) or no configuration ran."""
-    from . import report
+    from ..report import build as report
 
     configs = report.config_outcomes(df)
     n = {o: int((configs["outcome"] == o).sum()) for o in ("ok", "skipped", "failed")}
-    from .results import OVER_BUDGET
+    from ..run.results import OVER_BUDGET
 
     n_over = int(configs["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET).sum())
     said = [f"{n['ok']} configurations ran, {n['skipped']} skipped"
@@ -239,12 +240,12 @@ def _summary(df, env: dict, out: Path, lines: _ProgressLines) -> tuple[int, list
 
 
 def run_stability_into(out: Path, suite, backends: dict, args, console, executor=None) -> str:
-    """The suite's stability stage (:func:`bench.stability.run_stage`) into ``out/stability``;
+    """The suite's stability stage (:func:`bench.studies.stability.run_stage`) into ``out/stability``;
     never raises.  Returns "" or a note saying why it did not complete."""
     import time
 
-    from .report import STABILITY_DIR
-    from .stability import run_stage
+    from ..report.build import STABILITY_DIR
+    from ..studies.stability import run_stage
 
     started = time.monotonic()
     try:
@@ -262,14 +263,14 @@ def run_stability_into(out: Path, suite, backends: dict, args, console, executor
 
 
 def _start_executor(args, lines):
-    """The :class:`bench.cluster.ClusterExecutor` of ``--cluster``/``--scheduler`` (started), None
+    """The :class:`bench.run.cluster.ClusterExecutor` of ``--cluster``/``--scheduler`` (started), None
     without them, or an error message."""
     if not (args.cluster or args.scheduler):
         return None, ""
     if args.cluster and args.scheduler:
         return None, "--cluster and --scheduler: give one (local:N starts a cluster, --scheduler uses an existing one)"
     try:
-        from .cluster import ClusterExecutor, parse_local
+        from ..run.cluster import ClusterExecutor, parse_local
     except ImportError as exc:
         return None, (f"--cluster/--scheduler need dask.distributed ({exc}); install it with "
                       "pip install -c constraints.txt -e '.[cluster]'")
@@ -392,8 +393,8 @@ def _contradictions(args) -> str | None:
 
 def _configure_caches(args) -> dict[str, str]:
     """Set up the persistent caches (``--cache-dir``, ``--no-cache``) before any backend is
-    imported (:func:`bench.environment.configure_caches`); returns the environment record."""
-    from .environment import configure_caches, default_cache_dir
+    imported (:func:`bench.run.environment.configure_caches`); returns the environment record."""
+    from ..run.environment import configure_caches, default_cache_dir
 
     if args.no_cache:
         return configure_caches(None)
@@ -409,7 +410,7 @@ def _reference_cache(args) -> Path | None:
 
 
 def _cmd_run(args, held: list) -> int:
-    from .environment import configure_threads
+    from ..run.environment import configure_threads
 
     err = _empty_option(args, LIST_OPTIONS)
     if err:
@@ -425,16 +426,17 @@ def _cmd_run(args, held: list) -> int:
     configure_threads(args.threads)  # before any array library is imported
     cache_record = _configure_caches(args)  # before any backend is imported
     if args.allocator == "tuned":
-        from .environment import tune_allocator
+        from ..run.environment import tune_allocator
 
         tune_allocator()
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
 
-    from . import report, runner
-    from .results import write_json
-    from .suites import get_suite
-    from .timing import TimingPolicy
+    from ..report import build as report
+    from ..run import runner
+    from ..run.results import write_json
+    from ..run.suites import get_suite
+    from ..run.timing import TimingPolicy
 
     console = _console()
     try:
@@ -455,9 +457,9 @@ def _cmd_run(args, held: list) -> int:
                       "`python -m bench cases` lists the cases")
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
-    from .rundir import claim_out
+    from ..run.rundir import claim_out
 
-    try:  # this process is the run directory's one writer from here on (bench.rundir)
+    try:  # this process is the run directory's one writer from here on (bench.run.rundir)
         held.append(claim_out(out, resume=args.resume))
     except ValueError as exc:  # OutError, LockHeld
         return _error(str(exc))
@@ -549,7 +551,7 @@ def _run_env(path: str) -> dict | None:
 
 def _incomplete(name: str, df, env: dict | None) -> str:
     """Why a side of a comparison is not a whole run ('' when it is)."""
-    from .results import OVER_BUDGET
+    from ..run.results import OVER_BUDGET
 
     over = int(df["reason"].fillna("").astype(str).str.startswith(OVER_BUDGET).sum()) if "reason" in df else 0
     if env is not None and str(env.get("complete", "true")) != "true":
@@ -562,8 +564,8 @@ def _incomplete(name: str, df, env: dict | None) -> str:
 def cmd_compare(args) -> int:
     import pandas as pd
 
-    from . import compare as cmp
-    from .results import read_results, write_text
+    from ..report import compare as cmp
+    from ..run.results import read_results, write_text
 
     try:
         base, new = read_results(args.base), read_results(args.new)
@@ -572,7 +574,7 @@ def cmd_compare(args) -> int:
     except ValueError as exc:
         return _error(f"BASE/NEW: {exc}; pass two run directories (or their results.parquet/.csv)")
     eb, en = _run_env(args.base), _run_env(args.new)
-    from .environment import machine_key
+    from ..run.environment import machine_key
 
     # each row's machine: its own key (a cluster run's rows record their worker's), else its run's
     for df, env in ((base, eb), (new, en)):
@@ -629,18 +631,18 @@ def cmd_claims(args) -> int:
     """Check the lecture's claims (all, or ``--only`` these ids; ``--full``: the full grids) into
     ``--out``: ``claims.csv``, one ``claim_<id>.png`` each, ``claims.md`` (the ledger as Markdown)
     and the report; a one-line-per-claim summary on stdout."""
-    from .results import write_atomic, write_json
-    from .runner import new_run_id
-    from .environment import collect
+    from ..run.results import write_atomic, write_json
+    from ..run.runner import new_run_id
+    from ..run.environment import collect
 
     if args.only:
-        from .claims import claim_ids
+        from ..claims import claim_ids
 
         known = claim_ids()
         unknown = [i for i in args.only if i not in known]
         if unknown:
             return _error(f"--only: unknown claim id(s) {', '.join(unknown)}; known ids are {', '.join(known)}")
-    from .rundir import RunLock, make_dir
+    from ..run.rundir import RunLock, make_dir
 
     out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())
     try:  # created, and this process's alone until it exits (a run directory has one writer)
@@ -657,8 +659,8 @@ def cmd_claims(args) -> int:
     if not (out / "environment.json").exists():
         write_json(out / "environment.json", {**collect(), "run_id": out.name, "suite": "claims"})
     if (out / "claims.csv").exists():
-        from .claims.summary import markdown_section, terminal_summary
-        from .report import build_from_dir, read_claims
+        from ..claims.summary import markdown_section, terminal_summary
+        from ..report.build import build_from_dir, read_claims
 
         claims = read_claims(out)
         md = markdown_section(claims)
@@ -682,7 +684,7 @@ def cmd_baseline(args) -> int:
         if rc != 0:
             return rc
         out.mkdir(parents=True, exist_ok=True)
-        from .results import read_results, write_atomic
+        from ..run.results import read_results, write_atomic
 
         df = read_results(Path(tmp) / "run")
         # wall-clock columns differ on every run: blank them so the committed file changes only
@@ -752,7 +754,7 @@ def cmd_backends(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .report import build_from_dir
+    from ..report.build import build_from_dir
 
     run_dir = Path(args.run_dir)
     if not run_dir.is_dir():
@@ -769,7 +771,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_spread(args) -> int:
-    from . import spread
+    from ..report import spread
 
     run_dir = Path(args.run_dir)
     if not (run_dir / "environment.json").exists():
@@ -784,8 +786,9 @@ def cmd_spread(args) -> int:
 def cmd_extract(args) -> int:
     from reference.cases import catalog
 
-    from . import extraction, runner
-    from .results import to_frame, write_atomic, write_results
+    from ..studies import extraction
+    from ..run import runner
+    from ..run.results import to_frame, write_atomic, write_results
 
     run_id = runner.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / f"extract-{run_id}"
@@ -798,14 +801,14 @@ def cmd_extract(args) -> int:
             return _error(f"--case: no case matches {args.case!r}; `python -m bench cases` lists them")
     else:
         cases = None
-    from .rundir import claim_out
+    from ..run.rundir import claim_out
 
     try:
         lock = claim_out(out)  # new or empty, created, and this process's alone until it exits
     except ValueError as exc:
         return _error(str(exc))
     resolutions = tuple(args.resolution or (16, 32, 64, 128))
-    from .heartbeat import Heartbeat
+    from ..run.heartbeat import Heartbeat
 
     lines = _ProgressLines(periodic=False)
     with Heartbeat(lines.line) as beat:  # a line as each configuration starts, and every 30 s of it
@@ -823,7 +826,8 @@ def cmd_extract(args) -> int:
 
 
 def cmd_speed(args) -> int:
-    from . import environment, speed
+    from ..run import environment
+    from ..studies import speed
     from impls import METHODS, registry
 
     if args.method not in METHODS or METHODS[args.method].family != "root":
@@ -843,7 +847,7 @@ def cmd_speed(args) -> int:
     if bad:
         return _error("--backend: " + "; ".join(f"{bid}: {b.reason}" for bid, b in bad))
     if args.volume:
-        from . import peers, speed
+        from ..studies import peers, speed
 
         rows, notes = peers.volume_rows(ids, speed.scenes(args.side if args.side_given else 256),
                                         n_samples=args.samples, repeats=args.repeats)
@@ -857,7 +861,7 @@ def cmd_speed(args) -> int:
         for line in notes:
             print(line)
         if args.out:
-            from .results import write_json
+            from ..run.results import write_json
 
             err = _write_out_file(args.out, lambda path: write_json(path, rows))
             if err:
@@ -872,13 +876,13 @@ def cmd_speed(args) -> int:
     print(f"{args.side}² rays, {args.method}, {args.threads} thread(s) per library and root-finder driver, "
           f"allocator: {allocator}; × unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)")
     if not args.no_peers:
-        print("peers (bench/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, bounding-sphere "
+        print("peers (bench/studies/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, bounding-sphere "
               "clip); peer:scipy = hybrid_secant's march on numpy + scipy find_root (hybrid_chandrupatla)")
     print(speed.format_rows(rows))
     for line in notes:
         print(line)
     if args.out:
-        from .results import write_json
+        from ..run.results import write_json
 
         err = _write_out_file(args.out, lambda path: write_json(path, rows))
         if err:
@@ -887,13 +891,13 @@ def cmd_speed(args) -> int:
 
 
 def cmd_sampling(args) -> int:
-    """Samples per volume sampler to colour error targets (:mod:`bench.sampling`).  Every argument
+    """Samples per volume sampler to colour error targets (:mod:`bench.studies.sampling`).  Every argument
     is checked before the costly reference integrals (one ``error:`` line, exit 2); progress lines
     come as each stage starts and at least every 30 s of it; ``--out`` is locked (a run directory
     has one writer) for the whole command."""
-    from . import sampling
-    from .environment import ROOT
-    from .references import NotApplicable
+    from ..studies import sampling
+    from ..run.environment import ROOT
+    from ..run.references import NotApplicable
 
     cases = [c.strip() for c in args.case.split(",") if c.strip()] if args.case is not None \
         else list(sampling.DEFAULT_CASES)
@@ -908,7 +912,7 @@ def cmd_sampling(args) -> int:
         return _error(str(exc))
     lock = None
     if args.out:
-        from .rundir import RunLock, make_dir
+        from ..run.rundir import RunLock, make_dir
 
         try:  # before minutes of work: a path that cannot be written, or a run directory being written
             lock = RunLock(make_dir(Path(args.out))).acquire()
@@ -925,13 +929,13 @@ def cmd_sampling(args) -> int:
         return _error(f"--case/--density/--sharpness: no rendering integral to sample towards: {exc}")
     print(sampling.markdown(df))
     if args.out:
-        from .results import write_atomic
+        from ..run.results import write_atomic
 
         out = Path(args.out)
         write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
         print(f"wrote {out / sampling.FILE}")
         if (out / "environment.json").exists():  # a run directory: its report gains the section
-            from .report import build_from_dir
+            from ..report.build import build_from_dir
 
             build_from_dir(out)
             print(f"rebuilt {out / 'report.html'}")
@@ -940,7 +944,7 @@ def cmd_sampling(args) -> int:
 
 
 ALLOCATOR_HELP = ("tuned (default): glibc keeps freed memory instead of mmapping and faulting in fresh pages for "
-                  "every large temporary (bench.environment.tune_allocator; recorded); default: leave malloc alone")
+                  "every large temporary (bench.run.environment.tune_allocator; recorded); default: leave malloc alone")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -999,7 +1003,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--no-cache", action="store_true", help="a cold start: no persistent cache is read or written, "
                    "every kernel is compiled afresh")
     r.add_argument("--cluster", metavar="local:N", help="run the configurations as tasks on a dask LocalCluster of N "
-                   "single-threaded worker processes (bench/cluster.py; N × --threads ≤ cores unless --accuracy-only); "
+                   "single-threaded worker processes (bench/run/cluster.py; N × --threads ≤ cores unless --accuracy-only); "
                    "results, resume and the report are those of a run in one process, each row records its worker")
     r.add_argument("--scheduler", metavar="ADDRESS", help="run the configurations on an existing dask cluster "
                    "(e.g. tcp://host:8786); its workers need this isobench and, for timing, --nthreads 1")
@@ -1046,7 +1050,7 @@ def main(argv: list[str] | None = None) -> int:
     k.set_defaults(fn=cmd_cases)
 
     ex = sub.add_parser("extract", help="marching cubes (scikit-image) at several grid resolutions, scored by "
-                        "Hausdorff and Chamfer distance to the exact surface, with time (bench/extraction.py)")
+                        "Hausdorff and Chamfer distance to the exact surface, with time (bench/studies/extraction.py)")
     ex.add_argument("--case", help="glob(s) on case ids, comma-separated (default: one case per distinct scene and "
                     "the mesh cameras)")
     ex.add_argument("--resolution", type=_int_at_least(4), action="append",
@@ -1056,7 +1060,7 @@ def main(argv: list[str] | None = None) -> int:
     ex.set_defaults(fn=cmd_extract)
 
     sp_ = sub.add_parser("spread", help="how a run was spread over processes (workers, machine keys, tasks per "
-                         "worker, wall and task time) and its projected wall time on more workers (bench/spread.py)")
+                         "worker, wall and task time) and its projected wall time on more workers (bench/report/spread.py)")
     sp_.add_argument("run_dir")
     sp_.add_argument("--workers", type=_int_at_least(1), nargs="+", help="worker counts to project (default 1 2 4 8 16 "
                      "32 64)")
@@ -1080,10 +1084,10 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--knobs", type=_json_dict, help='JSON knob dict, e.g. \'{"xtol": 1e-8}\' (default: the method\'s defaults)')
     sp.add_argument("--side", type=_int_at_least(1), default=None, help="rays per image side (default 1024: 2^20 rays; "
                     "256 with --volume: 2^16 rays)")
-    sp.add_argument("--no-peers", action="store_true", help="leave out the peers' rows (bench/peers.py: a numba per-ray "
+    sp.add_argument("--no-peers", action="store_true", help="leave out the peers' rows (bench/studies/peers.py: a numba per-ray "
                     "sphere tracer, scipy's Chandrupatla refiner)")
     sp.add_argument("--volume", action="store_true", help="volume rendering instead: each backend's volume_nerf_uniform "
-                    "against the plain compositing compiled by torch.compile and jax.jit (bench/peers.py)")
+                    "against the plain compositing compiled by torch.compile and jax.jit (bench/studies/peers.py)")
     sp.add_argument("--samples", type=_int_at_least(1), default=256, help="samples per ray with --volume (default 256)")
     sp.add_argument("--repeats", type=_int_at_least(1), default=3)
     sp.add_argument("--threads", type=_int_at_least(1), default=1, help="threads per library and worker threads of the numpy/torch "
@@ -1093,7 +1097,7 @@ def main(argv: list[str] | None = None) -> int:
     sp.set_defaults(fn=cmd_speed)
 
     sm = sub.add_parser("sampling", help="samples per ray each volume sampler needs to reach colour error targets "
-                        "against the rendering integral (bench/sampling.py)")
+                        "against the rendering integral (bench/studies/sampling.py)")
     sm.add_argument("--case", help="case ids, comma-separated (default: sphere.camera.64x64,torus.camera.32x32)")
     sm.add_argument("--targets", help="colour error targets, comma-separated (default 1e-2,1e-3,1e-4)")
     sm.add_argument("--density", default="nerf", choices=("nerf", "volsdf", "neus"), help="density model (default nerf)")

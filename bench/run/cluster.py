@@ -3,7 +3,7 @@
 Configurations are tasks (:func:`config_task`, one per configuration); this process — the
 client — plans, submits, and is the only writer of the run directory: it receives each
 configuration's rows as its task finishes and writes them with the runner's own writer
-(:func:`bench.runner.run` with a :class:`ClusterExecutor`), so ``--resume``, the files and the
+(:func:`bench.run.runner.run` with a :class:`ClusterExecutor`), so ``--resume``, the files and the
 rows are those of a run in one process.  Rows are keyed by configuration: a task that dask
 reran (its worker died) gives its rows once, whatever happened before.
 
@@ -17,16 +17,16 @@ Timing stays honest:
   the configuration it was running (dask counts every task a dying worker held);
 * the closed-form unit is measured on the worker that times the configuration, beside it (once
   per case and worker process);
-* every row records the worker's :func:`bench.environment.machine_key`, address and pid:
+* every row records the worker's :func:`bench.run.environment.machine_key`, address and pid:
   ``bench compare`` compares timings only between equal keys.
 
 Faults: a worker that dies mid-task is replaced (its nanny restarts it) and dask reruns the
 task elsewhere; a configuration whose worker dies more than
 ``distributed.scheduler.allowed-failures`` times (:class:`distributed.KilledWorker`) becomes a
 failed row with that reason, and the run goes on.  A hang is cut by ``--timeout`` as in one
-process (:func:`bench.timing.time_limit` works in a worker's task thread).
+process (:func:`bench.run.timing.time_limit` works in a worker's task thread).
 
-Shared references: a rendering integral (:func:`bench.references.exact_color`) is a task of its
+Shared references: a rendering integral (:func:`bench.run.references.exact_color`) is a task of its
 own (:func:`reference_task`), computed once per case × density model × sharpness on some
 worker; the configurations that are checked against it are submitted once it is done and
 receive its result as a dask dependency (moved between workers by dask, no shared file system
@@ -112,8 +112,8 @@ _ONE_AT_A_TIME = threading.Lock()  # a configuration is timed alone even on a mu
 
 class WorkerSetup(WorkerPlugin):
     """Prepares every worker, those that replace dead ones included: library threads
-    (:func:`bench.environment.configure_threads`, numba, torch once imported), the allocator
-    (``tuned``: :func:`bench.environment.tune_allocator`), the user's cases (``--cases`` and the
+    (:func:`bench.run.environment.configure_threads`, numba, torch once imported), the allocator
+    (``tuned``: :func:`bench.run.environment.tune_allocator`), the user's cases (``--cases`` and the
     ``isobench.cases`` entry points), and the worker's record (environment, machine key)."""
 
     name = "isobench-setup"
@@ -209,7 +209,7 @@ def _writable(opts: ReferenceOptions) -> ReferenceOptions:
 def config_task(run_id: str, case_id: str, case_version: str, backend_id: str, method: str, dtype: str, knobs: dict,
                 policy: TimingPolicy, budget_s: float | None, deadline: float | None, ref_options: ReferenceOptions,
                 seeds: dict | None = None, round_no: int = 1) -> dict:
-    """One configuration on this worker: :func:`bench.runner.run_budgeted` with the closed-form
+    """One configuration on this worker: :func:`bench.run.runner.run_budgeted` with the closed-form
     unit measured here (once per case and process) and the rendering integrals it needs given in
     ``seeds`` (entries of the reference cache, from :func:`reference_task`).  ``deadline``: the
     run's budget as a wall-clock time (``time.time()``; None: none).  Returns ``{"rows": …,
@@ -247,7 +247,7 @@ def config_task(run_id: str, case_id: str, case_version: str, backend_id: str, m
 def reference_task(case_id: str, case_version: str, method: str, knobs: dict, ref_options: ReferenceOptions,
                    previous: dict | None = None) -> dict:
     """The rendering integral ``method`` with ``knobs`` is checked against on the case
-    (:func:`bench.references.exact_color`, on this worker, its disk cache used where writable),
+    (:func:`bench.run.references.exact_color`, on this worker, its disk cache used where writable),
     as entries of the reference cache: the answer (or the :class:`NotApplicable` saying why there
     is none), its seconds, and the "timed out, not attempted again" mark that ``previous`` (the
     same case and model's previous integral) passes along.  An unexpected error is left out, so
@@ -311,7 +311,7 @@ class _Job:
 
 
 class ClusterExecutor:
-    """Runs a plan's configurations on a dask cluster for :func:`bench.runner.run` (its
+    """Runs a plan's configurations on a dask cluster for :func:`bench.run.runner.run` (its
     ``executor``).  ``local``: start a ``LocalCluster`` of that many single-threaded worker
     processes; ``scheduler``: connect to an existing one (its workers must have isobench and the
     same code; for timed runs each must have one thread, ``dask worker --nthreads 1``).
@@ -634,7 +634,7 @@ class ClusterExecutor:
                       progress, counts: dict) -> None:
         """``--rounds``: rounds 2… of every measured configuration, each on the worker that
         measured it first, one task per worker at a time, pooled into its rows with that worker's
-        closed-form unit (:func:`bench.runner._pool`)."""
+        closed-form unit (:func:`bench.run.runner._pool`)."""
         index: dict[tuple, list[int]] = {}
         where: dict[tuple, str] = {}
         for j, r in enumerate(rows):

@@ -9,7 +9,7 @@ import subprocess
 from importlib import metadata
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]  # the repository (bench/run/environment.py)
 LIBS = ["numpy", "scipy", "torch", "jax", "jaxlib", "pandas", "pyarrow", "matplotlib", "array-api-compat",
         "trimesh", "libigl", "scikit-image", "mpmath"]
 
@@ -49,7 +49,7 @@ def configure_caches(cache_dir: Path | None) -> dict[str, str]:
     """Persistent caches between runs, all under one directory, set up *before* any backend is
     imported: ``jax/`` (jax's persistent compilation cache, :mod:`impls.jax.backend`), ``numba/``
     (numba's on-disk cache and the generated kernel modules, :mod:`impls.numba.driver`) and
-    ``reference/`` (costly reference answers, :mod:`bench.references`).  ``None`` (``--no-cache``):
+    ``reference/`` (costly reference answers, :mod:`bench.run.references`).  ``None`` (``--no-cache``):
     none of them is read or written, every kernel is compiled afresh.  Returns the record for
     environment.json (``cache_dir``)."""
     from impls.cache import CACHE_ENV

@@ -8,7 +8,7 @@ Sections, in reading order:
    intersection of the same rays, compile time and evaluations per ray.
 2. *Fastest configuration reaching an error target* (1e-4, 1e-8, 1e-12): per case, method,
    quantity and backend, the cheapest knob setting whose max error is at or below the target.
-2b. *Stability matrix* (:mod:`bench.stability`): the scoreboard (per backend, adversarial
+2b. *Stability matrix* (:mod:`bench.studies.stability`): the scoreboard (per backend, adversarial
    families survived / total), then every root finder × backend × dtype against each
    adversarial ray family at default knobs, from the run's stability stage (``stability/``
    under the run directory) when it has one, else from the run's own rows.
@@ -20,7 +20,7 @@ Sections, in reading order:
    with the fitted rate p of error ∝ knob^(−p) (least squares on the finite, non-zero errors).
 5. *Support matrix* (backend × method: configurations ran / skipped / failed) and the reasons.
 6. *Claims ledger* when the run directory has ``claims.csv`` (plots inlined).
-7. *How the run was spread* (:mod:`bench.spread`): processes or dask workers, machine keys,
+7. *How the run was spread* (:mod:`bench.report.spread`): processes or dask workers, machine keys,
    configurations and task seconds per worker, wall time, the sum of task times, and the
    projected wall time on 64 workers.
 8. *Environment*.
@@ -41,8 +41,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from . import summary  # noqa: E402
-from .results import write_text  # noqa: E402
+from . import summary
+from ..run.results import write_text
 
 _MARKERS = "osD^v<>ph*"
 _LINESTYLES = ["-", "--", ":", "-."]
@@ -359,7 +359,7 @@ def claims_in_reading_order(claims: pd.DataFrame) -> pd.DataFrame:
 
 
 def _first_screen_md(fs: dict, md_table) -> list[str]:
-    """The first screen (:func:`bench.summary.first_screen`) as Markdown lines."""
+    """The first screen (:func:`bench.report.summary.first_screen`) as Markdown lines."""
     out = []
     if fs["failures"]:
         out += ["## Failed configurations", "", *[f"- {f}" for f in fs["failures"]], ""]
@@ -394,7 +394,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
           regressions: pd.DataFrame | None = None) -> None:
     """Write ``report.md``, ``report.html`` and ``plots/*.png`` for results ``df`` into ``out_dir``.
 
-    The first screen (:mod:`bench.summary`) comes first: failures, ``regressions`` against a
+    The first screen (:mod:`bench.report.summary`) comes first: failures, ``regressions`` against a
     baseline when given, "which to pick", the stability ``scoreboard`` lines and the claims'
     verdicts; then plots; the detail tables last."""
     out_dir = Path(out_dir)
@@ -438,7 +438,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
         return d.to_markdown(index=False, floatfmt=".3g") if len(d) else "_none_"
 
     if scoreboard is None and len(stab_cells):
-        from . import stability
+        from ..studies import stability
 
         scoreboard = stability.scoreboard_lines(stability.scoreboard(stab_cells))
     fs = summary.first_screen(df, env, claims=claims, scoreboard=scoreboard, regressions=regressions)
@@ -463,7 +463,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             md += [f"![claim {r.get('id', '')}]({r['plot']})" for _, r in claims.iterrows()
                    if str(r.get("plot", "")) and (out_dir / str(r["plot"])).is_file()]
             md += [""]
-    from .sampling import section_md as sampling_md
+    from ..studies.sampling import section_md as sampling_md
 
     sampling_lines = sampling_md(out_dir)
     md += sampling_lines
@@ -548,7 +548,7 @@ STABILITY_DIR = "stability"
 
 
 def spread_section(df: pd.DataFrame, env: dict) -> tuple[list[str], pd.DataFrame]:
-    """Lines and the per-worker table of "How the run was spread" (:mod:`bench.spread`); none for
+    """Lines and the per-worker table of "How the run was spread" (:mod:`bench.report.spread`); none for
     a results set without configurations.  Never raises (a section, not a reason to lose the report)."""
     from . import spread
 
@@ -594,8 +594,8 @@ def stability_section(df: pd.DataFrame, run_dir: Path) -> tuple[pd.DataFrame, st
     """The stability cells of a run and a note saying where they come from: the stability stage
     (``run_dir/stability/results.*``, written by ``bench run`` for a suite with a stability plan)
     when present, else the run's own root-finder rows on adversarial cases; default knobs only."""
-    from . import stability
-    from .results import read_results
+    from ..studies import stability
+    from ..run.results import read_results
 
     note = "from the run's own rows on adversarial cases"
     src = df
@@ -624,7 +624,7 @@ _STABILITY_RULE = (
 
 
 def _stability_md(cells: pd.DataFrame, note: str) -> list[str]:
-    from . import stability
+    from ..studies import stability
 
     out = ["## Stability matrix", ""]
     if not len(cells):
@@ -642,7 +642,7 @@ def _stability_md(cells: pd.DataFrame, note: str) -> list[str]:
 
 
 def _stability_html(cells: pd.DataFrame, note: str) -> str:
-    from . import stability
+    from ..studies import stability
 
     e = html.escape
     head = "<h2 id='stability'>Stability matrix</h2>"
@@ -706,14 +706,14 @@ def _claims_html(claims: pd.DataFrame, run_dir: Path) -> str:
 
 
 def build_from_dir(run_dir: Path) -> None:
-    from .results import read_results
+    from ..run.results import read_results
 
     run_dir = Path(run_dir)
     env = json.loads((run_dir / "environment.json").read_text())
     try:
         df = read_results(run_dir)
     except FileNotFoundError:  # a claims-only directory
-        from .results import COLUMNS
+        from ..run.results import COLUMNS
 
         df = pd.DataFrame(columns=COLUMNS + ["knobs_json"])
     build(df, env, run_dir)

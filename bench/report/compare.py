@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import binom, mannwhitneyu
 
-from .results import KEY, OVER_BUDGET
+from ..run.results import KEY, OVER_BUDGET
 
 ATOL_EPS = 1000.0
 
@@ -161,7 +161,7 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
         nj_b, nj_n = (_num(x.get("n_not_judged"), float("nan")) for x in (b, n))
         if b["outcome"] == "ok" and n["outcome"] == "ok" and (nj_b if np.isfinite(nj_b) else 0) != (
                 nj_n if np.isfinite(nj_n) else 0):
-            # the reference judges other rays now (bench.metrics.judged_rays): errors over different
+            # the reference judges other rays now (bench.run.metrics.judged_rays): errors over different
             # ray sets are not comparable
             rows.append({**key, "accuracy": "not comparable", "timing": "not comparable",
                          "error_base": b.get("error_max"), "error_new": n.get("error_max"),

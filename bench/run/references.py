@@ -99,7 +99,7 @@ def integral_key(case, spec, knobs: dict, opts: ReferenceOptions) -> tuple | Non
     """The cache key of the rendering integral :func:`exact_color` computes for a method with
     ``knobs`` on ``case`` — ``("render_exact", case id, density model, sharpness)`` — or None when
     it computes none (a surface renderer, no sharpness knob, no colour field, a suite without
-    costly references).  What :mod:`bench.cluster` plans its shared reference tasks by."""
+    costly references).  What :mod:`bench.run.cluster` plans its shared reference tasks by."""
     if getattr(spec, "family", None) != "render" or not opts.expensive or "sharpness" not in knobs:
         return None
     if getattr(case, "color_field", None) is None:

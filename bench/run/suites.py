@@ -83,7 +83,7 @@ class Suite:
     #: name takes precedence over its family
     always_cases: dict = dataclasses.field(default_factory=dict)
     #: the suite run after this one as its stability stage (accuracy only, into ``stability/``
-    #: under the run directory; :func:`bench.stability.run_stage`), or None
+    #: under the run directory; :func:`bench.studies.stability.run_stage`), or None
     stability: str | None = None
     #: backend id or library → the dtypes a stage runs on it (default: the suite's dtypes); a pair
     #: left out is named in the report's stability section as not planned

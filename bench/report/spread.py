@@ -3,7 +3,7 @@
 Reads only a results set and its ``environment.json`` (no dask needed): each row records the
 process that measured it (``worker``, ``worker_pid``, ``machine_key``; an empty ``worker`` is a
 single-process run's own process) and ``task_s``, its configuration's wall seconds there.  A
-cluster run (:mod:`bench.cluster`) also records in environment.json the seconds of its reference
+cluster run (:mod:`bench.run.cluster`) also records in environment.json the seconds of its reference
 tasks (``cluster.reference_task_s``), the longest dependency chain (``cluster.critical_path_s``),
 the measured per-task overhead (``cluster.overhead_s``: a task's latency seen by the client
 minus its time on the worker) and the central cost per task (``cluster.central_s``: scheduler and
@@ -191,7 +191,7 @@ def model_check(df: pd.DataFrame, env: dict) -> str:
 
 def text(run_dir: Path, workers=WORKERS, overhead_s: float | None = None, central_s: float | None = None) -> str:
     """``python -m bench spread RUN_DIR``: the spread summary, the per-worker table and the projection."""
-    from .results import read_results
+    from ..run.results import read_results
 
     run_dir = Path(run_dir)
     env = json.loads((run_dir / "environment.json").read_text())

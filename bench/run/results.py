@@ -8,14 +8,14 @@ values) are stored as JSON strings so the same table round-trips through parquet
 Schema history: 1 — the skeleton (depth only); 2 — ``family``, ``quantity``, ``unit``,
 ``error_rel_max``, ``error_ulps_max``, ``n_checked``, ``n_declined``, ``loops``, ``rounds``,
 ``error_iterate_median``, ``reference_error_bound``, ``timing_note``; ``driver_json`` (the
-backend's loop-driver settings, :func:`bench.environment.driver_record`; added without a version
-bump: readers treat it as optional); ``machine_key`` (:func:`bench.environment.machine_key` of the
+backend's loop-driver settings, :func:`bench.run.environment.driver_record`; added without a version
+bump: readers treat it as optional); ``machine_key`` (:func:`bench.run.environment.machine_key` of the
 process that measured the row: timings are comparable only between equal keys), ``worker`` and
 ``worker_pid`` (the dask worker's address and process id; empty in a single-process run) and
 ``task_s`` (wall seconds of the whole configuration on its process, closed-form unit and
-reference answers included: what :mod:`bench.cluster`'s spread and projection read), added the
+reference answers included: what :mod:`bench.run.cluster`'s spread and projection read), added the
 same way; ``n_not_judged`` (depth rows: rays the reference flags, left out of the errors and of the
-false hit/miss counts, :func:`bench.metrics.judged_rays`; empty in older rows, read as 0), also.
+false hit/miss counts, :func:`bench.run.metrics.judged_rays`; empty in older rows, read as 0), also.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """What a reader needs first: the run at a glance and "which to pick".
 
-Pure functions of a results frame (``bench.results`` columns) and the run's environment, used
+Pure functions of a results frame (``bench.run.results`` columns) and the run's environment, used
 by the report's first screen and by the CLI's closing summary, so both say the same thing.
 
 *Which to pick*: for each method family (root, gradient, param_grad, render), each case and each
@@ -29,7 +29,7 @@ PICK_NOTE = ("Per method family and case, for each error target: the fastest con
              "and no ray the reference flags ('not judged': some rays have no certified reference answer); "
              "its time as a multiple of the closed-form ray–sphere intersection of the same rays (× closed form) "
              "and its field evaluations per ray. 'untimed': an accuracy-only run, ranked by evaluations.")
-#: the pick of a case some of whose rays the reference flags (``n_not_judged``, bench.metrics)
+#: the pick of a case some of whose rays the reference flags (``n_not_judged``, bench.run.metrics)
 NOT_JUDGED = "not judged"
 #: the error targets every "fastest to target" table uses
 TARGETS = (1e-4, 1e-8, 1e-12)
@@ -44,13 +44,13 @@ def ok_rows(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def knob_label(method: str, knob: str) -> str:
-    """``knob`` (a :func:`bench.results.knob_string`) without the settings that are the method's
+    """``knob`` (a :func:`bench.run.results.knob_string`) without the settings that are the method's
     defaults, so that a table shows what was chosen: ``xtol=1e-08`` rather than all eight knobs
     of ``hybrid_secant``; ``defaults`` when every knob is at its default, ``""`` for a method
     without knobs, and the whole string for a method the catalog does not know."""
     from impls.methods import METHODS
 
-    from .results import knob_string
+    from ..run.results import knob_string
 
     spec = METHODS.get(method)
     if not knob or spec is None:
@@ -100,7 +100,7 @@ def _primary(ok: pd.DataFrame) -> pd.DataFrame:
     not the costly rendering integral), of the quantity that was, named in the ``case`` column."""
     from impls.methods import METHODS
 
-    from .metrics import primary_quantity
+    from ..run.metrics import primary_quantity
 
     want = {m: primary_quantity(s) for m, s in METHODS.items()}
     is_primary = ok["quantity"] == ok["method"].map(want).fillna(ok["quantity"])
@@ -119,7 +119,7 @@ def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
     ``time [ms]``, ``evals/ray``, ``by`` (``time`` or ``evals`` when the run was untimed),
     ``candidates`` (configurations that reached the target).  A target no configuration reached
     is a row with pick ``none reached`` and the best error seen.  Rows with rays the reference flags
-(``n_not_judged`` > 0, :func:`bench.metrics.judged_rays`) are never candidates; a case with such
+(``n_not_judged`` > 0, :func:`bench.run.metrics.judged_rays`) are never candidates; a case with such
 rows and no other candidate gets pick ``not judged`` and the number of flagged rays."""
     ok = ok_rows(df)
     if ok.empty:

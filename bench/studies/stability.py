@@ -24,11 +24,11 @@ status histogram, and one verdict:
 * **n/a** (—) — every configuration of the cell was skipped (with its reason).
 * **not judged** (?) — the configurations ran, but the reference flags every ray of the cell's
   cases (no certified answer: e.g. exact tangent rays, where float64 cannot tell a touch from a
-  near miss; ``n_not_judged``, :func:`bench.metrics.judged_rays`).  Like n/a it is left out of the
+  near miss; ``n_not_judged``, :func:`bench.run.metrics.judged_rays`).  Like n/a it is left out of the
   scoreboard.  Where only some rays are flagged the cell is judged on the others and counts the
   rest in ``n_not_judged``.
 
-``bench.metrics`` counts in ``n_false_miss`` every hitting ray that is not CONVERGED, flagged
+``bench.run.metrics`` counts in ``n_false_miss`` every hitting ray that is not CONVERGED, flagged
 ones included, and sets ``error_max`` = inf for them; the silent false misses are
 ``n_false_miss − n_miss_declined`` (rows without ``n_miss_declined``, from older runs, count every
 false miss as silent), and the CONVERGED error is ``error_max_finite``.
@@ -323,11 +323,11 @@ def run_stage(suite, backends: dict, out_dir, *, timeout_s: float = 120.0, resum
     """Run ``suite`` (a stability plan) accuracy only into ``out_dir``, backend by backend with
     :func:`stage_dtypes` each (the runner's resume mode appends each backend's rows to the same
     run); returns the frame.  ``resume``: finish a stage ``out_dir`` already holds.  ``executor``:
-    where the configurations run (:func:`bench.runner.run`'s; None: this process)."""
+    where the configurations run (:func:`bench.run.runner.run`'s; None: this process)."""
     from pathlib import Path
 
-    from .runner import run
-    from .timing import TimingPolicy
+    from ..run.runner import run
+    from ..run.timing import TimingPolicy
 
     out_dir = Path(out_dir)
     policy = TimingPolicy(min_repeats=1, min_time_s=0.0, timeout_s=timeout_s, accuracy_only=True)

@@ -1,0 +1,3 @@
+"""Studies beside the suites, each with its own question and table: speed (throughput on 2^20
+rays), peers (outside implementations), sampling (samples per ray to a colour error), extraction
+(marching cubes against the exact surface) and stability (root finders on adversarial rays)."""
