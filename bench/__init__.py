@@ -1,4 +1,4 @@
 """isobench runner: plans cases × backends × methods × knobs, times, measures, reports, compares.
 
-Entry point: ``python -m bench`` (see ``bench/commands/cli.py``).
+Entry point: ``python -m bench`` (one module per command in ``bench/commands/``).
 """

@@ -12,7 +12,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 import bench.claims  # noqa: E402
-from bench.commands import cli  # noqa: E402
+from bench import commands  # noqa: E402
+from bench.commands._common import run_claims_into  # noqa: E402
 from bench.report import build as report  # noqa: E402
 from bench.run.results import to_frame  # noqa: E402
 
@@ -82,7 +83,7 @@ def test_claims_failure_is_a_visible_note_not_a_crash(tmp_path, monkeypatch):
         def print(self, *a, **k):
             pass
 
-    note = cli.run_claims_into(tmp_path, quick=True, console=Quiet())
+    note = run_claims_into(tmp_path, quick=True, console=Quiet())
     assert note == "claims failed: RuntimeError: ledger exploded"
     report.build(frame(), {"run_id": "r", "claims": note}, tmp_path)
     assert "claims failed: RuntimeError: ledger exploded" in (tmp_path / "report.html").read_text()
@@ -102,14 +103,14 @@ def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch, capsys):
         return df
 
     monkeypatch.setattr(bench.claims, "run_claims", fake)
-    assert cli.main(["claims", "--out", str(tmp_path / "cl"), "--full", "--only", "7"]) == 0
+    assert commands.main(["claims", "--out", str(tmp_path / "cl"), "--full", "--only", "7"]) == 0
     assert seen == {"quick": False, "only": ["7"]}
     assert "Claims ledger" in (tmp_path / "cl" / "report.html").read_text()
     assert "### Claim 7: holds" in (tmp_path / "cl" / "claims.md").read_text()  # the ledger as Markdown
     assert any(line.split()[:2] == ["7", "holds"] for line in capsys.readouterr().out.splitlines())
     # an unknown id is a usage error naming the argument, before anything runs
     seen.clear()
-    assert cli.main(["claims", "--out", str(tmp_path / "cl2"), "--only", "7", "no-such-claim"]) == 2
+    assert commands.main(["claims", "--out", str(tmp_path / "cl2"), "--only", "7", "no-such-claim"]) == 2
     assert "--only: unknown claim id(s) no-such-claim" in capsys.readouterr().err
     assert seen == {} and not (tmp_path / "cl2").exists()
 

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import impls.methods
-from bench.run import runner
+from bench.run import configuration, runner
+from bench.run import plan as planning
 from bench.run.results import read_results
 from bench.run.suites import Suite, default_sweep
 from bench.run.timing import TimingPolicy
@@ -43,7 +44,7 @@ def suite(methods, sweeps=None) -> Suite:
 
 
 def rows_of(cfg, backend, policy=FAST):
-    return runner.run_one("r", cfg, backend, policy, cf_time=1.0)
+    return configuration.run_one("r", cfg, backend, policy, cf_time=1.0)
 
 
 def test_each_family_measures_the_planted_error(fake_methods):
@@ -284,7 +285,7 @@ def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(
     cfg = runner.Config(case, "fake", "volume_nerf_uniform", "float64", knobs)
 
     def integral(cache):
-        rows = runner.run_one("r", cfg, b, FAST, 1.0, cache)
+        rows = configuration.run_one("r", cfg, b, FAST, 1.0, cache)
         return next(r for r in rows if r["quantity"] == "color_vs_integral")
 
     opts = ReferenceOptions(timeout_s=0.5, disk=tmp_path / "refcache")
@@ -346,7 +347,7 @@ def test_render_family_against_the_integral_and_the_surface_colour(fake_methods,
 
 def _plan_on(monkeypatch, cases, s):
     """The plan of suite ``s`` over exactly ``cases`` on one backend."""
-    monkeypatch.setattr(runner, "select_cases", lambda suite, pattern: cases)
+    monkeypatch.setattr(planning, "select_cases", lambda suite, pattern: cases)
     return runner.plan(s, ["a"], None, None, None)
 
 
@@ -415,7 +416,7 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
     suite = get_suite(suite_name)
     cfgs = runner.plan(suite, ["numpy"], None, None, None)
     planned = {(c.case.id, c.method) for c in cfgs}
-    workloads = [c for c in runner.select_cases(suite, None)
+    workloads = [c for c in planning.select_cases(suite, None)
                  if any(fnmatch.fnmatchcase(c.id, g) for g in ("mesh.*", "grid.*", "neural.*"))]
     assert workloads, "the suite selects no workload case"
     if suite_name == "quick":
@@ -428,7 +429,7 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
                 assert (case.id, spec.name) not in planned, (case.id, spec.name)
             elif spec.family in ("root", "gradient", "param_grad") or spec.name == "render_surface":
                 assert (case.id, spec.name) in planned, (case.id, spec.name)
-                if runner.applies(spec, case) is None:
+                if planning.applies(spec, case) is None:
                     knobs = [c.knobs for c in cfgs if c.case.id == case.id and c.method == spec.name]
                     assert knobs == [suite.sweep_for(spec)[0]]  # default knobs only
             elif spec.family == "render":
@@ -448,7 +449,7 @@ def test_match_all_case_keeps_the_suites_cost_exclusions_and_named_cases_lift_th
     assert [c for c in every if c.method == "dt_implicit" and c.case.id.startswith("neural.")]
     assert [c for c in every if c.method == "dt_finite_diff" and c.case.id.startswith("mlp.")]
     named = runner.plan(suite, ["numpy"], "neural.*", ["dt_finite_diff"], None)
-    applicable = [c for c in named if runner.applies(METHODS[c.method], c.case) is None]
+    applicable = [c for c in named if planning.applies(METHODS[c.method], c.case) is None]
     assert applicable and all(c.case.id.startswith("neural.") for c in named)
     assert len({json.dumps(c.knobs, sort_keys=True) for c in applicable}) == len(suite.sweep_for(METHODS["dt_finite_diff"]))
 

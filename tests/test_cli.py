@@ -189,7 +189,7 @@ def test_cases_lists_the_catalog():
 def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys):
     import json
 
-    from bench.commands.cli import main
+    from bench.commands import main
 
     out = tmp_path / "speed.json"
     assert main(["speed", "--backend", "numpy", "--side", "16", "--repeats", "1", "--out", str(out)]) == 0

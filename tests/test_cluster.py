@@ -240,7 +240,7 @@ def test_projection_model():
 
 
 def test_cluster_flags_are_checked():
-    from bench.commands.cli import main
+    from bench.commands import main
     from bench.run.cluster import parse_local
 
     assert parse_local("local:3") == 3

@@ -155,7 +155,7 @@ def test_bad_input():
 def test_extract_command_writes_results_section_and_plot(tmp_path):
     """``python -m bench extract``: rows, the report section and the plot, atomically, in --out;
     an --out that already holds files is refused (nothing is overwritten)."""
-    from bench.commands.cli import main
+    from bench.commands import main
     from bench.run.results import read_results
 
     out = tmp_path / "ex"

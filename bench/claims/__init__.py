@@ -1,6 +1,6 @@
 """The claims ledger: each claim of the lecture checked numerically, with a verdict and evidence.
 
-Contract used by ``bench/commands/cli.py`` (``python -m bench claims``) and by ``bench run`` (a section of
+Contract used by ``bench/commands/claims.py`` (``python -m bench claims``) and by ``bench run`` (a section of
 the main report): ``run_claims(out_dir, quick=True, only=None) -> pandas.DataFrame`` writes
 ``claims.csv`` (one row per claim) and one ``claim_<id>.png`` per claim into ``out_dir``.
 

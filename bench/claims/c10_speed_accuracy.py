@@ -18,6 +18,7 @@ error = ‖C − C_exact‖₂ over RGB.
 from __future__ import annotations
 
 
+import os
 import time
 
 import numpy as np
@@ -138,7 +139,7 @@ def _speed(ctx):
     key["neus: N→∞ limit error ‖C_exact − C_surface‖ on picked pixels"] = floors.tolist()
     key["neus: render_exact error bound"] = floor_bound
     key["rays"] = int(o.shape[0])
-    key["timing note"] = "median of %d runs, numpy, shared 2-core machine (noisy)" % repeats
+    key["timing note"] = "median of %d runs, numpy, %d logical CPUs (a shared machine is noisy)" % (repeats, os.cpu_count() or 0)
 
     fig, (ax,) = figure(1, 1, 6.5, 4.5)
     ax.loglog([r[2] for r in surf], [r[1] for r in surf], "o-", label="surface: sphere tracing, tol sweep")

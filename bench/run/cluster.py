@@ -39,34 +39,28 @@ same file at once would both compute it, and a remote cluster need not share a f
 
 from __future__ import annotations
 
-import dataclasses
 import heapq
 import json
 import os
-import socket
-import sys
-import threading
 import time
 import uuid
-from collections import deque
-from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 from distributed import Client, KilledWorker, LocalCluster, wait
-from distributed.diagnostics.plugin import WorkerPlugin
 
-from . import environment, references, runner
+from .cluster_jobs import _Job, plan_jobs, ready_queues, retime_rounds
+from .cluster_worker import WorkerSetup, _config_with_seeds, _noop, reference_task, thread_env, worker_record
+from .configuration import base_row, over_budget_message
+from .executor import Interrupted
 from .references import ReferenceOptions
 from .results import knob_string
 from .timing import TimingPolicy
 
 LOCAL = "local:"
-#: library thread variables a worker's nanny sets before the worker starts (besides THREAD_VARS)
-EXTRA_THREAD_VARS = ("NUMBA_NUM_THREADS",)
 
 
-class RunInterrupted(runner.Interrupted):
+class RunInterrupted(Interrupted):
     """The cluster went away (no worker for ``lost_after_s``, or the scheduler cancelled the
     tasks): the run stops, keeps what it finished, and is marked incomplete (``--resume``)."""
 
@@ -85,229 +79,7 @@ def parse_local(text: str) -> int:
     return n
 
 
-def thread_env(threads: int) -> dict[str, str]:
-    """The library thread variables a worker process starts with: :func:`configure_threads`'s
-    (the user's own values win) and numba's."""
-    saved = dict(os.environ)
-    try:
-        environment.configure_threads(threads)
-        env = {v: os.environ[v] for v in environment.RECORDED_VARS if os.environ.get(v)}
-    finally:
-        os.environ.clear()
-        os.environ.update(saved)
-    for v in EXTRA_THREAD_VARS:
-        env[v] = os.environ.get(v) or str(threads)
-    return env
-
-
-# -- the worker side -------------------------------------------------------------------------
-#
-# State of one worker process, set by WorkerSetup: its record (environment, machine key), the
-# backends it resolved and the closed-form units it measured.  Module globals: one process, one
-# worker.
-
-_WORKER: dict[str, Any] = {}
-_ONE_AT_A_TIME = threading.Lock()  # a configuration is timed alone even on a multi-threaded worker
-
-
-class WorkerSetup(WorkerPlugin):
-    """Prepares every worker, those that replace dead ones included: library threads
-    (:func:`bench.run.environment.configure_threads`, numba, torch once imported), the allocator
-    (``tuned``: :func:`bench.run.environment.tune_allocator`), the user's cases (``--cases`` and the
-    ``isobench.cases`` entry points), and the worker's record (environment, machine key)."""
-
-    name = "isobench-setup"
-
-    def __init__(self, threads: int, allocator: str, case_specs: tuple[str, ...] = ()):
-        self.threads, self.allocator, self.case_specs = threads, allocator, tuple(case_specs)
-
-    def setup(self, worker=None):
-        environment.configure_threads(self.threads)
-        for v in EXTRA_THREAD_VARS:
-            os.environ.setdefault(v, str(self.threads))
-        if self.allocator == "tuned":
-            environment.tune_allocator()
-        from reference import user_cases
-
-        user_cases.load_entry_points()
-        for spec in self.case_specs:
-            try:
-                user_cases.load(spec)
-            except ValueError:  # already registered (a plugin set up twice in one process)
-                pass
-        env = environment.collect()
-        env["threads"] = str(self.threads)
-        env.update({f"env.{v}": os.environ.get(v, "") for v in EXTRA_THREAD_VARS})
-        _WORKER.update(env=env, machine_key=environment.machine_key(env), threads=self.threads, backends={}, cf={},
-                       address=getattr(worker, "address", ""), pid=os.getpid(), host=socket.gethostname())
-
-
-def worker_record(dask_worker=None) -> dict:
-    """What the client records of a worker (``client.run``): address, host, pid, machine key,
-    commit, library versions and thread settings."""
-    env = _WORKER.get("env") or {}
-    return {"address": getattr(dask_worker, "address", ""), "host": socket.gethostname(), "pid": os.getpid(),
-            "nthreads": getattr(dask_worker, "state", None) and dask_worker.state.nthreads,
-            "machine_key": _WORKER.get("machine_key", ""), "setup": bool(_WORKER), "commit": env.get("commit", ""),
-            "threads": {k[4:]: v for k, v in env.items() if k.startswith("env.") and "THREADS" in k or k == "env.XLA_FLAGS"},
-            "versions": {k[8:]: v for k, v in env.items() if k.startswith("version.")}}
-
-
-def _identity() -> dict:
-    if not _WORKER:
-        raise RuntimeError("this dask worker was not set up by isobench (WorkerSetup plugin missing)")
-    from distributed import get_worker
-
-    try:
-        address = get_worker().address
-    except ValueError:  # not in a worker (a direct call, in tests)
-        address = _WORKER.get("address", "")
-    return {"worker": address, "worker_pid": _WORKER["pid"], "machine_key": _WORKER["machine_key"]}
-
-
-def _backend(backend_id: str):
-    """This worker's backend for ``backend_id`` (resolved once per process, its loop driver given
-    the run's threads, torch's thread count set once torch is imported)."""
-    b = _WORKER["backends"].get(backend_id)
-    if b is None:
-        from impls import registry
-
-        b = _WORKER["backends"][backend_id] = registry.resolve(backend_id)
-        if not isinstance(b, registry.Unavailable):
-            environment.configure_driver(b, _WORKER["threads"])
-    if "torch" in sys.modules:
-        torch = sys.modules["torch"]
-        if torch.get_num_threads() != _WORKER["threads"]:
-            torch.set_num_threads(_WORKER["threads"])
-    return b
-
-
-def _case(case_id: str, version: str):
-    """The worker's case ``case_id``, checked to be the client's (same content hash)."""
-    from reference import get_case
-
-    case = get_case(case_id)
-    if case.version != version:
-        raise ValueError(f"the worker's case {case_id} has version {case.version}, the client's {version}: the worker "
-                         "runs other code or data; start the cluster from the same isobench")
-    return case
-
-
-def _writable(opts: ReferenceOptions) -> ReferenceOptions:
-    """``opts`` without its disk cache where this worker cannot write it (a remote worker)."""
-    if opts.disk is None:
-        return opts
-    try:
-        Path(opts.disk).mkdir(parents=True, exist_ok=True)
-        if os.access(opts.disk, os.W_OK):
-            return opts
-    except OSError:
-        pass
-    return dataclasses.replace(opts, disk=None)
-
-
-def config_task(run_id: str, case_id: str, case_version: str, backend_id: str, method: str, dtype: str, knobs: dict,
-                policy: TimingPolicy, budget_s: float | None, deadline: float | None, ref_options: ReferenceOptions,
-                seeds: dict | None = None, round_no: int = 1) -> dict:
-    """One configuration on this worker: :func:`bench.run.runner.run_budgeted` with the closed-form
-    unit measured here (once per case and process) and the rendering integrals it needs given in
-    ``seeds`` (entries of the reference cache, from :func:`reference_task`).  ``deadline``: the
-    run's budget as a wall-clock time (``time.time()``; None: none).  Returns ``{"rows": …,
-    "over": bool, "task_s": …, "cf_s": …}`` with the worker's identity on every row, or
-    ``{"error": message}`` when the configuration cannot even be set up here (the client then
-    writes a failed row)."""
-    with _ONE_AT_A_TIME:
-        t0 = time.perf_counter()
-        ident = _identity()
-        try:
-            case = _case(case_id, case_version)
-        except Exception as exc:  # noqa: BLE001 - a missing or different case is this configuration's failure
-            return {"error": f"on worker {ident['worker']}: {type(exc).__name__}: {exc}", **ident}
-        cfg = runner.Config(case, backend_id, method, dtype, dict(knobs))
-        backend = _backend(backend_id)
-        cf: dict = {}
-
-        def cf_time() -> float:
-            if policy.accuracy_only:
-                return float("nan")
-            key = (case_id, round_no)
-            if key not in _WORKER["cf"]:
-                _WORKER["cf"][key] = runner.closed_form_time(case, policy)
-            cf["s"] = _WORKER["cf"][key]
-            return cf["s"]
-
-        cache = {"_options": _writable(ref_options), **(seeds or {})}
-        left = None if deadline is None else deadline - time.time()
-        rows, over = runner.run_budgeted(run_id, cfg, backend, policy, cf_time, cache, budget_s, left)
-        task_s = time.perf_counter() - t0
-        return {"rows": [{**r, **ident, "task_s": task_s} for r in rows], "over": over, "task_s": task_s,
-                "cf_s": cf.get("s"), **ident}
-
-
-def reference_task(case_id: str, case_version: str, method: str, knobs: dict, ref_options: ReferenceOptions,
-                   previous: dict | None = None) -> dict:
-    """The rendering integral ``method`` with ``knobs`` is checked against on the case
-    (:func:`bench.run.references.exact_color`, on this worker, its disk cache used where writable),
-    as entries of the reference cache: the answer (or the :class:`NotApplicable` saying why there
-    is none), its seconds, and the "timed out, not attempted again" mark that ``previous`` (the
-    same case and model's previous integral) passes along.  An unexpected error is left out, so
-    the configurations compute it themselves and fail as in one process."""
-    with _ONE_AT_A_TIME:
-        t0 = time.perf_counter()
-        ident = _identity()
-        from impls import get_method
-
-        case = _case(case_id, case_version)
-        cache: dict = {"_options": _writable(ref_options)}
-        cache.update({k: v for k, v in (previous or {}).get("entries", {}).items() if k[0] == "render_exact_timed_out"})
-        try:
-            references.exact_color(case, get_method(method), knobs, cache)
-        except references.NotApplicable:
-            pass
-        except Exception as exc:  # noqa: BLE001 - reported by the configurations that need it
-            cache.pop(("render_exact", case_id, references.density_model(get_method(method), knobs),
-                       float(knobs.get("sharpness", 0) or 0)), None)
-            ident["error"] = f"{type(exc).__name__}: {exc}"
-        cache.pop("_options")
-        return {"entries": cache, "task_s": time.perf_counter() - t0, **ident}
-
-
-def retime_task(case_id: str, case_version: str, backend_id: str, method: str, dtype: str, knobs: dict,
-                policy: TimingPolicy, worker: str, round_no: int) -> dict:
-    """One more round of timing samples for a configuration on the worker that measured it
-    first (``worker``), with that round's closed-form sample on the same worker; a task that
-    lands elsewhere (that worker is gone) returns ``{"moved": …}``: samples from two processes
-    are never pooled."""
-    with _ONE_AT_A_TIME:
-        ident = _identity()
-        if ident["worker"] != worker:
-            return {"moved": f"its worker {worker} is gone; samples of another process are not pooled", **ident}
-        case = _case(case_id, case_version)
-        cfg = runner.Config(case, backend_id, method, dtype, dict(knobs))
-        key = (case_id, round_no)
-        if key not in _WORKER["cf"]:
-            _WORKER["cf"][key] = runner.closed_form_time(case, policy)
-        return {"samples": runner.retime(cfg, _backend(backend_id), policy), "cf_s": _WORKER["cf"][key], **ident}
-
-
-def _noop(x):
-    return x
-
-
 # -- the client side -------------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class _Job:
-    kind: str                   # "config" or "reference"
-    index: int                  # configuration: its index in the plan's todo list; reference: its number
-    args: tuple
-    deps: list                  # reference _Jobs this one waits for
-    ref_key: tuple | None = None
-    submitted: float = 0.0
-    result: Any = None          # a reference job's future, once done (kept until the plan is done)
-    error: str = ""
-    task_s: float = 0.0
 
 
 class ClusterExecutor:
@@ -450,52 +222,15 @@ class ClusterExecutor:
     # -- the plan
 
     def execute(self, run_id: str, todo: list, backends: dict, policy: TimingPolicy, ref_options: ReferenceOptions,
-                budget_s: float | None, deadline: float | None) -> Iterator[tuple[int, list[dict], bool]]:
+                budget_s: float | None, deadline: float | None, on_start=None) -> Iterator[tuple[int, list[dict], bool]]:
         """Yield ``(index in todo, rows, over budget)`` for every configuration of ``todo``, in
-        the order they finish (module docstring)."""
-        from impls import Unavailable, get_method
-
+        the order they finish (module docstring; :meth:`bench.run.executor.Executor.execute`).
+        ``on_start`` is not called: a task starts on a worker, unseen by the client."""
         t_start = time.perf_counter()
         self._overheads, self._ref_s, self._cf, self._critical = [], [], {}, 0.0  # per run (main plan, stability)
         self._t_exec = time.time()
-        refs: dict[tuple, _Job] = {}
-        chains: dict[tuple, _Job] = {}          # (case, model) → its last reference job
-        first_user: set[tuple] = set()
-        jobs: list[_Job] = []
-        for j, cfg in enumerate(todo):
-            backend = backends[cfg.backend_id]
-            key = None
-            if not isinstance(backend, Unavailable):
-                try:
-                    if runner.skip_reason(cfg, backend) is None:
-                        key = references.integral_key(cfg.case, get_method(cfg.method), cfg.knobs, ref_options)
-                except Exception:  # noqa: BLE001 - the task itself will record why
-                    key = None
-            deps = []
-            if key is not None:
-                if key not in refs:
-                    prev = chains.get(key[1:3])
-                    refs[key] = _Job("reference", len(refs), (cfg.case.id, cfg.case.version, cfg.method,
-                                                              dict(cfg.knobs), ref_options),
-                                     [prev] if prev else [], ref_key=key)
-                    chains[key[1:3]] = refs[key]
-                deps = [refs[key]]
-            keep_s = key is not None and key not in first_user  # the first user reports the integral's seconds
-            if key is not None:
-                first_user.add(key)
-            jobs.append(_Job("config", j, (run_id, cfg.case.id, cfg.case.version, cfg.backend_id, cfg.method,
-                                           cfg.dtype, dict(cfg.knobs), policy, budget_s, deadline, ref_options,
-                                           keep_s), deps, ref_key=key))
-        waiting: dict[int, list[_Job]] = {}     # id(reference job) → jobs waiting for it
-        ready_refs: deque[_Job] = deque()
-        ready: list[tuple[int, int, _Job]] = []  # heap by plan index
-        for job in list(refs.values()) + jobs:
-            if job.deps:
-                waiting.setdefault(id(job.deps[0]), []).append(job)
-            elif job.kind == "reference":
-                ready_refs.append(job)
-            else:
-                heapq.heappush(ready, (job.index, id(job), job))
+        refs, jobs = plan_jobs(run_id, todo, backends, policy, ref_options, budget_s, deadline)
+        waiting, ready_refs, ready = ready_queues(refs, jobs)
         inflight: dict[Any, _Job] = {}
         no_worker_since = None
         while ready_refs or ready or inflight:
@@ -504,8 +239,8 @@ class ClusterExecutor:
                 if deadline is not None and time.time() >= deadline and ready:
                     _, _, job = heapq.heappop(ready)  # past the budget: no task needed to say so
                     cfg = todo[job.index]
-                    yield job.index, [{**runner._base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
-                                       "reason": runner.over_budget_message(budget_s)}], True
+                    yield job.index, [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "skipped",
+                                       "reason": over_budget_message(budget_s)}], True
                     continue
                 job = ready_refs.popleft() if ready_refs else heapq.heappop(ready)[2]
                 inflight[self._submit(job)] = job
@@ -571,7 +306,7 @@ class ClusterExecutor:
         if future.status == "finished":
             res = future.result()
             if "error" in res:
-                return [{**runner._base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
+                return [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
                          "reason": res["error"], "worker": res.get("worker", ""), "worker_pid": res.get("worker_pid"),
                          "machine_key": res.get("machine_key", "")}], False
             self._seen(res, res["task_s"], now - job.submitted)
@@ -583,7 +318,7 @@ class ClusterExecutor:
         if future.status == "cancelled":
             raise RunInterrupted(f"the scheduler cancelled the task of {cfg.case.id} {cfg.backend_id} {cfg.method} "
                                  f"{knob_string(cfg.knobs)} (scheduler restarted or connection lost)")
-        return [{**runner._base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
+        return [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
                  "reason": self._failure(future)}], False
 
     def _ref_chain(self, job: _Job) -> list[float]:
@@ -634,45 +369,8 @@ class ClusterExecutor:
                       progress, counts: dict) -> None:
         """``--rounds``: rounds 2… of every measured configuration, each on the worker that
         measured it first, one task per worker at a time, pooled into its rows with that worker's
-        closed-form unit (:func:`bench.run.runner._pool`)."""
-        index: dict[tuple, list[int]] = {}
-        where: dict[tuple, str] = {}
-        for j, r in enumerate(rows):
-            if r.get("outcome") == "ok" and r.get("run_id") == run_id and r.get("worker"):
-                k = (r["case_id"], r["backend"], r["dtype"], r["method"], r["knob"])
-                index.setdefault(k, []).append(j)
-                where[k] = r["worker"]
-        todo_ok = [c for c in todo if tuple(map(str, c.key)) in index]
-        for rnd in range(2, rounds + 1):
-            queues: dict[str, deque] = {}
-            for cfg in todo_ok:
-                queues.setdefault(where[tuple(map(str, cfg.key))], deque()).append(cfg)
-            inflight: dict[Any, tuple[str, Any]] = {}
-            n = 0
-            while any(queues.values()) or inflight:
-                busy = {w for w, _ in inflight.values()}
-                for w, q in queues.items():
-                    if q and w not in busy:
-                        cfg = q.popleft()
-                        f = self.client.submit(retime_task, cfg.case.id, cfg.case.version, cfg.backend_id, cfg.method,
-                                               cfg.dtype, dict(cfg.knobs), policy, w, rnd, workers=[w],
-                                               allow_other_workers=True, pure=False,
-                                               key=f"isobench-retime-{uuid.uuid4().hex}")
-                        inflight[f] = (w, cfg)
-                done = wait(list(inflight), return_when="FIRST_COMPLETED").done
-                for f in done:
-                    w, cfg = inflight.pop(f)
-                    n += 1
-                    if progress:
-                        progress(n, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}",
-                                 counts)
-                    res = f.result() if f.status == "finished" else {"moved": self._failure(f)}
-                    extra = res.get("moved") or res["samples"]
-                    if "cf_s" in res and "moved" not in res:
-                        self._cf.setdefault((w, cfg.case.id), []).append(res["cf_s"])
-                    cf = float(np.median(self._cf.get((w, cfg.case.id), [float("nan")])))
-                    for j in index[tuple(map(str, cfg.key))]:
-                        runner._pool(rows[j], extra, cf)
+        closed-form unit (:func:`bench.run.cluster_jobs.retime_rounds`)."""
+        retime_rounds(self, rows, todo, rounds, run_id, policy, progress, counts)
 
     def env_record(self, previous: dict | None = None) -> dict[str, str]:
         """What environment.json records of the cluster (the spread summary reads it);
@@ -697,15 +395,3 @@ class ClusterExecutor:
         return rec
 
 
-def _config_with_seeds(run_id, case_id, case_version, backend_id, method, dtype, knobs, policy, budget_s, deadline,
-                       ref_options, reference, keep_s, ref_key):
-    """:func:`config_task` with the seeds taken from its reference task's result (a dask
-    dependency, resolved to the value on the worker); ``keep_s``: this configuration is the first
-    to use the integral and reports its seconds, as in one process."""
-    seeds = None
-    if reference is not None:
-        seeds = dict(reference.get("entries", {}))
-        if not keep_s:
-            seeds = {k: v for k, v in seeds.items() if k[0] != "reference_s"}
-    return config_task(run_id, case_id, case_version, backend_id, method, dtype, knobs, policy, budget_s, deadline,
-                       ref_options, seeds)

@@ -99,7 +99,7 @@ def configure_threads(n: int) -> dict[str, str]:
         # OpenMP threads that wait for work sleep instead of spinning.  torch's intra-op pool
         # (and OpenMP BLAS) spin at every parallel region's barrier by default; with more than
         # one thread on a machine whose cores are busy, a spinning thread holds the core its
-        # partner needs, and a torch configuration took 10-20× longer than with one thread
+        # partner needs, so adding threads makes a configuration slower instead of faster
         # (docs/performance.md, "torch under load").  Passive waiting costs a wake-up per region.
         os.environ["OMP_WAIT_POLICY"] = done["OMP_WAIT_POLICY"] = "PASSIVE"
     if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
@@ -122,13 +122,12 @@ def tune_allocator() -> str:
 
     Why: the numpy and torch drivers allocate temporaries of 2^16 float64 (512 KiB) on every
     array operation.  glibc serves such sizes by ``mmap`` until its dynamic threshold adapts,
-    and trims the heap on free, so fresh pages keep being faulted in: torus ∪ box,
-    ``hybrid_secant``, 2^20 rays, 1 thread, numpy 0.46 s → 0.40 s, torch 0.80 s → 0.74 s
-    (medians of 7; the allocation-free time unit does not move).  The same reason the backends
-    issue gives for ``THP_MEM_ALLOC_ENABLE=1`` with torch.  (Setting only one of
-    ``MALLOC_TRIM_THRESHOLD_``/``MALLOC_MMAP_THRESHOLD_`` in the environment instead turns the
-    dynamic threshold off and measured 3× slower.)  The cost is a resident set that stays at
-    its peak, which a benchmark process can afford.
+    and trims the heap on free, so fresh pages keep being faulted in, and the page faults are
+    timed with the method (the allocation-free time unit does not see them).  Transparent huge
+    pages for torch (``THP_MEM_ALLOC_ENABLE=1``) address the same cost.  Setting only one of
+    ``MALLOC_TRIM_THRESHOLD_``/``MALLOC_MMAP_THRESHOLD_`` in the environment instead turns
+    glibc's dynamic threshold off, which costs more than it saves.  The cost is a resident set
+    that stays at its peak, which a benchmark process can afford.
 
     Called by the bench commands unless ``--allocator default``; returns what is in effect,
     recorded with every run (``allocator``): "glibc mallopt …", or "default" where the C

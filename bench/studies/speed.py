@@ -1,5 +1,5 @@
-"""Throughput of the root finders at scale: the measurement behind the backends issue's speed
-targets (``python -m bench speed``).
+"""Throughput of the root finders at scale, against the speed targets of :data:`TARGETS`
+(``python -m bench speed``).
 
 2^20 pinhole rays (1024²) at two scenes, float64: the unit sphere seen from (0, 0, 3) with a
 40° field of view, and the torus ∪ box of case ``csg.union.camera.32x32`` from that case's
@@ -10,12 +10,11 @@ knobs) and is scored on
   maximum and the number of rays above 1e-6, false hits and false misses;
 * time as a multiple of the *unit*: the exact closed-form ray–sphere intersection of the same
   rays in numpy (b = ⟨o, d⟩, c = |o|² − 1, t = −b − √(b² − c), into preallocated arrays:
-  :func:`lean_sphere_hits`; 13–17 ms here, where the issue quoted ≈ 8 ms), timed right before
-  every run so that both see the same machine load (medians of ``repeats`` runs; the unit's own median
-  of 3 each time).
+  :func:`lean_sphere_hits`), timed right before every run so that both see the same machine
+  load (medians of ``repeats`` runs; the unit's own median of 3 each time).
 
-Compile time (jax) and the first call are reported apart.  The targets the issue sets are
-``TARGETS``; this module reports, it does not assert (performance lives in benchmarks, not in
+Compile time (jax) and the first call are reported apart.  :data:`TARGETS` are the
+multiples of the unit each backend aims at; this module reports, it does not assert (performance lives in benchmarks, not in
 tests).
 """
 
@@ -27,6 +26,7 @@ import numpy as np
 
 from ..run.timing import times_against_unit
 
+#: the multiple of the unit each backend aims at on the sphere
 TARGETS = {"numpy": 30.0, "jax:cpu": 20.0, "torch:cpu": 60.0}
 
 
@@ -37,8 +37,8 @@ def lean_sphere_hits(o: np.ndarray, d: np.ndarray, out: np.ndarray | None = None
     Not the cancellation-free reference formula, which is slower: the fastest honest closed
     form on (n, 3) rays.  With ``out`` and ``work`` (three float64 arrays of n) it allocates
     nothing, which is how :func:`measure` times it: a fresh large temporary costs page faults
-    whose price depends on the allocator's state (measured: 15 ms in one process, 24 ms after
-    importing jax in another), and the unit must not move with it.  Either way it returns
+    whose price depends on the allocator's state (what else the process imported and freed),
+    and the unit must not move with it.  Either way it returns
     t = −b − √(b² − c), b = ⟨o, d⟩, c = |o|² − 1, and inf where b² − c < 0."""
     n = o.shape[0]
     t = np.empty(n) if out is None else out
@@ -85,9 +85,8 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
     Backends run one after the other, each on every scene (jax, last by default, leaves XLA's
     worker threads behind), and every run is timed before any exact hit is computed (the
     exact torus hits make about a million small arrays), so that neither disturbs the
-    timings.  (With the default allocator, torus ∪ box numpy measured 0.75–0.79 s in a process
-    of its own and 0.86–0.89 s after the other backends' runs; with the tuned one,
-    :func:`bench.run.environment.tune_allocator`, 0.43 s alone and 0.40–0.44 s after them.)"""
+    timings.  With the default allocator a backend's time still depends on which ran before it
+    (the heap they left); :func:`bench.run.environment.tune_allocator` removes that dependence."""
     from impls import Status, registry
 
     from ..run.environment import configure_driver
