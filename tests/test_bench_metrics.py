@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bench.run.metrics import Quantity, _per_ray, depth_errors, error_stats
-from bench.report.build import fit_rate, pareto_front
+from bench.report.plots import fit_rate, pareto_front
 from impls.protocol import RayResult, Status
 
 

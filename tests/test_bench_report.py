@@ -15,6 +15,7 @@ import bench.claims  # noqa: E402
 from bench import commands  # noqa: E402
 from bench.commands._common import run_claims_into  # noqa: E402
 from bench.report import build as report  # noqa: E402
+from bench.report import plots, tables  # noqa: E402
 from bench.run.results import to_frame  # noqa: E402
 
 
@@ -37,15 +38,15 @@ def frame():
 
 
 def test_fastest_to_target_and_support_matrix():
-    t = report.fastest_to_target(frame()).set_index("backend")
+    t = tables.fastest_to_target(frame()).set_index("backend")
     assert t.loc["numpy", "≤ 1e-04"].startswith("16 ms") and "max_steps=16" in t.loc["numpy", "≤ 1e-04"]
     assert t.loc["jax:cpu", "≤ 1e-12"].startswith("128 ms") and "max_steps=64" in t.loc["jax:cpu", "≤ 1e-12"]
-    t = report.fastest_to_target(frame().assign(knob="")).set_index("backend")  # a method without knobs
+    t = tables.fastest_to_target(frame().assign(knob="")).set_index("backend")  # a method without knobs
     assert t.loc["numpy", "≤ 1e-04"] == "16 ms (×16)" and "@" not in t.loc["jax:cpu", "≤ 1e-12"]
-    sup = report.support_matrix(frame()).set_index("backend")
+    sup = tables.support_matrix(frame()).set_index("backend")
     assert sup.loc["numpy", "m"] == "ran 3" and sup.loc["numpy", "m2"] == "FAILED 1"
     assert sup.loc["torch:cpu", "m"] == "skipped 1" and sup.loc["torch:cpu", "m2"] == "not planned"
-    reasons = report.not_run(frame())
+    reasons = tables.not_run(frame())
     assert {"backend unavailable: torch is not installed", "RuntimeError: boom"} == set(reasons["reason"])
 
 
@@ -68,7 +69,7 @@ def test_report_inlines_the_claims_ledger(tmp_path):
     assert "![claim c1](claim_c1.png)" in md and "missing.png)" not in md
     for p in (tmp_path / "plots").glob("*.png"):
         assert p.stat().st_size > 1000
-    series = report.convergence_series(frame())
+    series = plots.convergence_series(frame())
     assert {(s["backend"], s["knob"], tuple(s["x"])) for s in series} == {
         ("numpy", "max_steps", (4.0, 16.0, 64.0)), ("jax:cpu", "max_steps", (4.0, 16.0, 64.0))}
 
@@ -116,7 +117,7 @@ def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch, capsys):
 
 
 def test_knob_labels_show_only_what_differs_from_the_defaults():
-    from bench.report.build import knob_label
+    from bench.report.tables import knob_label
     from bench.run.results import knob_string
     from impls.methods import METHODS
 

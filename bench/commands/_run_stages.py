@@ -12,7 +12,7 @@ def run_stability_into(out: Path, suite, backends: dict, args, console, executor
     never raises.  Returns "" or a note saying why it did not complete."""
     import time
 
-    from ..report.build import STABILITY_DIR
+    from ..report.tables import STABILITY_DIR
     from ..studies.stability import run_stage
 
     started = time.monotonic()
@@ -59,25 +59,25 @@ def start_executor(args, lines):
 def _first_screen_lines(df, env: dict, out: Path) -> list[str]:
     """The report's answers in a few lines: which to pick at 1e-8, the stability scoreboard, the
     claims' verdict counts (:func:`bench.report.summary.first_screen`); nothing if they cannot be made."""
-    from ..report import build as report, summary
+    from ..report import summary, tables
     from ..studies import stability
 
     try:
-        cells, _ = report.stability_section(df, out)
+        cells, _ = tables.stability_section(df, out)
         board = stability.scoreboard_lines(stability.scoreboard(cells)) if len(cells) else []
-        fs = summary.first_screen(df, env, claims=report.read_claims(out), scoreboard=board)
+        fs = summary.first_screen(df, env, claims=tables.read_claims(out), scoreboard=board)
         text = summary.terminal_text(fs).splitlines()[1:]  # the first line repeats the counts above
         return [t[:160] for t in text]
     except Exception as exc:  # the summary must never cost the run its exit code
         return [f"(summary unavailable: {type(exc).__name__}: {exc})"]
 
 
-def summary(df, env: dict, out: Path, lines: ProgressLines) -> tuple[int, list[str]]:
+def closing_summary(df, env: dict, out: Path, lines: ProgressLines) -> tuple[int, list[str]]:
     """The closing lines (counts, failures, incompleteness, report path) and the exit code:
     0, or 1 when the run is incomplete (its --budget ran out) or no configuration ran."""
-    from ..report import build as report
+    from ..report.tables import config_outcomes
 
-    configs = report.config_outcomes(df)
+    configs = config_outcomes(df)
     n = {o: int((configs["outcome"] == o).sum()) for o in ("ok", "skipped", "failed")}
     from ..run.results import OVER_BUDGET
 

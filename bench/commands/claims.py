@@ -50,7 +50,8 @@ def run(args) -> int:
         write_json(out / "environment.json", {**collect(), "run_id": out.name, "suite": "claims"})
     if (out / "claims.csv").exists():
         from ..claims.summary import markdown_section, terminal_summary
-        from ..report.build import build_from_dir, read_claims
+        from ..report.build import build_from_dir
+        from ..report.tables import read_claims
 
         claims = read_claims(out)
         md = markdown_section(claims)

@@ -20,7 +20,7 @@ from pathlib import Path
 from ._common import (ALLOCATOR_HELP, DEFAULT_REPORTS, ProgressLines, UsageError, error, int_at_least,
                       load_user_cases, make_console, resolve_backends, run_claims_into, seconds, split)
 from ._run_options import LIST_OPTIONS, RESUMED_OPTIONS, contradictions, empty_option, restore_run_options, run_options
-from ._run_stages import run_stability_into, start_executor, summary
+from ._run_stages import closing_summary, run_stability_into, start_executor
 
 ORDER = 0
 HELP = "run a suite and write results and a report"
@@ -268,7 +268,7 @@ def _finish(args, suite, backends, out: Path, df, console, lines: ProgressLines,
         write_json(out / "environment.json", env)
     lines.line("report: writing report.md and report.html")
     report.build(df, env, out)
-    code, errors = summary(df, env, out, lines)
+    code, errors = closing_summary(df, env, out, lines)
     nominal = {"quick": 240.0, "full": 900.0}.get(suite.name)
     if nominal and float(env.get("elapsed_s", 0)) > nominal:
         print(f"note: the {suite.name} suite took {env.get('elapsed_s')} s, more than its nominal {nominal:g} s "

@@ -206,40 +206,48 @@ def run_extraction(cases: Iterable | None = None, resolutions=(16, 32, 64, 128),
                 if progress:
                     progress(f"extract {case.id} N={n}: failed ({type(exc).__name__})")
                 continue
-            total = [r["time_sample_s"] + r["time_extract_s"] for r in runs]
-            d = m["distances"]
-            note = ""
-            if m["distance_method"] == "lipschitz_bracket":
-                note = ("distance to the surface: certified upper bound by a sign-change bracket; its error bound "
-                        "b − |φ|/L is reference_error_bound")
-                if not math.isfinite(m["reference_error_bound"]):
-                    note += "; the declared Lipschitz bound is refuted (|φ|/L > a certified distance): no error bound"
-            if first["faces"].shape[0] == 0:
-                note = (note + "; " if note else "") + "φ has no sign change on the grid: empty mesh, infinite distance"
-            common = {
-                **base, "outcome": "ok", "reason": note,
-                "error_p99": float(np.percentile(d, 99)) if d.size else math.inf,
-                "error_median": float(np.median(d)) if d.size else math.inf,
-                "n_checked": int(m["n_mesh_samples"] + m["n_surface_samples"]),
-                "time_median_s": float(np.median(total)), "time_iqr_s": _iqr(total),
-                "time_samples_s": json.dumps(total), "n_samples": len(total),
-                "reference_error_bound": m["reference_error_bound"], "reference_s": t_ref,
-                "timing_note": "φ sampling on the grid (numpy) + skimage marching_cubes, per repeat",
-                "resolution": n, "grid_spacing": h,
-                "n_vertices": int(first["vertices"].shape[0]), "n_faces": int(first["faces"].shape[0]),
-                "time_sample_s": float(np.median([r["time_sample_s"] for r in runs])),
-                "time_extract_s": float(np.median([r["time_extract_s"] for r in runs])),
-                **{k: m[k] for k in ("hausdorff", "chamfer", "hausdorff_mesh_to_surface", "hausdorff_surface_to_mesh",
-                                     "chamfer_mesh_to_surface", "chamfer_surface_to_mesh", "n_mesh_samples",
-                                     "n_surface_samples", "covering_mesh", "covering_surface",
-                                     "surface_cover_certified", "distance_method")},
-            }
+            common = _scored_row(base, runs, m, h, t_ref, n)
             for q in QUANTITIES:
                 rows.append({**common, "quantity": q, "error_max": m[q]})
             if progress:
                 progress(f"extract {case.id} N={n}: H {m['hausdorff']:.3g}, C {m['chamfer']:.3g}, "
                          f"{common['time_median_s']:.3g} s")
     return rows
+
+
+def _scored_row(base: dict, runs: list[dict], m: dict, h: float, t_ref: float, n: int) -> dict:
+    """The columns of one resolution's ok rows: the extractions' times ``runs``, the mesh's
+    distances to the exact surface ``m`` (grid spacing ``h``, reference seconds ``t_ref``)."""
+    first = runs[0]
+    total = [r["time_sample_s"] + r["time_extract_s"] for r in runs]
+    d = m["distances"]
+    note = ""
+    if m["distance_method"] == "lipschitz_bracket":
+        note = ("distance to the surface: certified upper bound by a sign-change bracket; its error bound "
+                "b − |φ|/L is reference_error_bound")
+        if not math.isfinite(m["reference_error_bound"]):
+            note += "; the declared Lipschitz bound is refuted (|φ|/L > a certified distance): no error bound"
+    if first["faces"].shape[0] == 0:
+        note = (note + "; " if note else "") + "φ has no sign change on the grid: empty mesh, infinite distance"
+    common = {
+        **base, "outcome": "ok", "reason": note,
+        "error_p99": float(np.percentile(d, 99)) if d.size else math.inf,
+        "error_median": float(np.median(d)) if d.size else math.inf,
+        "n_checked": int(m["n_mesh_samples"] + m["n_surface_samples"]),
+        "time_median_s": float(np.median(total)), "time_iqr_s": _iqr(total),
+        "time_samples_s": json.dumps(total), "n_samples": len(total),
+        "reference_error_bound": m["reference_error_bound"], "reference_s": t_ref,
+        "timing_note": "φ sampling on the grid (numpy) + skimage marching_cubes, per repeat",
+        "resolution": n, "grid_spacing": h,
+        "n_vertices": int(first["vertices"].shape[0]), "n_faces": int(first["faces"].shape[0]),
+        "time_sample_s": float(np.median([r["time_sample_s"] for r in runs])),
+        "time_extract_s": float(np.median([r["time_extract_s"] for r in runs])),
+        **{k: m[k] for k in ("hausdorff", "chamfer", "hausdorff_mesh_to_surface", "hausdorff_surface_to_mesh",
+                             "chamfer_mesh_to_surface", "chamfer_surface_to_mesh", "n_mesh_samples",
+                             "n_surface_samples", "covering_mesh", "covering_surface",
+                             "surface_cover_certified", "distance_method")},
+    }
+    return common
 
 
 def _ok(df: pd.DataFrame) -> pd.DataFrame:
