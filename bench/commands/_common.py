@@ -69,14 +69,28 @@ def json_dict(text: str) -> dict:
     return v
 
 
-def resolve_backends(ids: list[str], threads: int, flag: str = "--backend"):
+def resolve_backends(ids: list[str], threads: int, flag: str = "--backend", specs: dict | None = None):
     """{id: backend or Unavailable}, each loop driver given ``threads`` worker threads, or an
-    error message when an id names nothing (a typo)."""
+    error message when an id names nothing (a typo) or two name one backend.  A plug-in given as
+    ``package.module:attribute`` is keyed (and named in rows and reports) by its own ``id``;
+    ``specs``, when given, receives {id: what to resolve it by} for other processes."""
     from impls import registry
 
     from ..run.environment import configure_driver
 
-    backends = {bid: registry.resolve(bid) for bid in ids}
+    backends: dict = {}
+    for spec in ids:
+        b = registry.resolve(spec)
+        # the registry's own rule for a plug-in spec (package.module:attribute, not torch:cuda)
+        plugin = registry._is_plugin_spec(spec) and not isinstance(b, registry.Unavailable)
+        own = getattr(b, "id", None) if plugin else None
+        key = own if isinstance(own, str) and own.strip() else spec
+        if key in backends:
+            return None, (f"{flag}: {spec!r} and {(specs or {}).get(key, key)!r} both name the backend {key!r}; "
+                          "give one of them")
+        backends[key] = b
+        if specs is not None:
+            specs[key] = spec
     for b in backends.values():
         if not isinstance(b, registry.Unavailable):
             configure_driver(b, threads)

@@ -65,7 +65,8 @@ def normal(dest: str, value):
 
 
 def run_options(args, backend_ids) -> str:
-    """The JSON of :data:`RESUMED_OPTIONS` as this run uses them (backends resolved to ids)."""
+    """The JSON of :data:`RESUMED_OPTIONS` as this run uses them (``backend_ids``: the backends as
+    given, a plug-in by its spec, so that a resume resolves them again)."""
     rec = {dest: normal(dest, getattr(args, dest)) for dest in RESUMED_OPTIONS}
     rec["backend"] = list(backend_ids)
     return json.dumps(rec, sort_keys=True)

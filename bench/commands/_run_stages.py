@@ -45,7 +45,8 @@ def start_executor(args, lines):
     try:
         executor = ClusterExecutor(local=parse_local(args.cluster) if args.cluster else None, scheduler=args.scheduler,
                                    threads=args.threads, allocator=args.allocator,
-                                   case_specs=tuple(split(args.cases) or ()), accuracy_only=args.accuracy_only)
+                                   case_specs=tuple(split(args.cases) or ()), accuracy_only=args.accuracy_only,
+                                   backend_specs=getattr(args, "specs", None))
         executor.start()
     except ValueError as exc:
         return None, str(exc)

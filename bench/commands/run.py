@@ -156,10 +156,12 @@ def _select(args):
 
 
 def _backends(args) -> dict:
-    """{id: backend or Unavailable} of ``--backend`` (default: every registered one)."""
+    """{id: backend or Unavailable} of ``--backend`` (default: every registered one); a plug-in's
+    spec is kept in ``args.specs`` (id → spec) for the run's record and the cluster's workers."""
+    args.specs = {}
     from impls import registry
 
-    backends, msg = resolve_backends(split(args.backend) or registry.default_ids(), args.threads)
+    backends, msg = resolve_backends(split(args.backend) or registry.default_ids(), args.threads, specs=args.specs)
     if msg:
         raise UsageError(msg + "; `python -m bench backends` lists the backends")
     if "torch" in sys.modules:
@@ -213,7 +215,8 @@ def _run(args, held: list) -> int:
     lines.line(f"run {'(resumed) ' if args.resume else ''}suite {suite.name}: {len(cases)} cases, backends "
                f"{', '.join(backends)}; budget {'none' if budget is None else f'{budget:g} s'}; out {out}")
     options = _run_options_of(args, suite, backends, policy, budget, run_id, executor,
-                              {"threads": str(args.threads), "run_options": run_options(args, backends), **cache_record})
+                              {"threads": str(args.threads), "run_options": run_options(args, list(args.specs.values())),
+                               **cache_record})
     df = _execute(suite, backends, out, options, console, lines, live)
     return _finish(args, suite, backends, out, df, console, lines, executor)
 

@@ -95,12 +95,14 @@ class ClusterExecutor:
 
     def __init__(self, *, local: int | None = None, scheduler: str | None = None, threads: int = 1,
                  allocator: str = "tuned", case_specs: tuple[str, ...] = (), allowed_failures: int | None = None,
-                 lost_after_s: float = 120.0, accuracy_only: bool = False, calibrate: int = 200):
+                 lost_after_s: float = 120.0, accuracy_only: bool = False, calibrate: int = 200,
+                 backend_specs: dict[str, str] | None = None):
         if (local is None) == (scheduler is None):
             raise ValueError("ClusterExecutor: give exactly one of local (--cluster local:N) and scheduler (--scheduler)")
         self.local, self.scheduler, self.threads, self.allocator = local, scheduler, threads, allocator
         self.case_specs, self.allowed_failures, self.lost_after_s = tuple(case_specs), allowed_failures, lost_after_s
         self.accuracy_only, self.calibrate = accuracy_only, calibrate
+        self.backend_specs = dict(backend_specs or {})  # a plug-in's id → the spec its workers resolve
         self.cluster = self.client = None
         self._record: dict[str, str] = {}
         self._workers: dict[str, dict] = {}     # address → record (every worker seen)
@@ -148,7 +150,7 @@ class ClusterExecutor:
                 raise ValueError(f"--scheduler: cannot reach {self.scheduler} ({type(exc).__name__}: {exc}); is a "
                                  "dask scheduler running there?") from None
             where = f"scheduler {self.scheduler}"
-        self.client.register_plugin(WorkerSetup(self.threads, self.allocator, self.case_specs))
+        self.client.register_plugin(WorkerSetup(self.threads, self.allocator, self.case_specs, self.backend_specs))
         if self.scheduler is not None:
             self.client.wait_for_workers(1, timeout=60)
         records = self.client.run(worker_record)

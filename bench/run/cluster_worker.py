@@ -58,12 +58,15 @@ class WorkerSetup(WorkerPlugin):
     """Prepares every worker, those that replace dead ones included: library threads
     (:func:`bench.run.environment.configure_threads`, numba, torch once imported), the allocator
     (``tuned``: :func:`bench.run.environment.tune_allocator`), the user's cases (``--cases`` and the
-    ``isobench.cases`` entry points), and the worker's record (environment, machine key)."""
+    ``isobench.cases`` entry points), the plug-in backends' specs by id (``backend_specs``), and
+    the worker's record (environment, machine key)."""
 
     name = "isobench-setup"
 
-    def __init__(self, threads: int, allocator: str, case_specs: tuple[str, ...] = ()):
+    def __init__(self, threads: int, allocator: str, case_specs: tuple[str, ...] = (),
+                 backend_specs: dict[str, str] | None = None):
         self.threads, self.allocator, self.case_specs = threads, allocator, tuple(case_specs)
+        self.backend_specs = dict(backend_specs or {})
 
     def setup(self, worker=None):
         environment.configure_threads(self.threads)
@@ -83,6 +86,7 @@ class WorkerSetup(WorkerPlugin):
         env["threads"] = str(self.threads)
         env.update({f"env.{v}": os.environ.get(v, "") for v in EXTRA_THREAD_VARS})
         _WORKER.update(env=env, machine_key=environment.machine_key(env), threads=self.threads, backends={}, cf={},
+                       specs=self.backend_specs,
                        address=getattr(worker, "address", ""), pid=os.getpid(), host=socket.gethostname())
 
 
@@ -116,7 +120,7 @@ def _backend(backend_id: str):
     if b is None:
         from impls import registry
 
-        b = _WORKER["backends"][backend_id] = registry.resolve(backend_id)
+        b = _WORKER["backends"][backend_id] = registry.resolve(_WORKER.get("specs", {}).get(backend_id, backend_id))
         if not isinstance(b, registry.Unavailable):
             environment.configure_driver(b, _WORKER["threads"])
     if "torch" in sys.modules:

@@ -6,6 +6,7 @@ budget (:func:`run_budgeted`), and the extra timing rounds of ``--rounds`` (:fun
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import traceback
 from typing import Any, Callable
@@ -71,6 +72,18 @@ def skip_reason(cfg: Config, backend: Any) -> str | None:
     return f"{cfg.backend_id} declines {cfg.method} on this scene: {declined}" if declined else None
 
 
+def takes_one_argument(fn: Callable) -> bool:
+    """Whether ``fn(x)`` binds (a callable whose signature cannot be read is given the benefit of
+    the doubt: the call itself then says)."""
+    try:
+        inspect.signature(fn).bind(None)
+    except TypeError:
+        return False
+    except ValueError:  # no signature (some builtins)
+        return True
+    return True
+
+
 def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
     depths, isolating their error from root finding) and time it: (prepared, timing, output).
@@ -90,6 +103,9 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     sync = getattr(backend, "synchronize", None)
     if not callable(sync):
         raise BackendFault("the backend has no callable synchronize(out)")
+    if not takes_one_argument(sync):
+        raise BackendFault("backend.synchronize must take the output of Prepared.run(): synchronize(out) "
+                           "(docs/backends.md); it cannot be called with one argument")
     timing, out = measure(lambda: backend_call(backend, "Prepared.run()", prep.run),
                           lambda o: backend_call(backend, "backend.synchronize(out)", lambda: sync(o)), policy)
     return prep, timing, out
