@@ -14,9 +14,10 @@ import re
 
 import numpy as np
 
-#: knob names treated as tolerances (swept over decades, tightest used while other knobs sweep)
+#: knob names guessed to be tolerances (swept over decades, tightest used while other knobs
+#: sweep) where a knob declares no role (:func:`knob_role`)
 _TOL_NAME = re.compile(r"(tol|eps|epsilon)$")  # tol, xtol, atol, rtol, f_tol, eps…
-#: integer knobs that are not budgets (never swept by default)
+#: integer knobs guessed not to be budgets (never swept by default), where a knob declares no role
 _NOT_BUDGET = re.compile(r"seed|behaviou?r|mode|index|axis", re.I)
 
 
@@ -97,8 +98,23 @@ class Suite:
         return default_sweep(spec, self.level, main_dial_only=self.main_dial_only)
 
 
+def knob_role(knob) -> str | None:
+    """A knob's role in a sweep: ``"tolerance"`` (swept over decades), ``"budget"`` (an integer
+    swept geometrically), ``"step"`` or ``"seed"`` (kept at the default), or None (kept at the
+    default).  The declared ``knob.role`` (:class:`impls.methods.Knob`) when the knob has one;
+    else guessed from its name and kind, here and nowhere else."""
+    role = getattr(knob, "role", None)
+    if role is not None:
+        return role
+    if knob.kind is float and _TOL_NAME.search(knob.name):
+        return "tolerance"
+    if knob.kind is int:
+        return "seed" if "seed" in knob.name.lower() else None if _NOT_BUDGET.search(knob.name) else "budget"
+    return None
+
+
 def _is_tolerance(knob) -> bool:
-    return knob.kind is float and bool(_TOL_NAME.search(knob.name))
+    return knob_role(knob) == "tolerance"
 
 
 def _int_values(knob, level: str) -> list[int]:
@@ -150,7 +166,7 @@ def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> l
             out += [{**base, k.name: v} for v in explicit]
         elif _is_tolerance(k):
             out += [{**base, k.name: v} for v in _tol_values(k, level)]
-        elif k.kind is int and not _NOT_BUDGET.search(k.name):
+        elif knob_role(k) == "budget":
             out += [{**base, **tight, k.name: v} for v in _int_values(k, level)]
     seen, unique = set(), []
     for kd in out:
