@@ -51,44 +51,34 @@ def run(args) -> int:
     if bad:
         return error("--backend: " + "; ".join(f"{bid}: {b.reason}" for bid, b in bad))
     if args.volume:
-
-        rows, notes = peers.volume_rows(ids, speed.scenes(args.side if args.side_given else 256),
-                                        n_samples=args.samples, repeats=args.repeats)
-        for row in rows:
-            row["threads"] = args.threads
-            row["allocator"] = allocator
-        print(f"volume rendering, {(args.side if args.side_given else 256)}² rays × {args.samples} samples, NeRF "
-              f"density s = 50, no early termination, {args.threads} thread(s); time: median (min–max) of "
-              f"{args.repeats}, compile and first call apart")
-        print(peers.format_volume(rows))
-        for line in notes:
-            print(line)
-        if args.out:
-            from ..run.results import write_json
-
-            err = write_out_file(args.out, lambda path: write_json(path, rows))
-            if err:
-                return error(err)
-        return 0
+        side = args.side if args.side_given else 256
+        rows, notes = peers.volume_rows(ids, speed.scenes(side), n_samples=args.samples, repeats=args.repeats)
+        head = [f"volume rendering, {side}² rays × {args.samples} samples, NeRF density s = 50, no early termination, "
+                f"{args.threads} thread(s); time: median (min–max) of {args.repeats}, compile and first call apart"]
+        return _report(args, allocator, rows, head, peers.format_volume(rows), notes)
     notes: list[str] = []
     rows = speed.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats, knobs=args.knobs or {},
                          threads=args.threads, peers=not args.no_peers, notes=notes)
+    head = [f"{args.side}² rays, {args.method}, {args.threads} thread(s) per library and root-finder driver, "
+            f"allocator: {allocator}; × unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)"]
+    if not args.no_peers:
+        head.append("peers (bench/studies/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, "
+                    "bounding-sphere clip); peer:scipy = hybrid_secant's march on numpy + scipy find_root "
+                    "(hybrid_chandrupatla)")
+    return _report(args, allocator, rows, head, speed.format_rows(rows), notes)
+
+
+def _report(args, allocator: str, rows: list[dict], head: list[str], table: str, notes: list[str]) -> int:
+    """Print the rows (with the run's threads and allocator) and write them to ``--out``."""
+    from ..run.results import write_json
+
     for row in rows:
         row["threads"] = args.threads
         row["allocator"] = allocator
-    print(f"{args.side}² rays, {args.method}, {args.threads} thread(s) per library and root-finder driver, "
-          f"allocator: {allocator}; × unit = time / numpy closed-form sphere hit of the same rays (same run, 1 thread)")
-    if not args.no_peers:
-        print("peers (bench/studies/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, bounding-sphere "
-              "clip); peer:scipy = hybrid_secant's march on numpy + scipy find_root (hybrid_chandrupatla)")
-    print(speed.format_rows(rows))
-    for line in notes:
+    for line in [*head, table, *notes]:
         print(line)
     if args.out:
-        from ..run.results import write_json
-
         err = write_out_file(args.out, lambda path: write_json(path, rows))
         if err:
             return error(err)
     return 0
-
