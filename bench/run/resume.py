@@ -88,7 +88,7 @@ def _done_keys(df) -> set[tuple]:
 
 def outcome_of(rows: list[dict]) -> str:
     """A configuration's outcome from its rows: ``ok`` if any quantity was measured, else
-    ``failed`` if any failed, else ``skipped`` (as ``bench.report.build.config_outcomes``)."""
+    ``failed`` if any failed, else ``skipped`` (as ``bench.report.tables.config_outcomes``)."""
     outs = {r.get("outcome") for r in rows}
     return "ok" if "ok" in outs else "failed" if "failed" in outs else "skipped"
 
