@@ -168,7 +168,8 @@ def test_resume_after_the_client_is_killed(tmp_path):
     env2 = json.loads((out / "environment.json").read_text())
     assert env2["complete"] == "true" and env2["resumed"] == "1" and env2["run_id"] == first["run_id"]
     assert not full.duplicated(KEY).any() and len(full) > len(partial)
-    plan = runner.plan(get_suite("quick"), ["tests.cluster_backends:Slow"], "sphere.far.1e3,sphere.surface,torus.far.1e3",
+    # rows name the plug-in by its id, "Slow"; the workers resolve it by its spec
+    plan = runner.plan(get_suite("quick"), ["Slow"], "sphere.far.1e3,sphere.surface,torus.far.1e3",
                        ["sphere_trace", "hybrid_secant"], None)
     assert {tuple(map(str, c.key)) for c in plan} == _configs(full)
     # the rows finished before the kill are kept as they were (same worker process, not redone)
