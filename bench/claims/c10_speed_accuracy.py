@@ -9,8 +9,8 @@ for misses).
   tolerance, then ρ at the found hit.
 * Volume rendering: N uniform samples on [0, 6] (the camera is at distance 3), opacities from a density
   model of fixed sharpness s = 200, eqs. 9–10; swept over N.
-Time: median of repeated wall-clock runs of the rendering alone (numpy, one process on a shared 2-core
-machine: noisy, compare shapes of curves, not digits).  Error: the median over pixels of |C − C_exact|
+Time: median of repeated wall-clock runs of the rendering alone (numpy, one process; on a shared
+machine the times are noisy: compare shapes of curves, not digits).  Error: the median over pixels of |C − C_exact|
 (the max is dominated by silhouette pixels, where any volume model blends; it is reported too), pixel
 error = ‖C − C_exact‖₂ over RGB.
 """
