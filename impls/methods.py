@@ -16,7 +16,7 @@ import numpy as np
 from .core import methods_root
 
 
-#: what a knob does, which decides how a suite sweeps it (``bench/suites.py``, ``default_sweep``)
+#: what a knob does, which decides how a suite sweeps it (``bench/run/suites.py``, ``default_sweep``)
 KNOB_ROLES = {
     "tolerance": "a stopping tolerance (float): swept over decades; the tightest swept value is held while a "
                  "budget sweeps",

@@ -8,7 +8,9 @@ by methods whose :class:`impls.methods.MethodSpec` has ``needs_t_hit``; ``color`
 with ``value(x, xp) -> (..., 3)``, default ``reference.rendering.SineColor()``) is taken by methods
 with ``needs_color`` (the ``render`` family) and refused by the others.  ``Prepared.run()`` does the timed work and returns backend-native arrays;
 ``Prepared.result(out)`` turns them into a float64/int numpy :class:`RayResult`.  The split lets
-``bench`` time ``run`` alone (conversion, compilation and transfer excluded).
+``bench`` time ``run`` alone (conversion, compilation and transfer excluded): it times
+``out = prep.run(); backend.synchronize(out)``.  docs/backends.md documents every method, what
+the runner validates, and ``python -m bench conformance --backend SPEC``.
 
 Per-ray status codes follow scipy's elementwise solvers (``scipy/_lib/_elementwise_iterative_
 method.py``): 0 converged, negative codes are failures, positive codes are non-failure
@@ -159,6 +161,11 @@ class Backend(Protocol):
         (..., 3)``; ``None`` = ``reference.rendering.SineColor()``); a ValueError for others."""
         ...
 
-    def synchronize(self) -> None: ...
+    def synchronize(self, out: Any) -> None:
+        """Block until the device work that produced ``out`` (what ``Prepared.run()`` returned)
+        is finished, so that the time measured around ``run()`` and ``synchronize(out)`` is the
+        work's, not the queueing's.  ``out`` is required: a lazy library waits on the arrays
+        themselves (jax's ``block_until_ready``), a synchronous one (numpy) does nothing."""
+        ...
 
     def versions(self) -> dict[str, str]: ...

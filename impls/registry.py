@@ -81,7 +81,7 @@ def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:
     return {ep.name: ep for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
 
 
-def _is_plugin_spec(backend_id: str, entry_points=None) -> bool:
+def is_plugin_spec(backend_id: str, entry_points=None) -> bool:
     # "pkg.mod:attr" or "mod:attr"; "torch:cuda" (a built-in) and "<entry point>:device" are not
     head = backend_id.split(":", 1)[0]
     if ":" not in backend_id or head in _BUILTIN:
@@ -94,7 +94,7 @@ def resolve(backend_id: str) -> Any:
     if not isinstance(backend_id, str) or not backend_id.strip():
         return Unavailable(str(backend_id), "empty backend id; use e.g. 'numpy', 'torch:cpu' or 'package.module:attr'",
                            unknown=True)
-    if _is_plugin_spec(backend_id):
+    if is_plugin_spec(backend_id):
         try:
             return _instantiate(_load_attr(backend_id), None)
         except _NotFound as exc:

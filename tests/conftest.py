@@ -20,7 +20,7 @@ import pytest
 from filelock import FileLock
 from hypothesis import settings
 
-from bench.environment import configure_caches, configure_threads, default_cache_dir
+from bench.run.environment import configure_caches, configure_threads, default_cache_dir
 
 # one thread per library, OpenMP threads waiting passively, as the bench commands run (set before
 # torch, jax or a BLAS starts its thread pool): pytest-xdist already runs one worker per core, and

@@ -13,10 +13,10 @@ import time
 
 import pytest
 
-from bench import runner
-from bench.results import OVER_BUDGET, read_results, remove_temporaries, write_results, to_frame
-from bench.suites import Suite
-from bench.timing import Timeout, TimingPolicy, time_limit
+from bench.run import runner
+from bench.run.results import OVER_BUDGET, read_results, remove_temporaries, write_results, to_frame
+from bench.run.suites import Suite
+from bench.run.timing import Timeout, TimingPolicy, time_limit
 from impls import registry
 from tests import test_bench_fakes as fakes
 
@@ -142,7 +142,7 @@ def test_resume_ignores_and_removes_temporaries_and_adds_up_sessions(tmp_path):
     assert env["complete"] == "false"
     first = json.loads(env["elapsed_sessions_s"])
     assert len(first) == 1
-    # what a SIGKILL during a write leaves: 0-byte temporaries of the atomic writer (bench.results.write_atomic)
+    # what a SIGKILL during a write leaves: 0-byte temporaries of the atomic writer (bench.run.results.write_atomic)
     for name in (".results.csv.1a2b3c4d.tmp", ".results.parquet.deadbeef.tmp", ".claims.csv.x1y2z3.tmp"):
         (tmp_path / name).write_bytes(b"")
     assert len(read_results(tmp_path)) == len(df)  # a temporary is never read as results

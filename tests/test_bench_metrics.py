@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.metrics import Quantity, _per_ray, depth_errors, error_stats
-from bench.report import fit_rate, pareto_front
+from bench.run.metrics import Quantity, _per_ray, depth_errors, error_stats
+from bench.report.plots import fit_rate, pareto_front
 from impls.protocol import RayResult, Status
 
 

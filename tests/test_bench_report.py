@@ -12,8 +12,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 import bench.claims  # noqa: E402
-from bench import cli, report  # noqa: E402
-from bench.results import to_frame  # noqa: E402
+from bench import commands  # noqa: E402
+from bench.commands._common import run_claims_into  # noqa: E402
+from bench.report import build as report  # noqa: E402
+from bench.report import plots, tables  # noqa: E402
+from bench.run.results import to_frame  # noqa: E402
 
 
 def frame():
@@ -35,15 +38,15 @@ def frame():
 
 
 def test_fastest_to_target_and_support_matrix():
-    t = report.fastest_to_target(frame()).set_index("backend")
+    t = tables.fastest_to_target(frame()).set_index("backend")
     assert t.loc["numpy", "≤ 1e-04"].startswith("16 ms") and "max_steps=16" in t.loc["numpy", "≤ 1e-04"]
     assert t.loc["jax:cpu", "≤ 1e-12"].startswith("128 ms") and "max_steps=64" in t.loc["jax:cpu", "≤ 1e-12"]
-    t = report.fastest_to_target(frame().assign(knob="")).set_index("backend")  # a method without knobs
+    t = tables.fastest_to_target(frame().assign(knob="")).set_index("backend")  # a method without knobs
     assert t.loc["numpy", "≤ 1e-04"] == "16 ms (×16)" and "@" not in t.loc["jax:cpu", "≤ 1e-12"]
-    sup = report.support_matrix(frame()).set_index("backend")
+    sup = tables.support_matrix(frame()).set_index("backend")
     assert sup.loc["numpy", "m"] == "ran 3" and sup.loc["numpy", "m2"] == "FAILED 1"
     assert sup.loc["torch:cpu", "m"] == "skipped 1" and sup.loc["torch:cpu", "m2"] == "not planned"
-    reasons = report.not_run(frame())
+    reasons = tables.not_run(frame())
     assert {"backend unavailable: torch is not installed", "RuntimeError: boom"} == set(reasons["reason"])
 
 
@@ -66,7 +69,7 @@ def test_report_inlines_the_claims_ledger(tmp_path):
     assert "![claim c1](claim_c1.png)" in md and "missing.png)" not in md
     for p in (tmp_path / "plots").glob("*.png"):
         assert p.stat().st_size > 1000
-    series = report.convergence_series(frame())
+    series = plots.convergence_series(frame())
     assert {(s["backend"], s["knob"], tuple(s["x"])) for s in series} == {
         ("numpy", "max_steps", (4.0, 16.0, 64.0)), ("jax:cpu", "max_steps", (4.0, 16.0, 64.0))}
 
@@ -81,7 +84,7 @@ def test_claims_failure_is_a_visible_note_not_a_crash(tmp_path, monkeypatch):
         def print(self, *a, **k):
             pass
 
-    note = cli.run_claims_into(tmp_path, quick=True, console=Quiet())
+    note = run_claims_into(tmp_path, quick=True, console=Quiet())
     assert note == "claims failed: RuntimeError: ledger exploded"
     report.build(frame(), {"run_id": "r", "claims": note}, tmp_path)
     assert "claims failed: RuntimeError: ledger exploded" in (tmp_path / "report.html").read_text()
@@ -101,21 +104,21 @@ def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch, capsys):
         return df
 
     monkeypatch.setattr(bench.claims, "run_claims", fake)
-    assert cli.main(["claims", "--out", str(tmp_path / "cl"), "--full", "--only", "7"]) == 0
+    assert commands.main(["claims", "--out", str(tmp_path / "cl"), "--full", "--only", "7"]) == 0
     assert seen == {"quick": False, "only": ["7"]}
     assert "Claims ledger" in (tmp_path / "cl" / "report.html").read_text()
     assert "### Claim 7: holds" in (tmp_path / "cl" / "claims.md").read_text()  # the ledger as Markdown
     assert any(line.split()[:2] == ["7", "holds"] for line in capsys.readouterr().out.splitlines())
     # an unknown id is a usage error naming the argument, before anything runs
     seen.clear()
-    assert cli.main(["claims", "--out", str(tmp_path / "cl2"), "--only", "7", "no-such-claim"]) == 2
+    assert commands.main(["claims", "--out", str(tmp_path / "cl2"), "--only", "7", "no-such-claim"]) == 2
     assert "--only: unknown claim id(s) no-such-claim" in capsys.readouterr().err
     assert seen == {} and not (tmp_path / "cl2").exists()
 
 
 def test_knob_labels_show_only_what_differs_from_the_defaults():
-    from bench.report import knob_label
-    from bench.results import knob_string
+    from bench.report.tables import knob_label
+    from bench.run.results import knob_string
     from impls.methods import METHODS
 
     defaults = {k.name: k.default for k in METHODS["hybrid_secant"].knobs}
@@ -129,7 +132,7 @@ def test_knob_labels_show_only_what_differs_from_the_defaults():
 def _stability_rows():
     from impls.methods import METHODS
 
-    from bench.results import knob_string
+    from bench.run.results import knob_string
 
     knob = knob_string({k.name: k.default for k in METHODS["sphere_trace"].knobs})
     base = {"schema_version": 2, "case_version": "v", "method": "sphere_trace", "family": "root", "knob": knob, "knobs_json": "{}",
@@ -149,7 +152,7 @@ def _stability_rows():
 
 
 def test_report_stability_section_scoreboard_then_matrix_after_the_first_tables(tmp_path):
-    from bench.results import write_results
+    from bench.run.results import write_results
 
     write_results(_stability_rows(), tmp_path / report.STABILITY_DIR)
     report.build(frame(), {"run_id": "r"}, tmp_path)

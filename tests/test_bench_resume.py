@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.results import read_results
+from bench.run.results import read_results
 from tests.conftest import HANG_GUARD_S
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,8 +49,8 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     assert len(merged) == len(partial)
     assert (merged["time_samples_s_a"] == merged["time_samples_s_b"]).all()
     # and the resumed run has exactly the rows of an uninterrupted plan
-    from bench import runner
-    from bench.suites import get_suite
+    from bench.run import runner
+    from bench.run.suites import get_suite
 
     plan = runner.plan(get_suite("quick"), ["numpy"], None, None, None)
     assert {tuple(map(str, c.key)) for c in plan} == set(map(tuple, full[runner.CONFIG_KEY].astype(str).itertuples(
@@ -63,8 +63,8 @@ def test_resume_finishes_the_plan_the_run_started_not_the_suite_default(tmp_path
     """``--resume`` restores the recorded ``--case``/``--method``/``--backend``: typing the hint the
     run prints (``--resume --out DIR``) finishes a ``--case`` sweep, not the suite's default cases;
     an option given on resume that contradicts the recorded one is an error naming it."""
-    from bench import runner
-    from bench.suites import get_suite
+    from bench.run import runner
+    from bench.run.suites import get_suite
 
     out = tmp_path / "run"
     base = [sys.executable, "-m", "bench", "run", "--out", str(out), "--no-progress", "--no-claims"]

@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 
 import impls.methods
-from bench import runner
-from bench.results import read_results
-from bench.suites import Suite, default_sweep
-from bench.timing import TimingPolicy
+from bench.run import configuration, runner
+from bench.run import plan as planning
+from bench.run.results import read_results
+from bench.run.suites import Suite, default_sweep
+from bench.run.timing import TimingPolicy
 from impls import METHODS, Unavailable
 from impls.methods import Knob, MethodSpec
 from reference import Sphere, get_case
@@ -43,7 +44,7 @@ def suite(methods, sweeps=None) -> Suite:
 
 
 def rows_of(cfg, backend, policy=FAST):
-    return runner.run_one("r", cfg, backend, policy, cf_time=1.0)
+    return configuration.run_one("r", cfg, backend, policy, cf_time=1.0)
 
 
 def test_each_family_measures_the_planted_error(fake_methods):
@@ -71,12 +72,12 @@ def test_each_family_measures_the_planted_error(fake_methods):
 
 def test_render_without_a_reference_is_skipped_with_the_reason(fake_methods, monkeypatch):
     # every catalog case has a colour field now, so take it away to see the skip path
-    from bench import references
+    from bench.run import references
 
     def no_colour(case):
         raise references.NotApplicable(f"{case.id} has no colour field ρ (case.color_field)")
 
-    from bench import metrics
+    from bench.run import metrics
 
     monkeypatch.setattr(references, "color_field", no_colour)
     monkeypatch.setattr(metrics, "color_field", no_colour)
@@ -264,7 +265,7 @@ def colored_case():
 
 
 def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(fake_methods, monkeypatch, tmp_path):
-    from bench.references import ReferenceOptions
+    from bench.run.references import ReferenceOptions
     from tests.test_bench_fakes import FakeColor, fake_render_exact
 
     calls = []
@@ -284,7 +285,7 @@ def test_costly_render_reference_is_cached_on_disk_limited_in_time_and_optional(
     cfg = runner.Config(case, "fake", "volume_nerf_uniform", "float64", knobs)
 
     def integral(cache):
-        rows = runner.run_one("r", cfg, b, FAST, 1.0, cache)
+        rows = configuration.run_one("r", cfg, b, FAST, 1.0, cache)
         return next(r for r in rows if r["quantity"] == "color_vs_integral")
 
     opts = ReferenceOptions(timeout_s=0.5, disk=tmp_path / "refcache")
@@ -346,7 +347,7 @@ def test_render_family_against_the_integral_and_the_surface_colour(fake_methods,
 
 def _plan_on(monkeypatch, cases, s):
     """The plan of suite ``s`` over exactly ``cases`` on one backend."""
-    monkeypatch.setattr(runner, "select_cases", lambda suite, pattern: cases)
+    monkeypatch.setattr(planning, "select_cases", lambda suite, pattern: cases)
     return runner.plan(s, ["a"], None, None, None)
 
 
@@ -391,7 +392,7 @@ def test_plan_spreads_cases_over_scene_families_and_limits_secondary_dtypes(fake
 
 
 def test_reference_rays_are_evenly_strided_and_include_both_ends():
-    from bench.references import reference_rays
+    from bench.run.references import reference_rays
 
     assert list(reference_rays(10, None)) == list(range(10))
     assert list(reference_rays(10, 32)) == list(range(10))
@@ -409,13 +410,13 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
     planned on them."""
     import fnmatch
 
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
     from reference import catalog
 
     suite = get_suite(suite_name)
     cfgs = runner.plan(suite, ["numpy"], None, None, None)
     planned = {(c.case.id, c.method) for c in cfgs}
-    workloads = [c for c in runner.select_cases(suite, None)
+    workloads = [c for c in planning.select_cases(suite, None)
                  if any(fnmatch.fnmatchcase(c.id, g) for g in ("mesh.*", "grid.*", "neural.*"))]
     assert workloads, "the suite selects no workload case"
     if suite_name == "quick":
@@ -428,7 +429,7 @@ def test_workload_scenes_run_on_every_applicable_method(suite_name):
                 assert (case.id, spec.name) not in planned, (case.id, spec.name)
             elif spec.family in ("root", "gradient", "param_grad") or spec.name == "render_surface":
                 assert (case.id, spec.name) in planned, (case.id, spec.name)
-                if runner.applies(spec, case) is None:
+                if planning.applies(spec, case) is None:
                     knobs = [c.knobs for c in cfgs if c.case.id == case.id and c.method == spec.name]
                     assert knobs == [suite.sweep_for(spec)[0]]  # default knobs only
             elif spec.family == "render":
@@ -440,7 +441,7 @@ def test_match_all_case_keeps_the_suites_cost_exclusions_and_named_cases_lift_th
     """``--case '*'`` (the catalog sweep) leaves out what the suite excludes for cost (dt/dθ by
     finite differences or unrolling on the neural SDF's 4481 weights: each runs past --timeout);
     ``--case 'neural.*'`` names those cases and plans them, with the knob sweep."""
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
 
     suite = get_suite("full")
     every = runner.plan(suite, ["numpy"], "*", ["dt_finite_diff", "dt_implicit"], None)
@@ -448,7 +449,7 @@ def test_match_all_case_keeps_the_suites_cost_exclusions_and_named_cases_lift_th
     assert [c for c in every if c.method == "dt_implicit" and c.case.id.startswith("neural.")]
     assert [c for c in every if c.method == "dt_finite_diff" and c.case.id.startswith("mlp.")]
     named = runner.plan(suite, ["numpy"], "neural.*", ["dt_finite_diff"], None)
-    applicable = [c for c in named if runner.applies(METHODS[c.method], c.case) is None]
+    applicable = [c for c in named if planning.applies(METHODS[c.method], c.case) is None]
     assert applicable and all(c.case.id.startswith("neural.") for c in named)
     assert len({json.dumps(c.knobs, sort_keys=True) for c in applicable}) == len(suite.sweep_for(METHODS["dt_finite_diff"]))
 
@@ -459,7 +460,7 @@ def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
     scene is smooth."""
     import fnmatch
 
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
     from reference import catalog
 
     suite = get_suite("workloads")
@@ -484,7 +485,7 @@ def test_costly_writes_are_spaced_so_writing_stays_a_small_share_of_the_run(fake
     """The results are rewritten whole, so a write's cost grows with the run: the runner waits
     FLUSH_COST_FACTOR × the last write's cost between writes (with flush_s = 0 it would write after
     every configuration), and the final write still holds every row."""
-    from bench import results
+    from bench.run import results
 
     cost, writes = 0.03, []
 
@@ -511,17 +512,17 @@ def test_a_method_with_its_own_dtypes_is_planned_in_them():
     """``MethodSpec.dtypes`` (raycast: float32): planned in those whatever the suite's dtypes; narrowed
     to the ones ``--dtype`` names; with ``--dtype`` naming none of them, planned in the run's (and
     skipped there with the reason, not silently left out)."""
-    from bench.suites import get_suite
+    from bench.run.suites import get_suite
 
     suite = get_suite("quick")
     assert suite.dtypes == ("float64",)
-    cfgs = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast", "hybrid_secant"], None)
+    cfgs = planning.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast", "hybrid_secant"], None)
     assert {(c.method, c.dtype) for c in cfgs} == {("raycast", "float32"), ("hybrid_secant", "float64")}
-    both = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64", "float32"])
+    both = planning.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64", "float32"])
     assert {c.dtype for c in both} == {"float32"}
-    only64 = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64"])
+    only64 = planning.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64"])
     assert {c.dtype for c in only64} == {"float64"}
     from impls import registry
 
-    reason = runner.skip_reason(only64[0], registry.resolve("numpy"))
+    reason = configuration.skip_reason(only64[0], registry.resolve("numpy"))
     assert "does not implement raycast" in reason and "engine" in reason

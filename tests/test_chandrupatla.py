@@ -142,7 +142,7 @@ def test_statuses_on_miss_bad_input_budget_and_nan_field():
 
 
 def test_other_backends_decline_it_and_the_runner_skips_with_the_reason():
-    from bench.runner import Config, skip_reason
+    from bench.run.configuration import Config, skip_reason
 
     assert METHODS["march_chandrupatla"].libs == ("numpy",)
     assert "march_chandrupatla" in NUMPY.methods()

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench.results import COLUMNS, read_results
+from bench.run.results import COLUMNS, read_results
 from impls import registry
 from tests.conftest import BACKEND_IDS, bench_cli
 
@@ -27,8 +27,8 @@ def bench(*args, cwd=None):
 def test_the_quick_run_covers_its_whole_plan_and_shows_progress_when_piped(quick_run_and_stdout):
     """No wall-clock budget cuts the plan, whatever the machine's load; progress lines come with
     counts and elapsed time although stdout is a pipe; the closing output is short."""
-    from bench import runner
-    from bench.suites import get_suite
+    from bench.run import runner
+    from bench.run.suites import get_suite
 
     quick_run, out = quick_run_and_stdout
     env = json.loads((quick_run / "environment.json").read_text())
@@ -141,7 +141,7 @@ def test_committed_baseline_has_no_accuracy_regression(quick_run):
     assert p.returncode == 0, p.stdout + p.stderr
     # and it compares every row: a knob added or renamed changes the rows' keys, and rows on one
     # side only ("missing"/"new") never fail a comparison, so a stale baseline would gate nothing
-    from bench.compare import compare
+    from bench.report.compare import compare
 
     verdicts = compare(read_results(ROOT / "reports" / "baseline"), read_results(quick_run), same_machine=False)
     unmatched = verdicts[verdicts["accuracy"].isin(["missing", "new"])]
@@ -159,12 +159,14 @@ def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
     assert "Traceback" not in p.stdout + p.stderr
     df = read_results(out)
     reasons = df.groupby("backend")["reason"].first().to_dict()
-    assert "does not implement sphere_trace" in reasons["tests.test_bench_fakes:FakeBackend"]
+    # a plug-in that loads is named by its own id (FakeBackend's "fake"), one that does not by its spec
+    assert "tests.test_bench_fakes:FakeBackend" not in reasons and bad_status not in reasons
+    assert "does not implement sphere_trace" in reasons["fake"]
     assert "backend unavailable" in reasons[broken] and "planted" in reasons[broken]
-    bad = df[(df["backend"] == bad_status) & (df["outcome"] == "failed")]
+    bad = df[(df["backend"] == "BadStatusBackend") & (df["outcome"] == "failed")]
     assert len(bad) and bad["reason"].str.contains("[7]", regex=False).all()
-    from bench import runner
-    from bench.suites import get_suite
+    from bench.run import runner
+    from bench.run.suites import get_suite
 
     plan = runner.plan(get_suite("quick"), ["numpy"], None, None, None)
     np_keys = set(map(tuple, df.loc[df["backend"] == "numpy", runner.CONFIG_KEY].astype(str).itertuples(
@@ -189,7 +191,7 @@ def test_cases_lists_the_catalog():
 def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys):
     import json
 
-    from bench.cli import main
+    from bench.commands import main
 
     out = tmp_path / "speed.json"
     assert main(["speed", "--backend", "numpy", "--side", "16", "--repeats", "1", "--out", str(out)]) == 0
@@ -211,7 +213,7 @@ def test_speed_command_reports_ratios_errors_and_false_answers(tmp_path, capsys)
 
 
 def test_speed_unit_is_the_exact_sphere_hit_with_or_without_buffers():
-    from bench.speed import lean_sphere_hits, unit_timer
+    from bench.studies.speed import lean_sphere_hits, unit_timer
     from reference import Sphere
 
     rng = np.random.default_rng(7)
@@ -336,9 +338,11 @@ def test_user_errors_end_in_one_clear_line_and_a_nonzero_exit(name, tmp_path):
     assert names in p.stderr, p.stderr
     assert re.search(r"(^|: )error: ", p.stderr, re.M), p.stderr
     if name == "run that spends its --budget":  # the budget interrupted the call in flight (a 30 s sleep)
-        from bench.results import OVER_BUDGET
+        from bench.run.results import OVER_BUDGET
 
-        sleepy = read_results(tmp_path / "o").query("backend == 'tests.test_bench_fakes:SleepyBackend'")
+        # rows name the plug-in by its id (SleepyBackend), not by its spec
+        sleepy = read_results(tmp_path / "o").query("backend == 'SleepyBackend'")
+        assert len(sleepy), "no row of the plug-in"
         assert sleepy["reason"].str.startswith(OVER_BUDGET).all(), sleepy["reason"].tolist()
         assert sleepy["reason"].str.contains("interrupted in flight").any(), sleepy["reason"].tolist()
 

@@ -1,4 +1,4 @@
-"""Sweeps on a dask LocalCluster of 2 worker processes (bench/cluster.py): the same rows as one
+"""Sweeps on a dask LocalCluster of 2 worker processes (bench/run/cluster.py): the same rows as one
 process, nothing lost or duplicated when a worker dies or the client is killed, a configuration
 that kills its worker every time is a failed row with the reason."""
 
@@ -20,10 +20,11 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from bench import runner, spread  # noqa: E402
-from bench.results import KEY, read_results  # noqa: E402
-from bench.suites import get_suite  # noqa: E402
-from bench.timing import Timeout, TimingPolicy, time_limit  # noqa: E402
+from bench.run import runner  # noqa: E402
+from bench.report import spread  # noqa: E402
+from bench.run.results import KEY, read_results  # noqa: E402
+from bench.run.suites import get_suite  # noqa: E402
+from bench.run.timing import Timeout, TimingPolicy, time_limit  # noqa: E402
 from impls import registry  # noqa: E402
 from tests.conftest import HANG_GUARD_S  # noqa: E402
 
@@ -47,7 +48,7 @@ def markers(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cluster(markers):
-    from bench.cluster import ClusterExecutor
+    from bench.run.cluster import ClusterExecutor
 
     # one worker death is forgiven, the second makes a KilledWorker (dask's default is 3; fewer
     # restarts keep the test short)
@@ -167,7 +168,8 @@ def test_resume_after_the_client_is_killed(tmp_path):
     env2 = json.loads((out / "environment.json").read_text())
     assert env2["complete"] == "true" and env2["resumed"] == "1" and env2["run_id"] == first["run_id"]
     assert not full.duplicated(KEY).any() and len(full) > len(partial)
-    plan = runner.plan(get_suite("quick"), ["tests.cluster_backends:Slow"], "sphere.far.1e3,sphere.surface,torus.far.1e3",
+    # rows name the plug-in by its id, "Slow"; the workers resolve it by its spec
+    plan = runner.plan(get_suite("quick"), ["Slow"], "sphere.far.1e3,sphere.surface,torus.far.1e3",
                        ["sphere_trace", "hybrid_secant"], None)
     assert {tuple(map(str, c.key)) for c in plan} == _configs(full)
     # the rows finished before the kill are kept as they were (same worker process, not redone)
@@ -239,8 +241,8 @@ def test_projection_model():
 
 
 def test_cluster_flags_are_checked():
-    from bench.cli import main
-    from bench.cluster import parse_local
+    from bench.commands import main
+    from bench.run.cluster import parse_local
 
     assert parse_local("local:3") == 3
     for bad in ("local:0", "local:x", "tcp://a:1"):

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench.compare import compare, median_ci, timing_verdict
-from bench.results import COLUMNS, to_frame
+from bench.report.compare import compare, median_ci, timing_verdict
+from bench.run.results import COLUMNS, to_frame
 
 
 def test_noise_only_rerun_is_not_significant():
@@ -110,7 +110,7 @@ def test_bad_input_is_a_clear_error():
 def test_a_comparison_of_nothing_does_not_pass():
     """Finding 1 of issue 33: every case version changed, so no row was compared; with the
     default rule (all of BASE compared) that is a failure naming the count, never a pass."""
-    from bench.compare import coverage, coverage_problem
+    from bench.report.compare import coverage, coverage_problem
 
     base, new = rows(version="v1"), rows(version="v2", err=10.0)
     res = compare(base, new)
@@ -121,7 +121,7 @@ def test_a_comparison_of_nothing_does_not_pass():
 
 
 def test_the_comparable_share_is_a_stated_threshold():
-    from bench.compare import coverage, coverage_problem
+    from bench.report.compare import coverage, coverage_problem
 
     base = rows(n=10)
     new = rows(n=10, seed=1)

@@ -8,8 +8,8 @@ import json
 
 import pytest
 
-from bench.environment import default_cache_dir
-from bench.results import read_results
+from bench.run.environment import default_cache_dir
+from bench.run.results import read_results
 from tests.conftest import bench_cli
 
 #: what must be identical whether a kernel was compiled or came from the cache

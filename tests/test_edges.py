@@ -1,4 +1,4 @@
-"""``bench edges`` (bench/edges.py) on a small configuration: the rays pass the features where
+"""``bench edges`` (bench/studies/edges.py) on a small configuration: the rays pass the features where
 they should, the float64 engines are never wrong where the float32 ones are, the table and the
 plot come out, bad options are refused, and a run directory's report gains the section."""
 
@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("trimesh")
 pytest.importorskip("igl")
 
-from bench import edges  # noqa: E402
+from bench.studies import edges  # noqa: E402
 from tests.conftest import bench_cli  # noqa: E402
 
 

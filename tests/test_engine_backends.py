@@ -71,7 +71,7 @@ def test_plugs_in_by_entry_point(tmp_path, monkeypatch, name):
 
 @pytest.mark.parametrize("name", sorted(ENGINES))
 def test_without_the_package_it_is_unavailable_with_the_install_command(tmp_path, monkeypatch, name):
-    from bench.runner import Config, skip_reason
+    from bench.run.configuration import Config, skip_reason
     from reference.cases import get_case
 
     spec, module = ENGINES[name]

@@ -1,4 +1,4 @@
-"""Marching cubes as a method family (bench.extraction) and its float64 scoring against the exact
+"""Marching cubes as a method family (bench.studies.extraction) and its float64 scoring against the exact
 surface (reference.surface_distance)."""
 
 from __future__ import annotations
@@ -9,8 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench.extraction import (applies, extract, hausdorff_rates, markdown_section, plot, run_extraction,
-                              summary_table)
+from bench.studies.extraction import (applies, extract, hausdorff_rates, markdown_section, plot, run_extraction, summary_table)
 from reference.cases import Case, get_case
 from reference.mesh import MeshSDF
 from reference.primitives import Box, Sphere
@@ -156,8 +155,8 @@ def test_bad_input():
 def test_extract_command_writes_results_section_and_plot(tmp_path):
     """``python -m bench extract``: rows, the report section and the plot, atomically, in --out;
     an --out that already holds files is refused (nothing is overwritten)."""
-    from bench.cli import main
-    from bench.results import read_results
+    from bench.commands import main
+    from bench.run.results import read_results
 
     out = tmp_path / "ex"
     assert main(["extract", "--case", "sphere.grazing.1e-6", "--resolution", "8", "--resolution", "16",

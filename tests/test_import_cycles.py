@@ -141,6 +141,52 @@ def test_no_import_cycle(package):
     assert not cycles, "\n".join(describe(graph, c) for c in cycles)
 
 
+#: The layers, top to bottom: a module imports only from its own layer's package or from a lower
+#: layer.  ``python -m bench`` starts the command line, which drives everything; the report
+#: reads what runs and studies wrote; the studies, the claims and the runs measure methods of
+#: impls; impls implements them; reference answers exactly.  Nothing below knows what is above
+#: (bench.run never imports a command, a study or the report; impls never imports bench).
+LAYERS = (("bench.__main__",), ("bench.commands",), ("bench.report",), ("bench.studies", "bench.claims"), ("bench.run",),
+          ("impls",), ("reference",))
+
+
+def layer_of(module: str) -> tuple[int, str] | None:
+    """(rank of the module's layer, its package in the layer), or None outside every layer."""
+    for rank, packages in enumerate(LAYERS):
+        for pkg in packages:
+            if module == pkg or module.startswith(pkg + "."):
+                return rank, pkg
+    return None
+
+
+def layering_violations(graph: dict[str, set[str]]) -> list[str]:
+    """Edges that go up a layer or sideways between two packages of one layer."""
+    out = []
+    for a in sorted(graph):
+        la = layer_of(a)
+        for b in sorted(graph[a]):
+            lb = layer_of(b)
+            if la is None or lb is None or la[1] == lb[1]:
+                continue
+            if lb[0] <= la[0]:
+                out.append(f"{a} -> {b} ({la[1]} may import only from layers below it: "
+                           f"{', '.join(p for ps in LAYERS[la[0] + 1:] for p in ps)})")
+    return out
+
+
+def test_layering():
+    graph = import_graph(ROOT, PACKAGES)
+    bad = layering_violations(graph)
+    assert not bad, "\n".join(bad)
+
+
+def test_layering_checker_finds_an_upward_import():
+    graph = {"bench.run.runner": {"bench.report.build", "impls.registry"}, "bench.report.build": {"bench.run.runner"},
+             "bench.studies.speed": {"bench.claims.stats"}, "impls.registry": set()}
+    assert [v.split(" (")[0] for v in layering_violations(graph)] == [
+        "bench.run.runner -> bench.report.build", "bench.studies.speed -> bench.claims.stats"]
+
+
 def test_checker_finds_a_cycle(tmp_path):
     # The checker itself: a planted cycle through a function-level relative import is found,
     # and the acyclic remainder is not reported.

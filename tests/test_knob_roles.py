@@ -2,7 +2,7 @@
 
 import pytest
 
-from bench.suites import SUITES, default_sweep
+from bench.run.suites import SUITES, default_sweep
 from impls.methods import KNOB_ROLES, METHODS, Knob
 
 

@@ -1,6 +1,6 @@
 """Rays the reference flags are *not judged*: never a false hit or miss, never an error of 0 that
-reads as fully checked, never a "which to pick" (bench.metrics, bench.summary, bench.stability,
-bench.compare)."""
+reads as fully checked, never a "which to pick" (bench.run.metrics, bench.report.summary, bench.studies.stability,
+bench.report.compare)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import types
 import numpy as np
 import pandas as pd
 
-from bench import stability as S
-from bench.compare import compare
-from bench.metrics import judged_rays, root_metrics
-from bench.summary import NOT_JUDGED, which_to_pick
+from bench.studies import stability as S
+from bench.report.compare import compare
+from bench.run.metrics import judged_rays, root_metrics
+from bench.report.summary import NOT_JUDGED, which_to_pick
 from impls.protocol import RayResult, Status
 from reference import Sphere
 from reference import rays as R

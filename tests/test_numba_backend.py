@@ -66,7 +66,7 @@ def test_plugs_in_by_entry_point(tmp_path, monkeypatch):
 def test_without_numba_it_is_unavailable_with_the_install_command(tmp_path, monkeypatch):
     """Without numba the entry point resolves to Unavailable whose reason is the install command,
     and a run records its configurations as skipped with it."""
-    from bench.runner import Config, skip_reason
+    from bench.run.configuration import Config, skip_reason
 
     _fake_entry_point(tmp_path, monkeypatch)
     monkeypatch.setitem(sys.modules, "numba", None)  # numba not installed
@@ -205,8 +205,8 @@ def test_understated_lipschitz_bound_is_flagged(nb, method):
 
 
 def test_declines_a_mesh_scene_and_a_run_skips_it(nb):
-    from bench.runner import Config, run_one
-    from bench.timing import TimingPolicy
+    from bench.run.configuration import Config, run_one
+    from bench.run.timing import TimingPolicy
 
     case = get_case("mesh.torus.camera.16x16")
     reason = nb.declines("hybrid_secant", case.scene)
@@ -220,8 +220,8 @@ def test_declines_a_mesh_scene_and_a_run_skips_it(nb):
 
 def test_a_declined_prepare_is_a_skipped_row_not_a_failure(nb):
     """A backend without the ``declines`` hook that raises Declined from ``prepare``: skipped."""
-    from bench.runner import Config, run_one
-    from bench.timing import TimingPolicy
+    from bench.run.configuration import Config, run_one
+    from bench.run.timing import TimingPolicy
 
     class Refusing:
         id, lib, device, capabilities = "refusing", "refusing", "cpu", nb.capabilities
@@ -271,7 +271,7 @@ def test_compiles_once_per_scene_structure(nb):
 def test_threads_are_a_setting_and_do_not_change_results(nb):
     import numba
 
-    from bench.environment import configure_driver, driver_record
+    from bench.run.environment import configure_driver, driver_record
 
     scene, o, d = _scene("torus∪box")
     one = run(nb, "hybrid_secant", scene, o, d, t_max=10.0)

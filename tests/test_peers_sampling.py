@@ -1,4 +1,4 @@
-"""bench/peers.py (the compiled and scipy peers of ``bench speed``) and bench/sampling.py (samples
+"""bench/studies/peers.py (the compiled and scipy peers of ``bench speed``) and bench/studies/sampling.py (samples
 to a colour error target): small, fast cases."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from bench import peers, sampling
-from bench.speed import scenes, unit_timer
+from bench.studies import peers, sampling
+from bench.studies.speed import scenes, unit_timer
 
 
 def test_peers_skip_numba_cleanly_when_it_is_absent(monkeypatch):

@@ -17,7 +17,7 @@ import subprocess
 import pandas as pd
 import pytest
 
-from bench import report
+from bench.report import build as report
 from tests.conftest import HANG_GUARD_S
 
 BROWSER = next((shutil.which(b) for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)), None)

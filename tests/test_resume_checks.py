@@ -18,7 +18,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from bench.results import read_results
+from bench.run.results import read_results
 
 ROOT = Path(__file__).resolve().parent.parent
 

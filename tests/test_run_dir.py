@@ -1,5 +1,5 @@
 """A run directory has one writer, and ``--out`` is new, empty or (with ``--resume``) a run's
-(issue 33, findings 2, 4 and 5): ``bench.rundir`` and the CLI paths that use it."""
+(issue 33, findings 2, 4 and 5): ``bench.run.rundir`` and the CLI paths that use it."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.rundir import LOCK_FILE, LockHeld, OutError, RunLock, claim_out
+from bench.run.rundir import LOCK_FILE, LockHeld, OutError, RunLock, claim_out
 
 ROOT = Path(__file__).resolve().parent.parent
 ONE = ["--case", "sphere.camera.64x64", "--method", "sphere_trace", "--backend", "numpy", "--accuracy-only",
@@ -45,7 +45,7 @@ def test_the_lock_is_exclusive_records_its_holder_and_is_freed(tmp_path):
 
 
 def test_a_killed_holder_leaves_no_stale_lock(tmp_path):
-    code = (f"from bench.rundir import RunLock; import sys, time; RunLock({str(tmp_path)!r}).acquire(); "
+    code = (f"from bench.run.rundir import RunLock; import sys, time; RunLock({str(tmp_path)!r}).acquire(); "
             "print('locked', flush=True); time.sleep(600)")
     p = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
     try:
@@ -117,7 +117,7 @@ def test_an_empty_directory_is_accepted_and_resume_needs_a_directory(tmp_path):
 
 @pytest.mark.parametrize("target", ["proc", "under a file", "a file"])
 def test_out_paths_that_cannot_be_directories_are_one_error_line(tmp_path, target):
-    """Finding 5: FileNotFoundError / NotADirectoryError tracebacks from bench/results.py."""
+    """Finding 5: FileNotFoundError / NotADirectoryError tracebacks from bench/run/results.py."""
     (tmp_path / "f").write_text("x")
     out = {"proc": "/proc/isobench-x", "under a file": str(tmp_path / "f" / "sub"), "a file": str(tmp_path / "f")}
     p = bench("run", "--out", out[target], *ONE)

@@ -1,4 +1,4 @@
-"""``bench speed --mesh`` (bench/speed_mesh.py) on 8² rays: every backend answers every mesh camera,
+"""``bench speed --mesh`` (bench/studies/speed_mesh.py) on 8² rays: every backend answers every mesh camera,
 an engine in float32 (raycast), a root finder in float64, each scored against the exact hits."""
 
 from __future__ import annotations

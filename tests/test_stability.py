@@ -1,4 +1,4 @@
-"""The stability matrix (bench.stability) on hand-made result frames."""
+"""The stability matrix (bench.studies.stability) on hand-made result frames."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import stability as S
-from bench.metrics import root_metrics
+from bench.studies import stability as S
+from bench.run.metrics import root_metrics
 from impls.protocol import RayResult, Status
 
 FAMILY = {"g.case": "grazing", "g.case2": "grazing", "u.case": "understated", "t.case": "tangent", "plain": None}

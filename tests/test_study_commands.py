@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from bench import sampling
-from bench.heartbeat import Heartbeat
+from bench.studies import sampling
+from bench.run.heartbeat import Heartbeat
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -107,7 +107,7 @@ def test_extract_announces_each_configuration_before_it_runs(tmp_path):
     (["extract", "--resolution", "2"], "--resolution"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
 def test_study_commands_bad_arguments_are_one_error_line(argv, names):
-    """Finding 5: ``sampling --sharpness nan`` ended in a bench.references.NotApplicable traceback."""
+    """Finding 5: ``sampling --sharpness nan`` ended in a bench.run.references.NotApplicable traceback."""
     p = bench(*argv)
     assert p.returncode == 2, (p.returncode, p.stdout[-1500:], p.stderr[-1500:])
     assert "Traceback" not in p.stdout + p.stderr, p.stderr

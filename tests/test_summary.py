@@ -4,7 +4,7 @@ import math
 
 import pandas as pd
 
-from bench import summary
+from bench.report import summary
 
 
 def _row(method="hybrid_secant", backend="numpy", err=1e-10, ratio=5.0, evals=4.0, case="sphere.camera.64x64",

@@ -1,6 +1,6 @@
 """The claims ledger: each claim of the lecture checked numerically, with a verdict and evidence.
 
-Contract used by ``bench/cli.py`` (``python -m bench claims``) and by ``bench run`` (a section of
+Contract used by ``bench/commands/claims.py`` (``python -m bench claims``) and by ``bench run`` (a section of
 the main report): ``run_claims(out_dir, quick=True, only=None) -> pandas.DataFrame`` writes
 ``claims.csv`` (one row per claim) and one ``claim_<id>.png`` per claim into ``out_dir``.
 
@@ -17,7 +17,7 @@ import time
 import traceback
 from pathlib import Path
 
-from ..results import write_atomic
+from ..run.results import write_atomic
 from .ledger import LEDGER, CheckContext, Claim, Evidence, Ledger, Trial, Verdict, decide, format_numbers, numbers_json
 
 __all__ = ["run_claims", "claim_ids", "Claim", "Evidence", "Trial", "Verdict", "Ledger", "LEDGER", "CheckContext", "decide",

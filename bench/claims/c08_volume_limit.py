@@ -157,6 +157,13 @@ def check_limit(ctx):
     surfaces = {m: np.array([[render_error(m, 1000.0, dl, int(n), scene, o, d, t_s, rho) for n in hm_n] for dl in hm_d])
                 for m in adapters.DENSITY_MODELS}
 
+    fig = _plot_limit(deltas, paths, limits, surfaces, hm_d, hm_n)
+    return Evidence(trials, key, fig)
+
+
+def _plot_limit(deltas, paths: dict, limits: dict, surfaces: dict, hm_d, hm_n):
+    """The figure: the error along the path per model (first row), the error surface over
+    (Δ, N) at s = 1000 per model (second row), the N → ∞ limit against the continuous integral."""
     fig, axes = figure(4, 3, 3.6, 3.4)
     for (model, s), disc in limits.items():
         axes[8].loglog(EXACT_NS, np.maximum(disc, 1e-17), "o-", ms=3, label=f"{model}, s={s:g}")
@@ -184,4 +191,4 @@ def check_limit(ctx):
         ax.set_xlabel("Δ (length units; N grows ×2 per ×√10 in Δ)")
         ax.set_ylabel("max ‖C − ρ(x_s)‖ (colour units)")
         ax.legend(fontsize=7)
-    return Evidence(trials, key, fig)
+    return fig

@@ -9,8 +9,8 @@ for misses).
   tolerance, then ρ at the found hit.
 * Volume rendering: N uniform samples on [0, 6] (the camera is at distance 3), opacities from a density
   model of fixed sharpness s = 200, eqs. 9–10; swept over N.
-Time: median of repeated wall-clock runs of the rendering alone (numpy, one process on a shared 2-core
-machine: noisy, compare shapes of curves, not digits).  Error: the median over pixels of |C − C_exact|
+Time: median of repeated wall-clock runs of the rendering alone (numpy, one process; on a shared
+machine the times are noisy: compare shapes of curves, not digits).  Error: the median over pixels of |C − C_exact|
 (the max is dominated by silhouette pixels, where any volume model blends; it is reported too), pixel
 error = ‖C − C_exact‖₂ over RGB.
 """
@@ -18,6 +18,7 @@ error = ‖C − C_exact‖₂ over RGB.
 from __future__ import annotations
 
 
+import os
 import time
 
 import numpy as np
@@ -138,7 +139,7 @@ def _speed(ctx):
     key["neus: N→∞ limit error ‖C_exact − C_surface‖ on picked pixels"] = floors.tolist()
     key["neus: render_exact error bound"] = floor_bound
     key["rays"] = int(o.shape[0])
-    key["timing note"] = "median of %d runs, numpy, shared 2-core machine (noisy)" % repeats
+    key["timing note"] = "median of %d runs, numpy, %d logical CPUs (a shared machine is noisy)" % (repeats, os.cpu_count() or 0)
 
     fig, (ax,) = figure(1, 1, 6.5, 4.5)
     ax.loglog([r[2] for r in surf], [r[1] for r in surf], "o-", label="surface: sphere tracing, tol sweep")

@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")  # headless; must precede pyplot
 import matplotlib.pyplot as plt  # noqa: E402
 
-from ..results import write_atomic  # noqa: E402
+from ..run.results import write_atomic
 
 
 def figure(ncols: int = 1, nrows: int = 1, width: float = 4.6, height: float = 3.6):

@@ -93,7 +93,8 @@ class Claim:
     """A statement of the lecture and how isobench checks it.
 
     id:          short stable id (``"4b"``); the plot is ``claim_<id>.png``.
-    statement:   the claim in the lecture's words (or the issue's, where it asks a question).
+    statement:   the claim in the lecture's words (or as a question, where isobench asks one the lecture
+                 leaves open).
     equation:    where the lecture makes it (equation number or slide title).
     how_checked: the experiment and the criterion a trial must meet, with its tolerance.
     check:       ``CheckContext -> Evidence``.

@@ -88,7 +88,7 @@ class TorchBackend(ArrayBackend):
                    "(impls.torch.backend.xp_fast; per-call overhead)",
                    "on a machine whose cores are busy, torch's OpenMP intra-op threads spin at every parallel region's "
                    "barrier: set OMP_WAIT_POLICY=PASSIVE and OMP_NUM_THREADS before torch is imported (the bench "
-                   "commands do, bench.environment.configure_threads): a spinning thread holds the core its partner needs"),
+                   "commands do, bench.run.environment.configure_threads): a spinning thread holds the core its partner needs"),
         )
         super().__init__(device, settings)
         self.torch_device = torch.device(device)

@@ -1,0 +1,262 @@
+"""What a reader needs first: the run at a glance and "which to pick".
+
+Pure functions of a results frame (``bench.run.results`` columns) and the run's environment, used
+by the report's first screen and by the CLI's closing summary, so both say the same thing.
+
+*Which to pick*: for each method family (root, gradient, param_grad, render), each case and each
+error target, the fastest configuration (method × backend × dtype × knob setting) whose max
+error over every ray of the case, on the family's primary quantity (depth, normal angle, dt/dθ,
+colour against the rendering integral), is at or below the target, with no false hit or miss and
+no ray the reference flags (a row with ``n_not_judged`` > 0 was not fully checked and is never
+picked; a case without another candidate reads ``not judged``).  "Fastest" is the median time in
+units of the closed-form ray–sphere intersection of the same rays measured in the same run
+(``time_ratio_cf``), so that cases of different sizes read alike; in an accuracy-only run (no
+timing) the cheapest in field evaluations per ray is taken instead, and the table says so.
+Comparisons are made within one case only: a method measured on another case is not its
+competitor there.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
+PICK_NOTE = ("Per method family and case, for each error target: the fastest configuration (method · backend · "
+             "dtype @ knobs) whose max error over every ray is at or below the target, with no false hit or miss "
+             "and no ray the reference flags ('not judged': some rays have no certified reference answer); "
+             "its time as a multiple of the closed-form ray–sphere intersection of the same rays (× closed form) "
+             "and its field evaluations per ray. 'untimed': an accuracy-only run, ranked by evaluations.")
+#: the pick of a case some of whose rays the reference flags (``n_not_judged``, bench.run.metrics)
+NOT_JUDGED = "not judged"
+#: the error targets every "fastest to target" table uses
+TARGETS = (1e-4, 1e-8, 1e-12)
+
+
+def ok_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """The measured rows, their numeric columns as floats."""
+    ok = df[df["outcome"] == "ok"].copy()
+    for c in ("error_max", "time_median_s", "time_iqr_s", "time_ratio_cf", "compile_s", "evals_per_ray"):
+        ok[c] = pd.to_numeric(ok[c], errors="coerce") if c in ok else np.nan
+    return ok
+
+
+def knob_label(method: str, knob: str) -> str:
+    """``knob`` (a :func:`bench.run.results.knob_string`) without the settings that are the method's
+    defaults, so that a table shows what was chosen: ``xtol=1e-08`` rather than all eight knobs
+    of ``hybrid_secant``; ``defaults`` when every knob is at its default, ``""`` for a method
+    without knobs, and the whole string for a method the catalog does not know."""
+    from impls.methods import METHODS
+
+    from ..run.results import knob_string
+
+    spec = METHODS.get(method)
+    if not knob or spec is None:
+        return knob
+    default = set(knob_string({k.name: k.default for k in spec.knobs}).split(","))
+    chosen = [kv for kv in knob.split(",") if kv not in default]
+    return ",".join(chosen) or "defaults"
+
+
+def config_counts(df: pd.DataFrame) -> dict[str, int]:
+    """Planned configurations by outcome: ``ran`` (a quantity measured), ``failed``, ``skipped``."""
+    if df is None or not len(df):
+        return {"ran": 0, "skipped": 0, "failed": 0}
+    rank = df["outcome"].map({"ok": 0, "failed": 1, "skipped": 2}).fillna(3)
+    first = df.assign(_rank=rank).sort_values("_rank").groupby(CONFIG_KEY, sort=False)["outcome"].first()
+    counts = first.value_counts()
+    return {"ran": int(counts.get("ok", 0)), "skipped": int(counts.get("skipped", 0)),
+            "failed": int(counts.get("failed", 0))}
+
+
+def failures(df: pd.DataFrame, limit: int = 10) -> list[str]:
+    """The first ``limit`` failed configurations as ``case backend dtype method: reason`` lines."""
+    if df is None or not len(df):
+        return []
+    bad = df[df["outcome"] == "failed"].drop_duplicates(CONFIG_KEY)
+    return [f"{r.case_id} {r.backend} {r.dtype} {r.method}: {str(r.reason)[:160]}"
+            for r in bad.head(limit).itertuples(index=False)]
+
+
+def overview(df: pd.DataFrame, env: dict) -> dict[str, str]:
+    """Run, suite, commit, machine and completeness, as label → text."""
+    c = config_counts(df)
+    return {
+        "run": str(env.get("run_id", "?")),
+        "suite": str(env.get("suite", "?")),
+        "commit": str(env.get("git_commit", env.get("commit", "?")))[:12],
+        "machine": " · ".join(str(env[k]) for k in ("cpu", "platform") if env.get(k)) or str(env.get("machine", "?")),
+        "configurations": f"{c['ran']} ran · {c['skipped']} skipped · {c['failed']} failed",
+        "complete": "yes" if str(env.get("complete", "true")) == "true" else
+                    f"NO — {env.get('incomplete_reason', 'the run stopped before its plan was done')}",
+    }
+
+
+def _primary(ok: pd.DataFrame) -> pd.DataFrame:
+    """Rows of each method's primary quantity (the family's main answer), or, for a family and
+    case where that quantity was not measured (the quick suite checks renderers against ρ(x*),
+    not the costly rendering integral), of the quantity that was, named in the ``case`` column."""
+    from impls.methods import METHODS
+
+    from ..run.metrics import primary_quantity
+
+    want = {m: primary_quantity(s) for m, s in METHODS.items()}
+    is_primary = ok["quantity"] == ok["method"].map(want).fillna(ok["quantity"])
+    have = set(zip(ok.loc[is_primary, "family"], ok.loc[is_primary, "case_id"]))
+    fallback = ~is_primary & pd.Series([(f, c) not in have for f, c in zip(ok["family"], ok["case_id"])], index=ok.index)
+    out = ok[is_primary | fallback].copy()
+    named = fallback[is_primary | fallback]
+    out.loc[named, "case_id"] = out.loc[named, "case_id"] + " · " + out.loc[named, "quantity"]
+    return out
+
+
+def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
+    """Per family × case × target: the fastest configuration reaching the target (module doc).
+
+    Columns: family, case, target, pick (``method · backend · dtype``), knob, ``× closed form``,
+    ``time [ms]``, ``evals/ray``, ``by`` (``time`` or ``evals`` when the run was untimed),
+    ``candidates`` (configurations that reached the target).  A target no configuration reached
+    is a row with pick ``none reached`` and the best error seen.  Rows with rays the reference flags
+(``n_not_judged`` > 0, :func:`bench.run.metrics.judged_rays`) are never candidates; a case with such
+rows and no other candidate gets pick ``not judged`` and the number of flagged rays."""
+    ok = ok_rows(df)
+    if ok.empty:
+        return pd.DataFrame(columns=["family", "case", "target", "pick", "knob", "× closed form", "time [ms]",
+                                     "evals/ray", "by", "candidates"])
+    ok = _primary(ok)
+    for c in ("n_false_hit", "n_false_miss", "n_not_judged"):
+        ok[c] = pd.to_numeric(ok[c], errors="coerce").fillna(0) if c in ok else 0
+    # a row with rays the reference flags was not fully checked: never a pick (it could be wrong
+    # exactly where nothing judged it); the table says so instead
+    clean = ok[(ok["n_false_hit"] == 0) & (ok["n_false_miss"] == 0) & (ok["n_not_judged"] == 0)]
+    rows = []
+    for (fam, cid), g in ok.groupby(["family", "case_id"], sort=True):
+        gc = clean[(clean["family"] == fam) & (clean["case_id"] == cid)]
+        unjudged = int(g["n_not_judged"].max())
+        timed = bool(np.isfinite(gc["time_ratio_cf"]).any())
+        by = "time_ratio_cf" if timed else "evals_per_ray"
+        for tgt in targets:
+            hit = gc[gc["error_max"] <= tgt]
+            hit = hit[np.isfinite(hit[by])] if timed else hit
+            row = {"family": fam, "case": cid, "target": tgt, "by": "time" if timed else "evals",
+                   "candidates": int(len(hit))}
+            if hit.empty and unjudged:
+                row.update({"pick": NOT_JUDGED, "knob": f"{unjudged} ray(s) the reference flags: no configuration "
+                                                        "is fully checked"})
+            elif hit.empty:
+                best = g["error_max"].min()
+                row.update({"pick": "none reached", "knob": f"best error {best:.2g}" if np.isfinite(best) else
+                            "every configuration had a false hit/miss or infinite error"})
+            else:
+                r = hit.sort_values([by, "evals_per_ray", "time_median_s"], na_position="last").iloc[0]
+                row.update({"pick": f"{r['method']} · {r['backend']} · {r['dtype']}",
+                            "knob": knob_label(r["method"], r["knob"]),
+                            "× closed form": r["time_ratio_cf"], "time [ms]": 1e3 * r["time_median_s"],
+                            "evals/ray": r["evals_per_ray"]})
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def headline(picks: pd.DataFrame, target: float = 1e-8) -> list[str]:
+    """One line per family at ``target``: the pick on each case, e.g.
+    ``root ≤ 1e-08: sphere.camera.64x64 → hybrid_secant · jax:cpu · float64 (×7.1, 3.6 evals/ray)``."""
+    if picks is None or picks.empty:
+        return []
+    lines = []
+    for fam, g in picks[picks["target"] == target].groupby("family", sort=True):
+        parts = []
+        for d in g.to_dict("records"):
+            if d["pick"] in ("none reached", NOT_JUDGED):
+                parts.append(f"{d['case']} → {d['pick']}")
+                continue
+            cost = (f"×{d['× closed form']:.3g}, " if d["by"] == "time" else "untimed, ") + f"{d['evals/ray']:.3g} evals/ray"
+            parts.append(f"{d['case']} → {d['pick']} ({cost})")
+        lines.append(f"{fam} ≤ {target:.0e}: " + "; ".join(parts))
+    return lines
+
+
+def status_text(v) -> str:
+    """A status histogram (JSON) as ``CONVERGED 3096 · MISS 1000``."""
+    try:
+        d = json.loads(v) if isinstance(v, str) and v else {}
+    except ValueError:
+        return str(v)
+    return " · ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1]))
+
+
+def pick_grid(picks: pd.DataFrame) -> pd.DataFrame:
+    """``which_to_pick`` as one row per family × case and one column per target, each cell
+    ``method · backend · dtype (×ratio, evals/ray)`` or ``none reached``."""
+    if picks is None or picks.empty:
+        return pd.DataFrame(columns=["family", "case"])
+    rows: dict[tuple, dict] = {}
+    for d in picks.to_dict("records"):
+        row = rows.setdefault((d["family"], d["case"]), {"family": d["family"], "case": d["case"]})
+        if d["pick"] in ("none reached", NOT_JUDGED):
+            cell = f"{d['pick']} ({d['knob']})"
+        else:
+            cost = f"×{d['× closed form']:.3g}" if d["by"] == "time" else "untimed"
+            knob = f" @ {d['knob']}" if d["knob"] and d["knob"] != "defaults" else ""
+            cell = f"{d['pick']}{knob} ({cost}, {d['evals/ray']:.3g} evals/ray)"
+        row[f"≤ {d['target']:.0e}"] = cell
+    return pd.DataFrame(list(rows.values()))
+
+
+def claims_lines(claims: pd.DataFrame | None) -> pd.DataFrame:
+    """One line per claim, failures first: id, verdict, statement (short), scope (short)."""
+    if claims is None or not len(claims):
+        return pd.DataFrame(columns=["id", "verdict", "statement"])
+    order = {"fails": 0, "error": 1, "holds under conditions": 2, "holds": 3}
+    c = claims.assign(_r=claims["verdict"].map(order).fillna(1)).sort_values("_r", kind="stable")
+    out = pd.DataFrame({"id": c["id"], "verdict": c["verdict"],
+                        "statement": c["statement"].astype(str).str.slice(0, 110)})
+    if "conditions" in c:
+        out["holds on / counterexample"] = [
+            (f"holds on: {r['conditions']}" if r["verdict"] == "holds under conditions" else
+             str(r.get("counterexample", "")) if r["verdict"] == "fails" else "")[:160]
+            for _, r in c.iterrows()]
+    return out
+
+
+def first_screen(df: pd.DataFrame, env: dict, *, claims: pd.DataFrame | None = None,
+                 scoreboard: list[str] | None = None, regressions: pd.DataFrame | None = None) -> dict:
+    """What the report shows first, in this order: the run (:func:`overview`), failures, the
+    regressions against a baseline (when given), "which to pick" (:func:`pick_grid`), the
+    stability scoreboard (one line per backend) and the claims' verdicts (failures first).
+    Returned as named parts (``overview`` dict, ``failures`` list, ``regressions`` frame or None,
+    ``picks`` frame, ``scoreboard`` list, ``claims`` frame) for the Markdown, HTML and terminal
+    renderings."""
+    picks = which_to_pick(df) if df is not None and len(df) else pd.DataFrame()
+    return {"overview": overview(df, env), "failures": failures(df), "regressions": regressions,
+            "picks": pick_grid(picks), "headline": headline(picks), "scoreboard": list(scoreboard or []),
+            "claims": claims_lines(claims)}
+
+
+def terminal_text(fs: dict, report_path: str = "") -> str:
+    """The closing summary of ``bench run``: one screen (about 25 lines)."""
+    ov = fs["overview"]
+    lines = [f"run {ov['run']} · suite {ov['suite']} · commit {ov['commit']} · {ov['configurations']}"
+             + ("" if ov["complete"] == "yes" else f" · INCOMPLETE: {ov['complete'][5:]}")]
+    if fs["failures"]:
+        lines += ["failed:"] + [f"  {f}" for f in fs["failures"][:5]]
+        if len(fs["failures"]) > 5:
+            lines.append(f"  … {len(fs['failures']) - 5} more in the report")
+    reg = fs.get("regressions")
+    if reg is not None:
+        lines.append(f"regressions against the baseline: {len(reg)}")
+        lines += [f"  {r}" for r in reg.head(5).astype(str).agg(" ".join, axis=1)]
+    if fs["headline"]:
+        lines += ["which to pick:"] + [f"  {h[:200]}" for h in fs["headline"]]
+    if fs["scoreboard"]:
+        lines += ["stability:"] + [f"  {s}" for s in fs["scoreboard"]]
+    cl = fs["claims"]
+    if len(cl):
+        counts = cl["verdict"].value_counts()
+        lines.append("claims: " + " · ".join(f"{v} {counts[v]}" for v in counts.index)
+                     + ("; failing: " + ", ".join(cl[cl["verdict"] == "fails"]["id"].astype(str)) if
+                        (cl["verdict"] == "fails").any() else ""))
+    if report_path:
+        lines.append(f"report: {report_path}")
+    return "\n".join(lines)

@@ -1,0 +1,198 @@
+"""The report's tables, computed from a run's rows: best accuracy, fastest to an error target,
+configurations by outcome, the support matrix, what did not run, convergence rates, the claims
+ledger, the stability cells and how the run was spread."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import summary
+
+_ok = summary.ok_rows
+TARGETS = summary.TARGETS
+
+
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
+
+
+def summary_table(df: pd.DataFrame) -> pd.DataFrame:
+    """Per case × method × quantity × dtype × backend: the most accurate setting, its time and cost."""
+    ok = _ok(df)
+    rows = []
+    for (cid, method, q, dtype, bid), g in ok.groupby(["case_id", "method", "quantity", "dtype", "backend"]):
+        best = g.sort_values(["error_max", "time_median_s"]).iloc[0]
+        rows.append({
+            "case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid,
+            "best max error": best["error_max"], "at knob": knob_label(method, best["knob"]),
+            "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
+            "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
+            "evals/ray mean": best["evals_per_ray"], "p99": best.get("evals_p99"), "max": best.get("evals_max"),
+            "ray statuses": _statuses(best.get("status_counts")),
+        })
+    return pd.DataFrame(rows)
+
+
+knob_label = summary.knob_label
+
+
+_statuses = summary.status_text
+
+
+def fastest_to_target(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
+    """Per case × method × quantity × dtype × backend and error target: the fastest knob setting
+    whose max error is ≤ the target (``time ms @ knob``), or ``not reached``."""
+    ok = _ok(df)
+    rows = []
+    for (cid, method, q, dtype, bid), g in ok.groupby(["case_id", "method", "quantity", "dtype", "backend"]):
+        row = {"case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid}
+        for tgt in targets:
+            hit = g[g["error_max"] <= tgt].sort_values("time_median_s")
+            if hit.empty:
+                row[f"≤ {tgt:.0e}"] = "not reached"
+                continue
+            knob = knob_label(method, hit["knob"].iloc[0])  # "" for a method without knobs: no "@"
+            row[f"≤ {tgt:.0e}"] = (f"{1e3 * hit['time_median_s'].iloc[0]:.3g} ms (×{hit['time_ratio_cf'].iloc[0]:.3g})"
+                                   + (f" @ {knob}" if knob else ""))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def config_outcomes(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per configuration: ``ran`` if any quantity was measured, else ``failed`` if it
+    failed, else ``skipped``; with the first reason."""
+    rank = df["outcome"].map({"ok": 0, "failed": 1, "skipped": 2}).fillna(3)
+    d = df.assign(_rank=rank).sort_values("_rank")
+    first = d.groupby(CONFIG_KEY, sort=False).first().reset_index()
+    return first[CONFIG_KEY + ["outcome", "reason"]]
+
+
+def support_matrix(df: pd.DataFrame) -> pd.DataFrame:
+    """backend × method: configurations ran / skipped / failed, as one readable cell each."""
+    c = config_outcomes(df)
+    t = c.groupby(["backend", "method", "outcome"]).size().unstack(fill_value=0)
+    for col in ("ok", "skipped", "failed"):
+        if col not in t.columns:
+            t[col] = 0
+
+    def cell(r) -> str:
+        parts = [f"ran {r['ok']}"] if r["ok"] else []
+        parts += [f"skipped {r['skipped']}"] if r["skipped"] else []
+        parts += [f"FAILED {r['failed']}"] if r["failed"] else []
+        return " · ".join(parts) or "—"
+
+    cells = t.apply(cell, axis=1).rename("cell").reset_index()
+    out = cells.pivot(index="backend", columns="method", values="cell").fillna("not planned").reset_index()
+    out.columns.name = None
+    return out
+
+
+def not_run(df: pd.DataFrame) -> pd.DataFrame:
+    """Skipped or failed rows grouped by reason (quantities a method could not be checked on
+    included), so nothing disappears silently."""
+    bad = df[df["outcome"] != "ok"].copy()
+    if bad.empty:
+        return pd.DataFrame(columns=["outcome", "backend", "method", "quantity", "reason", "rows"])
+    bad["reason"] = bad["reason"].fillna("").astype(str).str.slice(0, 300)
+    return (bad.groupby(["outcome", "backend", "method", "quantity", "reason"], dropna=False).size()
+            .rename("rows").reset_index())
+
+
+def rates_table(all_series: list[tuple[str, list[dict]]]) -> pd.DataFrame:
+    rows = []
+    for key, series in all_series:
+        for s in series:
+            rows.append({"plot": key, "method": s["method"], "backend": s["backend"], "knob": s["knob"],
+                         "fixed knobs": s["fixed"], "fitted rate p (error ∝ knob^−p)": s["rate"],
+                         "error at largest knob": s["error"][-1]})
+    return pd.DataFrame(rows)
+
+
+def read_claims(run_dir: Path) -> pd.DataFrame | None:
+    p = Path(run_dir) / "claims.csv"
+    if not p.exists():
+        return None
+    return pd.read_csv(p, keep_default_na=False)
+
+
+CLAIM_COLUMNS = ["id", "statement", "equation", "scope", "how_checked", "verdict", "key_numbers", "plot"]
+
+
+#: verdict order of the ledger tables: what a reader must see first comes first
+VERDICT_ORDER = {"fails": 0, "error": 1, "holds under conditions": 2, "holds": 3}
+
+
+def claims_in_reading_order(claims: pd.DataFrame) -> pd.DataFrame:
+    """Failures first, then errors, conditional holds and holds; catalogue order within each."""
+    rank = claims["verdict"].map(VERDICT_ORDER).fillna(1) if "verdict" in claims else 0
+    return claims.assign(_rank=rank).sort_values("_rank", kind="stable").drop(columns="_rank")
+
+
+STABILITY_DIR = "stability"
+
+
+def spread_section(df: pd.DataFrame, env: dict) -> tuple[list[str], pd.DataFrame]:
+    """Lines and the per-worker table of "How the run was spread" (:mod:`bench.report.spread`); none for
+    a results set without configurations.  Never raises (a section, not a reason to lose the report)."""
+    from . import spread
+
+    try:
+        if not len(df) or "task_s" not in df:
+            return [], pd.DataFrame()
+        s = spread.summary(df, env)
+        lines = [f"{s['cluster']}: {s['configurations']} configurations on {s['processes that ran configurations']} "
+                 f"process(es), at most {s['workers at once']} at once; machine keys: "
+                 f"{'; '.join(s['machine keys']) or 'not recorded'}",
+                 f"wall {s['wall s']:.1f} s for the configurations; task times sum to {s['task s (sum)']:.1f} s"
+                 + (f" plus {s['reference tasks']} shared reference task(s), {s['reference task s (sum)']:.1f} s"
+                    if s["reference tasks"] else "")
+                 + (f"; parallel efficiency {s['parallel efficiency']:.0%}" if np.isfinite(s["parallel efficiency"])
+                    else "")]
+        if np.isfinite(s["overhead s per task (mean)"]):
+            lines.append(f"per-task overhead (latency seen by the client − time on the worker): mean "
+                         f"{s['overhead s per task (mean)'] * 1e3:.1f} ms, median "
+                         f"{s['overhead s per task (median)'] * 1e3:.1f} ms; central cost "
+                         f"{s['central s per task'] * 1e3:.2f} ms per task; workers that died: {s['workers died']}; "
+                         f"configurations that killed their worker: {s['killed-worker failures']}")
+        proj, _ = spread.project(df, env, workers=(64,))
+        if len(proj):
+            r = proj.iloc[0]
+            lines.append(f"projected on 64 such workers: {r['projected wall s']:.1f} s (limited by {r['limited by']}; "
+                         "`python -m bench spread RUN_DIR` gives the model and its assumptions)")
+        if s["configurations without task time"]:
+            lines.append(f"{s['configurations without task time']} configurations have no recorded task time")
+        return lines, spread.per_worker(df)
+    except Exception as exc:  # noqa: BLE001
+        return [f"(unavailable: {type(exc).__name__}: {exc})"], pd.DataFrame()
+
+
+def _default_knobs(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows at the method's default knobs (the stability matrix judges methods as shipped)."""
+    if not len(df):
+        return df
+    keep = [knob_label(str(m), str(k)) in ("defaults", "") for m, k in zip(df["method"], df["knob"].fillna(""))]
+    return df[np.array(keep, bool)]
+
+
+def stability_section(df: pd.DataFrame, run_dir: Path) -> tuple[pd.DataFrame, str]:
+    """The stability cells of a run and a note saying where they come from: the stability stage
+    (``run_dir/stability/results.*``, written by ``bench run`` for a suite with a stability plan)
+    when present, else the run's own root-finder rows on adversarial cases; default knobs only."""
+    from ..studies import stability
+    from ..run.results import read_results
+
+    note = "from the run's own rows on adversarial cases"
+    src = df
+    stage = Path(run_dir) / STABILITY_DIR
+    if (stage / "results.parquet").exists() or (stage / "results.csv").exists():
+        try:
+            src = read_results(stage)
+            note = f"from the stability stage ({STABILITY_DIR}/results.*)"
+        except Exception as exc:  # an unreadable stage is a note in the report, not a lost report
+            note = f"the stability stage could not be read ({type(exc).__name__}: {exc}); from the run's own rows"
+    if src is None or not len(src) or "method" not in src:
+        return stability.stability_cells(None), note
+    return stability.stability_cells(_default_knobs(src)), note
+

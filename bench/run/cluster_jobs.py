@@ -1,0 +1,133 @@
+"""The cluster's bookkeeping, apart from talking to dask: the jobs of a plan (configurations
+and the shared reference integrals they wait for, :func:`plan_jobs`), the queues they are
+submitted from (:func:`ready_queues`), and the ``--rounds`` re-timing on the worker that measured
+each configuration first (:func:`retime_rounds`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import uuid
+from collections import deque
+from typing import Any
+
+import numpy as np
+from distributed import wait
+
+from . import references
+from .cluster_worker import retime_task
+from .configuration import pool, skip_reason
+from .references import ReferenceOptions
+from .timing import TimingPolicy
+
+
+@dataclasses.dataclass
+class _Job:
+    kind: str                   # "config" or "reference"
+    index: int                  # configuration: its index in the plan's todo list; reference: its number
+    args: tuple
+    deps: list                  # reference _Jobs this one waits for
+    ref_key: tuple | None = None
+    submitted: float = 0.0
+    result: Any = None          # a reference job's future, once done (kept until the plan is done)
+    error: str = ""
+    task_s: float = 0.0
+
+
+def plan_jobs(run_id: str, todo: list, backends: dict, policy: TimingPolicy, ref_options: ReferenceOptions,
+              budget_s: float | None, deadline: float | None) -> tuple[dict[tuple, _Job], list[_Job]]:
+    """(reference jobs by integral key, configuration jobs): a configuration checked against a
+    rendering integral waits for that integral's job; the integrals of one case and density
+    model form a chain, one after the other (:mod:`bench.run.cluster`)."""
+    from impls import Unavailable, get_method
+
+    refs: dict[tuple, _Job] = {}
+    chains: dict[tuple, _Job] = {}          # (case, model) → its last reference job
+    first_user: set[tuple] = set()
+    jobs: list[_Job] = []
+    for j, cfg in enumerate(todo):
+        backend = backends[cfg.backend_id]
+        key = None
+        if not isinstance(backend, Unavailable):
+            try:
+                if skip_reason(cfg, backend) is None:
+                    key = references.integral_key(cfg.case, get_method(cfg.method), cfg.knobs, ref_options)
+            except Exception:  # noqa: BLE001 - the task itself will record why
+                key = None
+        deps = []
+        if key is not None:
+            if key not in refs:
+                prev = chains.get(key[1:3])
+                refs[key] = _Job("reference", len(refs), (cfg.case.id, cfg.case.version, cfg.method,
+                                                          dict(cfg.knobs), ref_options),
+                                 [prev] if prev else [], ref_key=key)
+                chains[key[1:3]] = refs[key]
+            deps = [refs[key]]
+        keep_s = key is not None and key not in first_user  # the first user reports the integral's seconds
+        if key is not None:
+            first_user.add(key)
+        jobs.append(_Job("config", j, (run_id, cfg.case.id, cfg.case.version, cfg.backend_id, cfg.method,
+                                       cfg.dtype, dict(cfg.knobs), policy, budget_s, deadline, ref_options,
+                                       keep_s), deps, ref_key=key))
+    return refs, jobs
+
+
+def ready_queues(refs: dict[tuple, _Job], jobs: list[_Job]):
+    """(jobs waiting for a reference job, by its id; reference jobs ready; configuration jobs
+    ready, a heap by plan index)."""
+    waiting: dict[int, list[_Job]] = {}     # id(reference job) → jobs waiting for it
+    ready_refs: deque[_Job] = deque()
+    ready: list[tuple[int, int, _Job]] = []  # heap by plan index
+    for job in list(refs.values()) + jobs:
+        if job.deps:
+            waiting.setdefault(id(job.deps[0]), []).append(job)
+        elif job.kind == "reference":
+            ready_refs.append(job)
+        else:
+            heapq.heappush(ready, (job.index, id(job), job))
+    return waiting, ready_refs, ready
+
+
+def retime_rounds(executor, rows: list[dict], todo: list, rounds: int, run_id: str, policy: TimingPolicy,
+                  progress, counts: dict) -> None:
+    """Rounds 2… of every measured configuration on ``executor``'s cluster, each on the worker
+    that measured it first, one task per worker at a time, pooled into its rows with that
+    worker's closed-form unit (:func:`bench.run.configuration.pool`)."""
+    index: dict[tuple, list[int]] = {}
+    where: dict[tuple, str] = {}
+    for j, r in enumerate(rows):
+        if r.get("outcome") == "ok" and r.get("run_id") == run_id and r.get("worker"):
+            k = (r["case_id"], r["backend"], r["dtype"], r["method"], r["knob"])
+            index.setdefault(k, []).append(j)
+            where[k] = r["worker"]
+    todo_ok = [c for c in todo if tuple(map(str, c.key)) in index]
+    for rnd in range(2, rounds + 1):
+        queues: dict[str, deque] = {}
+        for cfg in todo_ok:
+            queues.setdefault(where[tuple(map(str, cfg.key))], deque()).append(cfg)
+        inflight: dict[Any, tuple[str, Any]] = {}
+        n = 0
+        while any(queues.values()) or inflight:
+            busy = {w for w, _ in inflight.values()}
+            for w, q in queues.items():
+                if q and w not in busy:
+                    cfg = q.popleft()
+                    f = executor.client.submit(retime_task, cfg.case.id, cfg.case.version, cfg.backend_id, cfg.method,
+                                           cfg.dtype, dict(cfg.knobs), policy, w, rnd, workers=[w],
+                                           allow_other_workers=True, pure=False,
+                                           key=f"isobench-retime-{uuid.uuid4().hex}")
+                    inflight[f] = (w, cfg)
+            done = wait(list(inflight), return_when="FIRST_COMPLETED").done
+            for f in done:
+                w, cfg = inflight.pop(f)
+                n += 1
+                if progress:
+                    progress(n, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}",
+                             counts)
+                res = f.result() if f.status == "finished" else {"moved": executor._failure(f)}
+                extra = res.get("moved") or res["samples"]
+                if "cf_s" in res and "moved" not in res:
+                    executor._cf.setdefault((w, cfg.case.id), []).append(res["cf_s"])
+                cf = float(np.median(executor._cf.get((w, cfg.case.id), [float("nan")])))
+                for j in index[tuple(map(str, cfg.key))]:
+                    pool(rows[j], extra, cf)

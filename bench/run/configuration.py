@@ -1,0 +1,222 @@
+"""One configuration, measured: why it does not apply (:func:`skip_reason`), prepare and time
+it, check what it returned, judge it against the reference (:func:`run_one`), under the run's
+budget (:func:`run_budgeted`), and the extra timing rounds of ``--rounds`` (:func:`retime`,
+:func:`pool`).  The same wherever it runs: this process or a dask worker."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import traceback
+from typing import Any, Callable
+
+import numpy as np
+
+from impls import METHODS, Unavailable, get_method
+from impls.protocol import Declined, declined_reason
+from reference import Case
+from reference.quadric import ray_sphere_roots
+
+from . import environment, references
+from .contract import BackendFault, backend_call, backend_dtypes, backend_methods, check_result, compile_seconds, status_counts
+from .metrics import measure_accuracy, primary_quantity
+from .plan import Config, applies
+from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string
+from .timing import Timeout, TimingPolicy, measure, time_limit
+
+def closed_form_time(case: Case, policy: TimingPolicy) -> float:
+    """Median time of the exact closed-form ray–sphere intersection of ``case.n_rays`` rays in
+    numpy float64 (:func:`reference.quadric.ray_sphere_roots`, unit sphere at the origin, whatever
+    the case's scene): the run's unit of time, measured with the same policy as the methods."""
+    o, d = case.origins, case.directions
+    pol = dataclasses.replace(policy, accuracy_only=False)
+    timing, _ = measure(lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0), lambda _: None, pol)
+    return timing.median_s
+
+
+def _device(cfg: Config, backend: Any) -> str:
+    try:
+        return str(getattr(backend, "device", None) or cfg.backend_id.partition(":")[2] or "cpu")
+    except Exception:  # a property that raises: the id's device part stands in
+        return cfg.backend_id.partition(":")[2] or "cpu"
+
+
+def base_row(run_id: str, cfg: Config, backend: Any) -> dict:
+    spec = METHODS.get(cfg.method)
+    return {
+        "schema_version": SCHEMA_VERSION, "run_id": run_id, "case_id": cfg.case.id, "case_version": cfg.case.version,
+        "backend": cfg.backend_id, "device": _device(cfg, backend), "dtype": cfg.dtype, "method": cfg.method,
+        "family": spec.family if spec else "", "knob": knob_string(cfg.knobs),
+        "knobs_json": json.dumps(cfg.knobs, sort_keys=True), "driver_json": environment.driver_record(backend),
+        "n_rays": cfg.case.n_rays,
+        "quantity": primary_quantity(spec) if spec else "",
+    }
+
+
+def skip_reason(cfg: Config, backend: Any) -> str | None:
+    """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it, the backend's
+    optional ``declines(method, scene)`` hook last (:func:`impls.protocol.declined_reason`).  A
+    backend whose ``methods()``, ``capabilities`` or ``declines`` break raises :class:`BackendFault`."""
+    if isinstance(backend, Unavailable):
+        return f"backend unavailable: {backend.reason}"
+    if cfg.method not in backend_methods(backend):
+        spec = METHODS.get(cfg.method)
+        # a method no array library runs (MethodSpec.libs == ()): say who offers it
+        why = " (an engine's own query: only engine backends offer it)" if spec is not None and spec.libs == () else ""
+        return f"{cfg.backend_id} does not implement {cfg.method}{why}"
+    if cfg.dtype not in backend_dtypes(backend):
+        return f"{cfg.backend_id} does not support {cfg.dtype}"
+    reason = applies(get_method(cfg.method), cfg.case)
+    if reason:
+        return reason
+    declined = backend_call(backend, "backend.declines(method, scene)",
+                             lambda: declined_reason(backend, cfg.method, cfg.case.scene))
+    return f"{cfg.backend_id} declines {cfg.method} on this scene: {declined}" if declined else None
+
+
+def takes_one_argument(fn: Callable) -> bool:
+    """Whether ``fn(x)`` binds (a callable whose signature cannot be read is given the benefit of
+    the doubt: the call itself then says)."""
+    try:
+        inspect.signature(fn).bind(None)
+    except TypeError:
+        return False
+    except ValueError:  # no signature (some builtins)
+        return True
+    return True
+
+
+def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
+    """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
+    depths, isolating their error from root finding) and time it: (prepared, timing, output).
+    What ``prepare`` returns must have callables ``run`` and ``result`` (else BackendFault)."""
+    case, spec = cfg.case, get_method(cfg.method)
+    extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+    if getattr(spec, "needs_color", False):
+        # the renderer shades with the very colour field the reference integrates
+        extra["color"] = references.color_field(case)
+    prep = backend_call(backend, f"backend.prepare({cfg.method!r}, …)", lambda: backend.prepare(
+        cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype, t_min=case.t_min,
+        t_max=case.t_max, **extra, **cfg.knobs))
+    for name in ("run", "result"):
+        if not callable(getattr(prep, name, None)):
+            raise BackendFault(f"backend.prepare returned {type(prep).__name__}, which has no callable {name!r} "
+                               "(return impls.protocol.Prepared(run=…, result=…))")
+    sync = getattr(backend, "synchronize", None)
+    if not callable(sync):
+        raise BackendFault("the backend has no callable synchronize(out)")
+    if not takes_one_argument(sync):
+        raise BackendFault("backend.synchronize must take the output of Prepared.run(): synchronize(out) "
+                           "(docs/backends.md); it cannot be called with one argument")
+    timing, out = measure(lambda: backend_call(backend, "Prepared.run()", prep.run),
+                          lambda o: backend_call(backend, "backend.synchronize(out)", lambda: sync(o)), policy)
+    return prep, timing, out
+
+
+def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
+            cache: dict | None = None, limit: tuple[float, str] | None = None) -> list[dict]:
+    """Rows for one configuration (one per quantity; one row when skipped or failed).  Never
+    raises for what the backend does (exceptions, contract breaches, hangs past the limit):
+    those are failed rows with the reason.  ``limit``: (seconds, what) bounding the configuration
+    instead of ``policy.timeout_s`` (the runner passes the smaller of the timeout and the run's
+    budget left)."""
+    cache = {} if cache is None else cache
+    row = base_row(run_id, cfg, backend)
+    seconds, what = limit if limit is not None else (policy.timeout_s, "--timeout")
+    try:
+        reason = skip_reason(cfg, backend)
+    except Exception as exc:  # e.g. the reference cannot answer for this case, or methods() broke
+        return [{**row, "outcome": "failed", "reason": f"planning: {type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    if reason:
+        return [{**row, "outcome": "skipped", "reason": reason}]
+    case, spec = cfg.case, get_method(cfg.method)
+    try:
+        with time_limit(seconds, what):
+            prep, timing, out = _prepare_and_time(cfg, backend, policy)
+            raw = backend_call(backend, "Prepared.result(out)", lambda: prep.result(out))
+            compile_s = compile_seconds(prep)
+            compile_cache = getattr(prep, "compile_cache", None)
+        res = check_result(raw, case.n_rays, tuple(spec.outputs))
+        counts = status_counts(res.status)
+        quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
+    except Timeout as exc:
+        return [{**row, "outcome": "failed", "reason": f"Timeout: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    except Declined as exc:  # the backend does not run this method on this scene: a skip, with its reason
+        return [{**row, "outcome": "skipped", "reason": f"{cfg.backend_id} declines {cfg.method} on this scene: {exc}"}]
+    except (Exception, SystemExit) as exc:  # a failing configuration becomes a row; the run goes on
+        return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc(limit=5)}]
+    timed = {
+        "status_counts": json.dumps(counts, sort_keys=True),
+        "first_call_s": timing.first_call_s,
+        "compile_s": compile_s if compile_s is not None else max(timing.first_call_s - timing.median_s, 0.0),
+        "compile_cache": compile_cache if compile_cache in ("compiled", "reused") else None,
+        "time_median_s": timing.median_s, "time_iqr_s": timing.iqr_s,
+        "time_samples_s": json.dumps(timing.samples_s), "time_ratio_cf": timing.median_s / cf_time,
+        "n_samples": len(timing.samples_s), "loops": timing.loops,
+    }
+    if policy.accuracy_only:  # one untimed-quality call: no timing claims, no timing comparison
+        timed.update({"compile_s": compile_s, "time_median_s": float("nan"), "time_iqr_s": float("nan"),
+                      "time_samples_s": "", "time_ratio_cf": float("nan"), "n_samples": 0})
+    rows = []
+    for q in quantities:
+        if "skip" in q:
+            rows.append({**row, **timed, "quantity": q["quantity"], "outcome": "skipped", "reason": q["skip"]})
+        else:
+            rows.append({**row, **timed, **q, "outcome": "ok", "reason": ""})
+    return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
+
+
+def over_budget_message(budget_s: float | None) -> str:
+    """The reason of a configuration the run's ``--budget`` left unmeasured (prefix :data:`OVER_BUDGET`)."""
+    return f"{OVER_BUDGET} ({budget_s or 0:g} s); finish with --resume and a larger --budget (or none)"
+
+
+def run_budgeted(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: Callable[[], float],
+                 cache: dict, budget_s: float | None, left: float | None) -> tuple[list[dict], bool]:
+    """One configuration under the run's budget, the same wherever it runs (this process, or a
+    dask worker of :mod:`bench.run.cluster`): ``left`` seconds of ``budget_s`` remain (None: no
+    budget).  Returns (rows, over): with no budget left, one skipped :data:`OVER_BUDGET` row; else
+    :func:`run_one` limited to the smaller of ``policy.timeout_s`` and ``left``, and a run the
+    budget interrupted is such a row too ("interrupted in flight").  ``cf_time()`` gives the
+    closed-form unit; it is called only when the configuration runs."""
+    over_msg = over_budget_message(budget_s)
+    if left is not None and left <= 0:
+        return [{**base_row(run_id, cfg, backend), "outcome": "skipped", "reason": over_msg}], True
+    cf = cf_time()
+    limit = (policy.timeout_s, "--timeout")
+    if left is not None and (not policy.timeout_s or left < policy.timeout_s):
+        limit = (max(left, 1e-3), f"the run's --budget of {budget_s:g} s")
+    got = run_one(run_id, cfg, backend, policy, cf, cache, limit=limit)
+    if limit[1] != "--timeout" and any(str(r.get("reason", "")).startswith("Timeout:") for r in got):
+        # interrupted by the budget, not by its own limit: not measured, like those after it
+        return [{**base_row(run_id, cfg, backend), "outcome": "skipped",
+                 "reason": over_msg + " (interrupted in flight)"}], True
+    return got, False
+
+
+def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str:
+    """Timing samples of one more round for ``cfg`` (prepared afresh, compile excluded), or the
+    error message when this round failed."""
+    try:
+        with time_limit(policy.timeout_s):
+            _, timing, _ = _prepare_and_time(cfg, backend, policy)
+        return timing.samples_s
+    except (Exception, SystemExit, Timeout) as exc:
+        return f"{type(exc).__name__}: {exc}"
+
+
+def pool(row: dict, extra: list[float] | str, cf_time: float) -> None:
+    """Add one round's samples to a result row and recompute its timing summary."""
+    if isinstance(extra, str):
+        row["timing_note"] = (row.get("timing_note") or "") + f"a later round failed: {extra}; "
+        return
+    samples = json.loads(row["time_samples_s"]) + list(extra)
+    q1, med, q3 = np.percentile(samples, [25, 50, 75])
+    row.update({"time_samples_s": json.dumps(samples), "time_median_s": float(med), "time_iqr_s": float(q3 - q1),
+                "time_ratio_cf": float(med) / cf_time, "n_samples": len(samples),
+                "rounds": int(row.get("rounds") or 1) + 1})
+

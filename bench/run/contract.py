@@ -1,0 +1,147 @@
+"""The backend contract as the runner checks it: what a backend's ``methods()``,
+``capabilities``, ``prepare`` and ``Prepared.result`` give back is user code, validated here
+(docs/backends.md, "What the runner validates"); a breach is a :class:`BackendFault`, which costs
+the backend that configuration's row and nothing else."""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from impls.protocol import Declined, RayResult, Status
+
+from .metrics import finite_rows
+from .timing import Timeout
+
+class BackendFault(ValueError):
+    """A backend broke the :class:`impls.protocol.Backend` contract (a wrong type, shape, dtype or
+    status code, a missing attribute, a method that raised): its configuration is a failed row
+    with this message, and the run goes on."""
+
+
+def backend_call(backend: Any, what: str, fn: Callable[[], Any]) -> Any:
+    """``fn()`` (a call into user code), any exception turned into a :class:`BackendFault` that
+    names ``what`` was called."""
+    try:
+        return fn()
+    except (Timeout, Declined):  # a declined configuration is skipped, not failed (run_one)
+        raise
+    except (Exception, SystemExit) as exc:  # user code: whatever it raises is its fault, not the run's
+        raise BackendFault(f"{what} raised {type(exc).__name__}: {exc}") from exc
+
+
+def backend_methods(backend: Any) -> tuple[str, ...]:
+    """``backend.methods()`` checked: an iterable of method names (else :class:`BackendFault`)."""
+    got = backend_call(backend, "backend.methods()", backend.methods)
+    if isinstance(got, str) or not all(isinstance(m, str) for m in backend_call(backend, "iterating methods()",
+                                                                               lambda: list(got))):
+        raise BackendFault(f"backend.methods() must return method names (strings), got {got!r:.200}")
+    return tuple(got)
+
+
+def backend_dtypes(backend: Any) -> tuple[str, ...]:
+    """``backend.capabilities.dtypes`` checked (else :class:`BackendFault`)."""
+    caps = backend_call(backend, "backend.capabilities", lambda: backend.capabilities)
+    dts = backend_call(backend, "backend.capabilities.dtypes", lambda: caps.dtypes)
+    if isinstance(dts, str) or not all(isinstance(d, str) for d in backend_call(
+            backend, "iterating capabilities.dtypes", lambda: list(dts))):
+        raise BackendFault(f"backend.capabilities.dtypes must be dtype names (strings), got {dts!r:.200}")
+    return tuple(dts)
+
+
+#: the codes a result may hold (IN_PROGRESS is internal to the drivers, never returned)
+_STATUS_CODES = frozenset(int(s) for s in Status if s != Status.IN_PROGRESS)
+
+
+def _array(res: Any, name: str, n: int) -> np.ndarray:
+    """``res.<name>`` as a numpy array of shape (n,) with a real numeric dtype (else BackendFault)."""
+    if not hasattr(res, name):
+        raise BackendFault(f"the result has no {name!r} (a RayResult has t, status, iterations, evals, outputs); "
+                           f"got {type(res).__name__}")
+    try:
+        a = np.asarray(getattr(res, name))
+    except Exception as exc:
+        raise BackendFault(f"result {name} is not an array: {type(exc).__name__}: {exc}") from exc
+    if a.shape != (n,):
+        raise BackendFault(f"wrong shape: result {name} has shape {a.shape}, expected ({n},)")
+    if a.dtype.kind not in "biuf":
+        raise BackendFault(f"result {name} has dtype {a.dtype}, expected a real number dtype")
+    return a
+
+
+def check_result(res: Any, n: int, outputs: tuple[str, ...]) -> RayResult:
+    """The per-ray contract, checked on what a backend's ``Prepared.result`` returned, which is
+    user code: ``t``, ``status``, ``iterations``, ``evals`` arrays of shape (n,) and real dtype;
+    ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` finite
+    and ≥ 0; ``outputs`` a dict holding every declared output with leading dimension n; no silent
+    NaN (a non-finite ``t`` or output row on a ray whose status is CONVERGED).  Returns a clean
+    :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises
+    :class:`BackendFault` (a ValueError) naming the offending array."""
+    t = _array(res, "t", n).astype(np.float64)
+    status = _array(res, "status", n)
+    if status.dtype.kind == "f":
+        if not np.all(np.isfinite(status)) or np.any(status != np.round(status)):
+            raise BackendFault(f"result status holds non-integer values (dtype {status.dtype}); status codes are "
+                               f"the integers of impls.protocol.Status")
+    status = status.astype(np.int64)
+    bad = sorted(set(np.unique(status).tolist()) - _STATUS_CODES)
+    if bad:
+        raise BackendFault(f"result status holds code(s) {bad[:5]} that are not impls.protocol.Status values "
+                           f"(IN_PROGRESS is internal); valid: "
+                           f"{ {s.name: int(s) for s in Status if s != Status.IN_PROGRESS} }")
+    counts = {}
+    for name in ("iterations", "evals"):
+        a = _array(res, name, n)
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise BackendFault(f"result {name} must be finite counts ≥ 0; got min {np.min(a)}, max {np.max(a)}")
+        counts[name] = a.astype(np.int64) if a.dtype.kind != "f" else a.astype(np.float64)
+    outs = getattr(res, "outputs", None)
+    if outs is None:
+        outs = {}
+    if not isinstance(outs, dict):
+        raise BackendFault(f"result outputs must be a dict of arrays, got {type(outs).__name__}")
+    conv = status == Status.CONVERGED
+    nbad = int(np.sum(conv & ~np.isfinite(t)))
+    if nbad:
+        raise BackendFault(f"silent NaN: {nbad} rays have non-finite t with status CONVERGED")
+    clean = {}
+    for name, a in outs.items():
+        try:
+            clean[name] = np.asarray(a)
+        except Exception as exc:
+            raise BackendFault(f"output {name} is not an array: {type(exc).__name__}: {exc}") from exc
+    for name in outputs:
+        if name not in clean:
+            raise BackendFault(f"missing output {name!r}; returned {sorted(map(str, clean))}")
+        a = clean[name]
+        if a.shape[:1] != (n,):
+            raise BackendFault(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
+        if a.dtype.kind not in "biufc":
+            raise BackendFault(f"output {name} has dtype {a.dtype}, expected numbers")
+        nbad = int(np.sum(conv & ~finite_rows(a)))
+        if nbad:
+            raise BackendFault(f"silent NaN: {nbad} rays have non-finite {name} with status CONVERGED")
+    return RayResult(t=t, status=status, iterations=counts["iterations"], evals=counts["evals"], outputs=clean)
+
+
+def status_counts(status: np.ndarray) -> dict[str, int]:
+    """{status name: rays}, computed here from checked codes (a backend's own RayResult subclass
+    need not have ``status_counts``, and its answer would be unchecked)."""
+    vals, counts = np.unique(status, return_counts=True)
+    return {Status(int(v)).name: int(c) for v, c in zip(vals, counts)}
+
+
+def compile_seconds(prep: Any) -> float | None:
+    """``Prepared.compile_s``: a finite number ≥ 0 or None (a missing attribute is None)."""
+    v = getattr(prep, "compile_s", None)
+    if v is None:
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise BackendFault(f"Prepared.compile_s must be seconds (a number) or None, got {v!r:.100}") from None
+    if not (np.isfinite(f) and f >= 0):
+        raise BackendFault(f"Prepared.compile_s must be finite and ≥ 0, got {f}")
+    return f
+

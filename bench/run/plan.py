@@ -1,0 +1,160 @@
+"""The plan of a run: which configurations (case × backend × dtype × method × knobs), in which
+order (:func:`plan`), from a suite and the options that narrow it."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import fnmatch
+import secrets
+
+from impls import METHODS
+from reference import Case, catalog
+
+from .metrics import family_skip_reason
+from .results import knob_string
+from .suites import Suite
+
+#: columns that identify a configuration (a row is a configuration × quantity)
+CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    case: Case
+    backend_id: str
+    method: str
+    dtype: str
+    knobs: dict
+
+    @property
+    def key(self) -> tuple[str, str, str, str, str]:
+        return (self.case.id, self.backend_id, self.dtype, self.method, knob_string(self.knobs))
+
+
+def new_run_id() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(3)
+
+
+def select_cases(suite: Suite, case_pattern: str | None) -> list[Case]:
+    """``--case`` globs replace the suite's selection; otherwise the suite's glob and tags."""
+    if case_pattern:
+        return catalog(case_pattern)
+    return catalog(suite.case_pattern, set(suite.case_tags) or None)
+
+
+def applies(spec, case) -> str | None:
+    """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
+    reference answers), or None."""
+    try:
+        return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
+    except Exception as exc:  # a reference that cannot answer is a reason, not a crash
+        return f"planning: {type(exc).__name__}: {exc}"
+
+
+def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
+         dtypes: list[str] | None) -> list[Config]:
+    """Configurations in measuring order.
+
+    Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
+    given; fewest rays first with ``suite.small_cases_first``, one per scene family in turn with
+    ``suite.diverse_cases``), its knob sweep on the first ``suite.sweep_cases`` of them and its
+    default knobs on the rest (plus, beyond ``max_cases``, every applicable case matching
+    the method's ``suite.always_cases``, at default knobs; secondary dtypes: see ``Suite.secondary_dtype_cases``;
+    never the suite's ``exclude_cases`` for it, unless ``--case`` names cases other than by the
+    match-all ``*``); a case it does not apply to gets one configuration (default knobs), which the
+    runner records as skipped with the reason.  Order: every default-knob configuration first
+    (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
+    case by case, knobs outer and backends inner, rotated by one at every knob, so backends
+    interleave in time and none is always first."""
+    if methods:
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown:
+            raise ValueError(f"--method: unknown method(s) {unknown}; known: {sorted(METHODS)}")
+    names = [m for m in (suite.methods or tuple(METHODS)) if not methods or m in methods]
+    for dt in dtypes or ():
+        if dt not in ("float64", "float32", "float16", "bfloat16"):
+            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
+    cases = select_cases(suite, case_pattern)
+    explicit = bool(case_pattern)
+    # the suite's cost exclusions hold for the match-all sweep, not for cases named on purpose
+    names_cases = explicit and any(g.strip() not in ("", "*") for g in str(case_pattern).split(","))
+    if suite.small_cases_first and not explicit:
+        cases = sorted(cases, key=lambda c: c.n_rays)  # stable: catalog order among equals
+    order = {c.id: i for i, c in enumerate(cases)}
+    # (stage, case index, case, method, knob index, knobs, rank among the method's applicable cases)
+    work: list[tuple[int, int, Case, str, int, dict, int]] = []
+    for method in names:
+        spec = METHODS[method]
+        sweep = suite.sweep_for(spec)
+        usable = []
+        excluded = () if names_cases else (*suite.exclude_cases.get(spec.family, ()),
+                                             *suite.exclude_cases.get(spec.name, ()))
+        for case in cases:
+            if any(fnmatch.fnmatchcase(case.id, g) for g in excluded):
+                continue
+            if applies(spec, case) is not None:
+                work.append((0, order[case.id], case, method, 0, sweep[0], 0))
+            else:
+                usable.append(case)
+        if suite.diverse_cases and not explicit:
+            lead = suite.lead_cases.get(spec.family, suite.lead_cases.get("*", ()))
+            usable = _one_per_family(usable, lead, shift=names.index(method) if suite.rotate_families else 0)
+        if not explicit and suite.max_cases is not None:
+            globs = suite.always_cases.get(spec.name, suite.always_cases.get(spec.family, ()))
+            extra = [c for c in usable[suite.max_cases:] if any(fnmatch.fnmatchcase(c.id, g) for g in globs)]
+            usable = usable[:suite.max_cases] + extra
+        for rank, case in enumerate(usable):
+            swept = explicit or suite.sweep_cases is None or rank < suite.sweep_cases
+            for k, knobs in enumerate(sweep if swept else sweep[:1]):
+                work.append((0 if k == 0 else 1, order[case.id], case, method, k, knobs, rank))
+    work.sort(key=lambda w: (w[0], w[1]))  # stable: method order, then knob order, kept
+    all_dtypes = list(dtypes or suite.dtypes)
+    cfgs = []
+    for _, _, case, method, k, knobs, rank in work:
+        for i, dtype in enumerate(method_dtypes(METHODS[method], all_dtypes, explicit=bool(dtypes))):
+            if i > 0 and not dtypes and suite.secondary_dtype_cases is not None and (
+                    k > 0 or rank >= suite.secondary_dtype_cases):
+                continue  # secondary dtypes: defaults on the first cases only (see Suite)
+            r = k % max(len(backend_ids), 1)
+            for bid in backend_ids[r:] + backend_ids[:r]:
+                cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
+    return cfgs
+
+
+def _family(case) -> str:
+    return case.id.split(".", 1)[0]
+
+
+def _one_per_family(cases: list, lead: tuple[str, ...] = (), shift: int = 0) -> list:
+    """``cases`` reordered: those of ``lead`` in ``cases`` (in that order; the first is where the
+    sweep runs), then round-robin over the other scene families (first case of each, then
+    second…), the families rotated by ``shift`` so that different methods cover different
+    families."""
+    first = [c for lid in lead for c in cases if c.id == lid]
+    by_family: dict[str, list] = {}
+    for c in cases:
+        if c not in first:
+            by_family.setdefault(_family(c), []).append(c)
+    lead_families = {_family(c) for c in first}
+    others = [g for f, g in by_family.items() if f not in lead_families]
+    k = shift % len(others) if others else 0
+    # lead families come last, so the cases after the lead ones are of other families
+    groups = others[k:] + others[:k] + [g for f, g in by_family.items() if f in lead_families]
+    out, depth = list(first), 0
+    while len(out) < len(cases):
+        out += [g[depth] for g in groups if depth < len(g)]
+        depth += 1
+    return out
+
+
+def method_dtypes(spec, run_dtypes: list[str], explicit: bool) -> list[str]:
+    """The dtypes ``spec`` is planned in: the run's, or for a method that computes in its own
+    (``MethodSpec.dtypes``, an engine's ``raycast``) those, narrowed to the ones ``--dtype`` names
+    (``explicit``) when it names any of them (when it names none, the run's dtypes: the rows are
+    skipped with the reason, not left out)."""
+    own = getattr(spec, "dtypes", None)
+    if not own:
+        return list(run_dtypes)
+    if explicit:
+        return [d for d in run_dtypes if d in own] or list(run_dtypes)
+    return list(own)

@@ -1,0 +1,170 @@
+"""What bench adds to the case's own exact answers: the rendering integral under bench's limits.
+
+The exact answers themselves (hit depth and points, normals, curvatures, dt/dθ, the surface
+colour ρ(x*)) come from the case, the one source of them (``Case.exact_*`` in
+:mod:`reference.cases`, cached on the case; a missing one is a
+:class:`reference.cases.NoExactAnswer`).  What is bench-specific lives here: the continuous
+rendering integral C = ∫ T σ ρ dt for a method's density model, a costly reference (seconds to
+minutes per case and density) computed on a strided subset of the rays
+(:func:`reference_rays`), limited in time and cached on disk (:class:`ReferenceOptions`); the
+density model a method's name or knobs select (:func:`density_model`); and
+:class:`NotApplicable`, how bench says a quantity it could not check is skipped, and why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .results import write_atomic
+
+class NotApplicable(Exception):
+    """bench cannot check this quantity on this case (the message says why): no colour field,
+    a suite that skips costly references, a rendering integral past its time limit.  (The case's
+    own missing answers are :class:`reference.cases.NoExactAnswer`; bench records both as a
+    skipped quantity.)"""
+
+
+def _rendering_module():
+    try:
+        from reference import rendering
+    except ImportError as exc:
+        raise NotApplicable(f"reference.rendering is not available ({exc})") from None
+    if getattr(rendering, "render_exact", None) is None:
+        raise NotApplicable("reference.rendering.render_exact is not available")
+    return rendering
+
+
+def color_field(case):
+    """The case's colour field ρ (``case.color_field``)."""
+    field = getattr(case, "color_field", None)
+    if field is None:
+        raise NotApplicable(f"{case.id} has no colour field ρ (case.color_field)")
+    return field
+
+
+def density_model(spec, knobs: dict) -> str | None:
+    """The density model a volume renderer uses: a ``density``/``model`` knob, else the model
+    named in the method name (``volume_<model>_<sampler>``); None for a surface renderer."""
+    for k in ("density", "model"):
+        if isinstance(knobs.get(k), str):
+            return knobs[k]
+    try:
+        models = _rendering_module().MODELS
+    except (NotApplicable, AttributeError):
+        models = ("nerf", "unisurf", "neus", "volsdf")
+    parts = spec.name.split("_")
+    return next((m for m in models if m in parts), None)
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceOptions:
+    """How costly reference answers are obtained (the runner stores one in the per-run cache
+    under ``"_options"``).  ``expensive``: compute references that take seconds to minutes per
+    case (the rendering integral); ``timeout_s``: limit per such computation (0: none);
+    ``disk``: directory caching them across runs (keyed by the case version and the source of the
+    reference module, so a changed case or reference is recomputed); ``max_rays``: the rendering
+    integral is computed on at most this many rays of a case, evenly strided through the ray
+    list (:func:`reference_rays`; None: all) — it costs ~0.1 s per ray on smooth scenes and ~1 s
+    where φ has kinks, so a 4096-ray case would take minutes per density."""
+
+    expensive: bool = True
+    timeout_s: float = 30.0
+    disk: Path | None = None
+    max_rays: int | None = 32
+
+
+def _disk_key(case, parts: tuple, module) -> str:
+    h = hashlib.sha256(repr((case.version, parts)).encode())
+    try:
+        h.update(Path(module.__file__).read_bytes())
+    except (OSError, TypeError, AttributeError):
+        pass
+    return h.hexdigest()[:20]
+
+
+def reference_rays(n: int, max_rays: int | None) -> np.ndarray:
+    """Indices of the rays a costly reference is computed on: all, or ``max_rays`` evenly
+    strided through 0 … n − 1 (first and last included), deterministic."""
+    if max_rays is None or n <= max_rays:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, max_rays).round().astype(np.int64))
+
+
+def integral_key(case, spec, knobs: dict, opts: ReferenceOptions) -> tuple | None:
+    """The cache key of the rendering integral :func:`exact_color` computes for a method with
+    ``knobs`` on ``case`` — ``("render_exact", case id, density model, sharpness)`` — or None when
+    it computes none (a surface renderer, no sharpness knob, no colour field, a suite without
+    costly references).  What :mod:`bench.run.cluster` plans its shared reference tasks by."""
+    if getattr(spec, "family", None) != "render" or not opts.expensive or "sharpness" not in knobs:
+        return None
+    if getattr(case, "color_field", None) is None:
+        return None
+    model = density_model(spec, knobs)
+    return None if model is None else ("render_exact", case.id, model, float(knobs["sharpness"]))
+
+
+def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float]:
+    """C = ∫ T σ ρ dt by ``reference.rendering.render_exact`` for the method's density model and
+    sharpness over [t_min, t_max] of the case; (colours (n, 3), its largest error bound).  Cached
+    per case × model × sharpness (sample counts and samplers do not change the integral), in
+    memory and, with :attr:`ReferenceOptions.disk`, on disk; a computation past
+    :attr:`ReferenceOptions.timeout_s` is a :class:`NotApplicable` (remembered for the run, per
+    case and model).  Only the rays of :func:`reference_rays` get a colour; the others are NaN
+    rows, which the metrics leave out."""
+    from .timing import Timeout, time_limit
+
+    opts: ReferenceOptions = cache.get("_options") or ReferenceOptions()
+    model = density_model(spec, knobs)
+    if model is None:
+        raise NotApplicable(f"{spec.name} renders the surface; its reference is ρ(x*) (color_vs_surface)")
+    if "sharpness" not in knobs:
+        raise NotApplicable(f"{spec.name} has no 'sharpness' knob: the density of its integral is unknown")
+    if not opts.expensive:
+        raise NotApplicable("this suite skips the rendering integral (a costly reference, seconds to minutes per "
+                            "case and density); --suite full computes it")
+    s = float(knobs["sharpness"])
+    key = ("render_exact", case.id, model, s)
+    gave_up = cache.get(("render_exact_timed_out", case.id, model))
+    if key not in cache and gave_up:  # one timeout per model and run: not retried on every case
+        cache[key] = NotApplicable(gave_up)
+    if key not in cache:
+        rendering = _rendering_module()
+        idx = reference_rays(case.n_rays, opts.max_rays)
+        path = opts.disk / f"render_exact-{_disk_key(case, (model, s, opts.max_rays), rendering)}.npz" if opts.disk else None
+        try:
+            if path is not None and path.exists():
+                z = np.load(path)
+                cache[key] = (z["colors"], float(z["bound"]))
+            else:
+                t0 = time.perf_counter()
+                with time_limit(opts.timeout_s):
+                    colors, bound = rendering.render_exact(case.scene, color_field(case), model, s, case.origins[idx],
+                                                           case.directions[idx], case.t_min, case.t_max)
+                full = np.full((case.n_rays, 3), np.nan)
+                full[idx] = np.asarray(colors, np.float64).reshape(len(idx), 3)
+                cache[key] = (full, float(np.max(bound, initial=0.0)))
+                cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
+                if path is not None:
+                    colors_full, bound_max = cache[key]
+
+                    def save(tmp):
+                        with open(tmp, "wb") as f:  # a file, not a name: savez would append ".npz"
+                            np.savez(f, colors=colors_full, bound=bound_max)
+
+                    write_atomic(path, save)
+        except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
+            cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
+        except Timeout:
+            cache[key] = NotApplicable(f"the reference integral for {model} (s = {s:g}) took longer than "
+                                       f"{opts.timeout_s:g} s (--reference-timeout); not checked")
+            cache[("render_exact_timed_out", case.id, model)] = (
+                f"the reference integral for {model} timed out on {case.id} (> {opts.timeout_s:g} s); not attempted "
+                f"again in this run")
+    if isinstance(cache[key], NotApplicable):
+        raise cache[key]
+    return cache[key]

@@ -1,0 +1,266 @@
+"""Timing: warm-up and compile apart, synchronised, calibrated, repeated until the median is stable.
+
+Protocol (after pyperf and pytest-benchmark):
+
+1. The first call (compilation, caches, allocator warm-up) is timed alone: ``first_call_s``.
+   Backends that compile ahead of time report ``compile_s`` separately (``Prepared.compile_s``).
+2. ``warmup`` further untimed calls.
+3. Calibration: the number of calls per sample, ``loops``, is the smallest power of two whose
+   total time reaches ``min_sample_s``, so a sample of a microsecond kernel is not timer
+   resolution noise (pyperf's ``--min-time`` calibration).  A sample is total time / loops.
+4. Samples are repeated until at least ``min_repeats`` samples *and* ``min_time_s`` seconds,
+   capped by ``max_repeats`` and by ``max_time_s``.  Every call is followed by the backend's
+   ``sync(out)`` before the clock stops (device work is finished, not merely queued).
+
+Reported: every sample, their median and interquartile range, ``loops``.
+A hard limit on the whole configuration (:func:`time_limit`) turns a hang into a ``timeout`` row,
+in the main thread (a signal) and in any other thread (a watchdog: a dask worker runs its
+configurations in a thread, :mod:`bench.run.cluster`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import dataclasses
+import math
+import signal
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+
+@dataclasses.dataclass
+class Timing:
+    first_call_s: float
+    samples_s: list[float]
+    loops: int = 1
+
+    @property
+    def median_s(self) -> float:
+        return float(np.median(self.samples_s))
+
+    @property
+    def iqr_s(self) -> float:
+        q1, q3 = np.percentile(self.samples_s, [25, 75])
+        return float(q3 - q1)
+
+
+@dataclasses.dataclass(frozen=True)
+class TimingPolicy:
+    """``min_repeats``/``min_time_s``: samples at least; ``max_repeats``/``max_time_s``: at most;
+    ``min_sample_s``: calibration target of one sample; ``warmup``: untimed calls after the
+    first; ``timeout_s``: hard limit per configuration (0: none); ``accuracy_only``: one call,
+    no timing samples (deterministic baselines)."""
+
+    min_repeats: int = 5
+    max_repeats: int = 200
+    min_time_s: float = 0.2
+    max_time_s: float = 10.0
+    min_sample_s: float = 1e-3
+    warmup: int = 1
+    timeout_s: float = 120.0
+    accuracy_only: bool = False
+
+    def __post_init__(self):
+        for name in ("min_repeats", "max_repeats", "warmup"):
+            if getattr(self, name) < (0 if name == "warmup" else 1):
+                raise ValueError(f"TimingPolicy.{name}={getattr(self, name)} must be ≥ {0 if name == 'warmup' else 1}")
+        for name in ("min_time_s", "max_time_s", "min_sample_s", "timeout_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"TimingPolicy.{name}={v} must be a finite number ≥ 0")
+
+
+def median_time(fn: Callable[[], Any], k: int) -> float:
+    """Median wall time in seconds of ``k`` calls of ``fn`` (perf_counter; no synchronisation:
+    for host-side work such as the closed-form unit)."""
+    ts = []
+    for _ in range(k):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts))
+
+
+def times_against_unit(call: Callable[[], Any], unit_fn: Callable[[], Any], repeats: int):
+    """``repeats`` timed calls of ``call``, each right after the unit's median time (3 calls of
+    ``unit_fn``) so that every ratio compares the two under the same machine state.  Returns
+    ``(times, units, ratios, out)`` in seconds, ``out`` the last call's value (``call`` must
+    synchronise its device before returning)."""
+    times, units, ratios, out = [], [], [], None
+    for _ in range(repeats):
+        unit = median_time(unit_fn, 3)
+        t0 = time.perf_counter()
+        out = call()
+        dt = time.perf_counter() - t0
+        times.append(dt)
+        units.append(unit)
+        ratios.append(dt / unit)
+    return times, units, ratios, out
+
+
+def _timed(run: Callable[[], Any], sync: Callable[[Any], None], loops: int) -> tuple[float, Any]:
+    clock = time.perf_counter
+    t0 = clock()
+    for _ in range(loops):
+        out = run()
+        sync(out)
+    return clock() - t0, out
+
+
+def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingPolicy = TimingPolicy()) -> tuple[Timing, Any]:
+    """Time ``run`` (each call followed by ``sync(out)``); returns the timing and the first call's
+    output (the one whose accuracy is measured)."""
+    first, out = _timed(run, sync, 1)
+    if policy.accuracy_only:
+        return Timing(first_call_s=first, samples_s=[first], loops=1), out
+    for _ in range(policy.warmup):
+        _timed(run, sync, 1)
+    loops = 1
+    while True:  # calibration: double until one sample reaches min_sample_s
+        dt, _ = _timed(run, sync, loops)
+        if dt >= policy.min_sample_s or loops >= 2 ** 20:
+            break
+        loops *= 2
+    samples = [dt / loops]
+    total = dt
+    while len(samples) < policy.max_repeats and total < policy.max_time_s and (
+            len(samples) < policy.min_repeats or total < policy.min_time_s):
+        dt, _ = _timed(run, sync, loops)
+        samples.append(dt / loops)
+        total += dt
+    return Timing(first_call_s=first, samples_s=samples, loops=loops), out
+
+
+class Timeout(BaseException):
+    """A configuration ran past its time limit.
+
+    A ``BaseException`` (like ``KeyboardInterrupt``), so that a user backend's ``except
+    Exception`` cannot swallow it; whoever sets a limit catches it by name."""
+
+
+_limits: list[tuple[float, str]] = []  # (monotonic deadline, message) of the active limits, outermost first
+
+
+def _arm() -> None:
+    """Set the interval timer to the nearest active deadline (re-firing every second after it, so
+    a limit whose exception was swallowed by user code fires again)."""
+    if not _limits:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        return
+    left = min(d for d, _ in _limits) - time.monotonic()
+    signal.setitimer(signal.ITIMER_REAL, max(left, 1e-4), 1.0)
+
+
+def _on_alarm(signum, frame):
+    if _limits:
+        deadline, message = min(_limits)
+        if time.monotonic() >= deadline - 1e-3:
+            raise Timeout(message)
+        _arm()  # woken early (e.g. a limit left in between): wait for the nearest deadline
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float | None, what: str = "--timeout"):
+    """Raise :class:`Timeout` in the main thread once ``seconds`` have passed (0 or None, or off
+    the main thread: no limit).  ``what`` names the limit in the message (``--timeout``, the
+    run's ``--budget``).
+
+    POSIX ``SIGALRM`` (``setitimer``): the handler raises between two bytecodes of the main
+    thread, so Python code, ``time.sleep`` and lock or ``join`` waits are interrupted at once; a
+    long call inside a compiled kernel is interrupted when it returns to Python.  The timer keeps
+    firing every second past the deadline, so user code that catches the exception and goes on
+    is interrupted again.  Limits nest: the timer is set to the nearest deadline, and the
+    exception raised is that of the limit that passed (an outer one may pass inside an inner
+    block; it is raised again on leaving the inner block if the inner block swallowed it).
+
+    Off the main thread (a dask worker's task thread), a watchdog thread raises the exception in
+    the limited thread instead (:func:`_thread_limit`): the same between-bytecodes semantics and
+    the same re-firing, except that a ``time.sleep`` or a blocking wait is not cut short (it
+    raises when it returns)."""
+    if not seconds:
+        yield
+        return
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
+        with _thread_limit(seconds, what):
+            yield
+        return
+    entry = (time.monotonic() + seconds, f"ran past the time limit of {seconds:g} s ({what})")
+    outermost = not _limits
+    old = signal.signal(signal.SIGALRM, _on_alarm) if outermost else None
+    _limits.append(entry)
+    _arm()
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        _limits.remove(entry)
+        if outermost:
+            signal.signal(signal.SIGALRM, signal.SIG_DFL if old is None else old)
+        _arm()
+
+
+class _AsyncTimeout(Timeout):
+    """The :class:`Timeout` a watchdog raises in a limited thread (``PyThreadState_SetAsyncExc``
+    raises a class, not an instance: the message is looked up in the thread that receives it,
+    the earliest of its limits that has passed)."""
+
+    def __init__(self, *args):
+        if not args:
+            now = time.monotonic()
+            passed = sorted(e for e in getattr(_thread_limits, "stack", []) if e[0] <= now + 1e-3)
+            args = (passed[0][1] if passed else "ran past its time limit",)
+        super().__init__(*args)
+
+
+_thread_limits = threading.local()  # .stack: (deadline, message) of this thread's active limits
+
+
+def _set_async_exc(ident: int, exc) -> None:
+    """Raise ``exc`` (a class) in thread ``ident`` at its next bytecode; None clears a pending one.
+    CPython's ``PyThreadState_SetAsyncExc``: the one way to interrupt Python code in a thread
+    other than the main one (signals are delivered to the main thread only)."""
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(ident), ctypes.py_object(exc) if exc else None)
+
+
+@contextlib.contextmanager
+def _thread_limit(seconds: float, what: str):
+    """:func:`time_limit` for a thread that is not the main one: a daemon watchdog thread waits
+    for the deadline, then raises :class:`_AsyncTimeout` in this thread, again every second until
+    the block is left.  Leaving the block stops the watchdog under a lock and clears an exception
+    sent but not yet raised, so none lands after the block."""
+    ident = threading.get_ident()
+    entry = (time.monotonic() + seconds, f"ran past the time limit of {seconds:g} s ({what})")
+    stack = _thread_limits.__dict__.setdefault("stack", [])
+    stack.append(entry)
+    left, lock, inside = threading.Event(), threading.Lock(), [True]
+
+    def watch():
+        if left.wait(max(entry[0] - time.monotonic(), 0.0)):
+            return
+        while True:
+            with lock:
+                if not inside[0]:
+                    return
+                _set_async_exc(ident, _AsyncTimeout)
+            if left.wait(1.0):
+                return
+
+    watchdog = threading.Thread(target=watch, name="isobench-time-limit", daemon=True)
+    try:
+        watchdog.start()  # inside the try: a tiny limit may pass while the watchdog starts
+        yield
+    finally:
+        while True:  # an exception landing during this clean-up means the block ended late: clean up again
+            try:
+                with lock:
+                    inside[0] = False
+                    _set_async_exc(ident, None)
+                break
+            except _AsyncTimeout:
+                continue
+        left.set()
+        stack.remove(entry)
