@@ -526,3 +526,28 @@ def test_a_method_with_its_own_dtypes_is_planned_in_them():
 
     reason = configuration.skip_reason(only64[0], registry.resolve("numpy"))
     assert "does not implement raycast" in reason and "engine" in reason
+
+
+@pytest.mark.slow  # plans the full suite over the whole catalog, cameras at scale built
+def test_full_plans_the_cameras_at_scale_quick_does_not():
+    """Every scene kind's camera at scale runs in ``full`` (1024² analytic, CSG and grid; the mesh at
+    256² for the root finders), in float64 at default knobs; ``quick`` and ``workloads`` plan none;
+    the neural SDF at scale (hours of reference) only when ``--case`` names it."""
+    from bench.run.suites import get_suite
+
+    def at_scale(cfgs):
+        return {(c.case.id, c.method, c.dtype) for c in cfgs if "256x256" in c.case.id or "1024x1024" in c.case.id}
+
+    full = planning.plan(get_suite("full"), ["numpy"], None, ["hybrid_secant", "sphere_trace", "march_bisect"], None)
+    got = at_scale(full)
+    for cid in ("torus.camera.1024x1024", "csg.union.camera.1024x1024", "grid.torus64.camera.1024x1024",
+                "mesh.torus.camera.256x256"):
+        assert {(cid, "hybrid_secant", "float64"), (cid, "sphere_trace", "float64")} <= got, cid
+    assert {dt for _, _, dt in got} == {"float64"} and not any(m == "march_bisect" for _, m, _ in got)
+    assert not any(cid.startswith("neural.") for cid, _, _ in got)
+    defaults = {c.case.id: c.knobs for c in full if c.case.id == "torus.camera.1024x1024"}
+    assert defaults["torus.camera.1024x1024"] == METHODS["hybrid_secant"].validate({})
+    for name in ("quick", "workloads"):
+        assert not at_scale(planning.plan(get_suite(name), ["numpy"], None, None, None)), name
+    named = planning.plan(get_suite("full"), ["numpy"], "neural.blob.camera.256x256.Llocal", ["hybrid_secant"], None)
+    assert at_scale(named)

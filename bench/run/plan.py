@@ -10,6 +10,7 @@ import secrets
 
 from impls import METHODS
 from reference import Case, catalog
+from reference.cases import LARGE
 
 from .metrics import family_skip_reason
 from .results import knob_string
@@ -107,6 +108,11 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
             swept = explicit or suite.sweep_cases is None or rank < suite.sweep_cases
             for k, knobs in enumerate(sweep if swept else sweep[:1]):
                 work.append((0 if k == 0 else 1, order[case.id], case, method, k, knobs, rank))
+        if not explicit:
+            for case in _scale_cases(suite, spec):
+                order.setdefault(case.id, len(order))
+                # rank past every secondary-dtype case: the suite's first dtype only
+                work.append((0, order[case.id], case, method, 0, sweep[0], len(usable) + len(cases)))
     work.sort(key=lambda w: (w[0], w[1]))  # stable: method order, then knob order, kept
     all_dtypes = list(dtypes or suite.dtypes)
     cfgs = []
@@ -119,6 +125,15 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
             for bid in backend_ids[r:] + backend_ids[:r]:
                 cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
     return cfgs
+
+
+def _scale_cases(suite: Suite, spec) -> list[Case]:
+    """The cameras at scale ``suite.scale_cases`` names for ``spec`` (its name, else its family)
+    that it applies to, in catalog order."""
+    globs = suite.scale_cases.get(spec.name, suite.scale_cases.get(spec.family, ()))
+    if not globs:
+        return []
+    return [c for c in catalog(",".join(globs), {LARGE}) if applies(spec, c) is None]
 
 
 def _family(case) -> str:

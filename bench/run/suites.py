@@ -76,6 +76,10 @@ class Suite:
     #: applies, beyond ``max_cases`` (the workload scenes a suite must cover); a method's own
     #: name takes precedence over its family
     always_cases: dict = dataclasses.field(default_factory=dict)
+    #: method name or family → globs of the cameras at scale (catalog tag ``large``: 256² and 1024²
+    #: rays, which no suite selects by its pattern) it also runs on, at default knobs, in the
+    #: suite's first dtype, wherever it applies
+    scale_cases: dict = dataclasses.field(default_factory=dict)
     #: the suite run after this one as its stability stage (accuracy only, into ``stability/``
     #: under the run directory; :func:`bench.studies.stability.run_stage`), or None
     stability: str | None = None
@@ -179,6 +183,15 @@ _WORKLOADS = {"root": _WORKLOAD_GLOBS, "render_surface": _WORKLOAD_GLOBS, "gradi
 #: SDF (P = 4481) each takes over 120 s on numpy and torch for 256 rays; ``--case 'neural.*'
 #: --method dt_finite_diff`` runs them.  The implicit-function methods (one adjoint per ray) stay.
 _PER_PARAMETER = {"dt_finite_diff": ("neural.*",), "dt_unrolled": ("neural.*",)}
+#: the full suite's cameras at scale: the certified root finders and the surface renderer on the
+#: analytic, CSG and grid scenes at 1024² and the torus mesh at 256²; the engines' raycast on the
+#: mesh at both sizes.  Not the mesh at 1024² for the root finders (φ is a host call into libigl:
+#: minutes per configuration, past --timeout) and not the neural SDF at scale (its certified
+#: numerical reference takes minutes at 256² and hours at 1024²): ``--case`` names them.
+_AT_SCALE = ("torus.camera.1024x1024", "csg.union.camera.1024x1024", "grid.torus64.camera.1024x1024",
+             "mesh.torus.camera.256x256")
+_SCALE = {"hybrid_secant": _AT_SCALE, "hybrid_chandrupatla": _AT_SCALE, "sphere_trace": _AT_SCALE,
+          "render_surface": _AT_SCALE, "raycast": ("mesh.*.camera.256x256", "mesh.*.camera.1024x1024")}
 
 SUITES = {
     # quick: CI and the README's first command, a showcase: every method on the same four scene
@@ -227,7 +240,7 @@ SUITES = {
     "full": Suite(name="full", case_pattern="*", dtypes=("float64", "float32"), sweeps={}, level="full",
                   min_time_s=0.05, min_repeats=3, main_dial_only=True, sweep_cases=1, max_cases=3,
                   diverse_cases=True, secondary_dtype_cases=1, budget_s=None,
-                  always_cases=_WORKLOADS, exclude_cases=_PER_PARAMETER),
+                  always_cases=_WORKLOADS, exclude_cases=_PER_PARAMETER, scale_cases=_SCALE),
     # workloads: the mesh, grid-SDF and neural-SDF cases only, every root finder, the surface
     # renderer, the gradients and the implicit dt/dθ at default knobs, float64, timed like full:
     # "which to pick" on the fields people trace (the full suite runs the same configurations
