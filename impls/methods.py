@@ -169,6 +169,13 @@ SAMPLERS = {
 }
 
 
+#: the libraries (``Backend.lib``) of the engine backends, which offer ``raycast``: the built-in array
+#: backends have no ray query of their own and leave it out of ``methods()`` (a run records "does not
+#: implement raycast").  An engine's CONVERGED and MISS are its own answers, not certified by a bracket
+#: (README "Conventions"); the run validates them against the exact reference like every row.
+ENGINE_LIBS = ("embree", "open3d", "warp", "mitsuba")
+
+
 def _specs() -> list[MethodSpec]:
     specs = [
         MethodSpec(
@@ -215,6 +222,11 @@ def _specs() -> list[MethodSpec]:
             requires=(), build=methods_root.march_builder(refine), libs=_REFINE_LIBS.get(refine),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
+    specs.append(MethodSpec(
+        name="raycast", family="root", knobs=(), requires=(), libs=ENGINE_LIBS,
+        description="the engine's own first-hit ray query (BVH over the mesh's triangles, or the engine's SDF-grid "
+        "intersector); no knobs; precision as the engine computes",
+    ))
     specs += [
         MethodSpec(
             name="normal", family="gradient", knobs=(), requires=("smooth",), needs_t_hit=True,

@@ -178,7 +178,7 @@ ROOT_METHODS = [m for m, s in METHODS.items() if s.family == "root"]
 TIGHT = {"sphere_trace": dict(tol=1e-13, max_steps=20000), "hybrid_secant": dict(xtol=1e-13),
          "march_bisect": dict(xtol=1e-13, step=0.01), "march_secant": dict(xtol=1e-13, step=0.01),
          "march_newton": dict(xtol=1e-13, step=0.01), "march_chandrupatla": dict(xtol=1e-13, step=0.01),
-         "hybrid_chandrupatla": dict(xtol=1e-13)}
+         "hybrid_chandrupatla": dict(xtol=1e-13), "raycast": {}}
 
 
 def applicable(method, scene) -> bool:
