@@ -33,6 +33,8 @@ try:
 except ImportError as exc:  # the registry turns this into Unavailable(reason=…)
     raise ImportError("warp-lang is not installed: pip install -c constraints.txt -e '.[engines]'") from exc
 
+wp.config.quiet = True  # before Warp initialises (when devices are listed below): fewer messages in a run
+
 import numpy as np
 
 from ..base import ArrayBackend
@@ -84,7 +86,6 @@ class WarpBackend(ArrayBackend):
 
     def __init__(self, device: str = "cpu", settings: CompactingSettings | None = None):
         super().__init__(device, settings)
-        wp.config.quiet = True
         wp.init()
         self._meshes: dict = {}
         self._scenes: dict = {}
