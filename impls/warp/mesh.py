@@ -34,6 +34,7 @@ def _kernel():
                 T[i] = q.t
                 hit[i] = 1
             else:
+                T[i] = 0.0  # (no uninitialised value for the host to read)
                 hit[i] = 0
 
         _KERNEL = first_hit
