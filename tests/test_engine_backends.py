@@ -176,3 +176,15 @@ def test_the_llvm_finder_keeps_a_users_path_and_reads_versions(monkeypatch):
     import os
 
     assert os.environ[llvm.ENV] == "/somewhere/libLLVM.so"
+
+
+@pytest.mark.parametrize("spec, missing", [("impls.warp.backend:WarpBackend", "warp"),
+                                           ("impls.mitsuba.backend:MitsubaBackend", "mitsuba")])
+def test_an_engine_not_installed_is_unavailable_with_the_install_command(monkeypatch, spec, missing):
+    import sys
+
+    monkeypatch.setitem(sys.modules, missing, None)  # import warp / import mitsuba raise ImportError
+    monkeypatch.delitem(sys.modules, spec.split(":")[0], raising=False)
+    got = registry.resolve(spec)
+    assert isinstance(got, registry.Unavailable)
+    assert "pip install -c constraints.txt -e '.[engines]'" in got.reason
