@@ -30,6 +30,7 @@ them to numpy, so a timed run includes the whole query on either device.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 
 from . import llvm
@@ -130,7 +131,7 @@ class MitsubaBackend(ArrayBackend):
 
     def versions(self):
         return {"mitsuba": mi.__version__, "drjit": dr.__version__, "variant": self.variant,
-                **({"libLLVM": llvm.os.environ.get(llvm.ENV, "")} if self.device == "llvm" else {})}
+                **({"libLLVM": os.environ.get(llvm.ENV, "")} if self.device == "llvm" else {})}
 
     def declines(self, method: str, scene) -> str | None:
         return scenes.decline_reason(scene) if method == "raycast" else None
