@@ -51,7 +51,8 @@ def _run(b, method, case, dtype="float64", **kw):
 
 
 @pytest.mark.parametrize("case_id", ["torus.camera.32x32", "csg.union.camera.32x32", "csg.difference.camera.32x32",
-                                     "torus.grazing.1e-9", "box.camera.32x32"])
+                                     "torus.grazing.1e-9", "box.camera.32x32", "grid.torus32.camera.32x32",
+                                     "grid.torus64.grazing.1e-6"])
 @pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton"])
 def test_warp_root_finders_agree_with_numpy_ray_by_ray(method, case_id):
     b, ref = _warp(), registry.resolve("numpy")
@@ -131,7 +132,8 @@ def test_warp_declines_with_the_reason():
     assert "triangle meshes" in b.declines("raycast", grid.scene)
     assert "triangle meshes" in b.declines("raycast", sphere.scene)
     assert b.declines("raycast", mesh.scene) is None
-    assert "GridSDF" in b.declines("hybrid_secant", grid.scene)
+    assert b.declines("hybrid_secant", grid.scene) is None  # the grid kernel (impls.warp.grid)
+    assert "MeshSDF" in b.declines("hybrid_secant", mesh.scene)
     with pytest.raises(Declined, match="float32"):
         b.prepare("raycast", mesh.scene, mesh.origins, mesh.directions, dtype="float64")
     with pytest.raises(Declined, match="float64"):

@@ -14,13 +14,14 @@ What it offers:
   engine's answers, not a certified bracket (README "Conventions").
 * The root methods ``sphere_trace``, ``hybrid_secant``, ``march_bisect``, ``march_secant`` and
   ``march_newton``, float64, on the scene trees the numba backend compiles (analytic primitives,
-  CSG, transforms; :mod:`impls.warp.fields`): the core array algorithm of
+  CSG, transforms; :mod:`impls.warp.fields`) and on grid SDFs (:mod:`impls.warp.grid`): the core
+  array algorithm of
   :mod:`impls.core.rootfind` run by numpy's compacting driver, each φ evaluation one Warp kernel
   launch over the points — the same algorithms, knobs, statuses (certified ones included) and
   counts as the numpy backend (φ bit for bit numba's, compiled without fused multiply-adds, and so
   numpy's except where numpy sums a transform's product in BLAS).
   dφ/dt for ``march_newton`` is numpy's central difference (3 evaluations).
-* Declined, with the reason: grids and neural SDFs and user fields for the root methods (no
+* Declined, with the reason: meshes, neural SDFs, MLPs and user fields for the root methods (no
   Warp kernel), every non-mesh scene for ``raycast``, θ (no parameters), float32 root finding.
 """
 
@@ -75,8 +76,9 @@ class WarpBackend(ArrayBackend):
                "scenes only; CONVERGED/MISS are the engine's answers, not certified; iterations and evals 0",
                "root methods (sphere_trace, hybrid_secant, march_bisect/secant/newton): float64, the core array "
                "algorithm with numpy's compacting driver, φ one Warp kernel launch per evaluation (the scene "
-               "tree written as Warp source per structure); same statuses and counts as numpy's",
-               "declines: non-mesh scenes for raycast; grids, meshes, neural SDFs, MLPs and user fields for the root "
+               "tree written as Warp source per structure; grid SDFs a trilinear kernel); same statuses and counts "
+               "as numpy's",
+               "declines: non-mesh scenes for raycast; meshes, neural SDFs, MLPs and user fields for the root "
                "methods; float32 root finding; θ (Warp has no autodiff wired here: no gradient or dt/dθ methods)",
                "warp:cuda: every launch's result is copied back with Array.numpy(), which waits for the kernel"),
     )
@@ -140,9 +142,9 @@ class WarpBackend(ArrayBackend):
         key = id(scene)
         got = self._scenes.get(key)
         if got is None or got[0] is not scene:
-            from .fields import WarpScene
+            from .fields import warp_scene
 
-            got = (scene, WarpScene(scene, self.device))
+            got = (scene, warp_scene(scene, self.device))
             self._scenes[key] = got
         return got[1]
 

@@ -13,7 +13,8 @@ written to a file (the isobench cache directory, :mod:`impls.cache`, or a privat
 directory) named by the hash of its text and imported from there; Warp keeps the compiled code
 in its own kernel cache, keyed by the module's contents.
 
-Only φ is generated: the root finders run the core array algorithm (:mod:`impls.core.rootfind`)
+A grid SDF (:class:`reference.grid.GridSDF`, as the whole scene) has a kernel of its own
+(:mod:`impls.warp.grid`).  Only φ is generated: the root finders run the core array algorithm (:mod:`impls.core.rootfind`)
 with numpy's compacting driver, which computes the ray bounds itself, and evaluate φ through
 :func:`phi_points` (one kernel launch over the points).  Scenes with a node the numba writer does
 not compile are declined with its reason, and so is ``MLPField`` (the numba writer calls a numba
@@ -41,7 +42,12 @@ _PHI_TYPED = ("@wp.func\ndef phi(p: wp.array(dtype=wp.float64), x0: wp.float64, 
 
 
 def decline_reason(scene) -> str | None:
-    """Why Warp cannot evaluate ``scene`` as a kernel, or None."""
+    """Why Warp cannot evaluate ``scene`` as a kernel, or None (a scene tree the numba writer
+    compiles, less MLPs; or a grid SDF on its own, :mod:`impls.warp.grid`)."""
+    from reference.grid import GridSDF
+
+    if type(scene) is GridSDF:
+        return None
     reason = _numba_decline(scene)
     if reason:
         return reason.replace("numba compiles", "warp compiles (the numba backend's scene writer)")
@@ -129,6 +135,18 @@ def kernel_module(key: str):
     spec.loader.exec_module(mod)
     _MODULES[key] = mod
     return mod
+
+
+def warp_scene(scene, device: str):
+    """``scene``'s φ on ``device``: a :class:`impls.warp.grid.WarpGrid` for a grid SDF, else a
+    :class:`WarpScene`; :class:`impls.protocol.Declined` with the reason for a scene neither takes."""
+    from reference.grid import GridSDF
+
+    if type(scene) is GridSDF:
+        from .grid import WarpGrid
+
+        return WarpGrid(scene, device)
+    return WarpScene(scene, device)
 
 
 class WarpScene:
