@@ -34,7 +34,7 @@ try:
 except ImportError as exc:  # the registry turns this into Unavailable(reason=…)
     raise ImportError("warp-lang is not installed: pip install -c constraints.txt -e '.[engines]'") from exc
 
-wp.config.quiet = True  # before Warp initialises (when devices are listed below): fewer messages in a run
+wp.config.log_level = wp.LOG_WARNING  # before Warp initialises: no banner or per-module load lines in a run
 
 import numpy as np
 
