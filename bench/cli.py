@@ -6,7 +6,8 @@
                         [--cluster local:N | --scheduler ADDRESS]
     python -m bench spread RUN_DIR [--workers 1 2 64] [--overhead-s S] [--central-s S]
     python -m bench speed [--backend numpy,torch,jax] [--method hybrid_secant] [--repeats 3] [--threads 1]
-                          [--allocator tuned|default] [--no-peers] [--volume [--samples 256]]
+                          [--allocator tuned|default] [--no-peers] [--volume [--samples 256]] [--mesh]
+    python -m bench edges [--backend warp,mitsuba] [--mesh torus,fin] [--offsets 1e-2,1e-5,1e-9] [--out DIR]
     python -m bench sampling [--case sphere.camera.64x64,torus.camera.32x32] [--targets 1e-2,1e-3,1e-4]
     python -m bench compare BASE NEW [--timing] [--factor 1.1] [--allow-missing] [--min-comparable 1]
     python -m bench claims [--out DIR] [--full] [--only ID ...]
@@ -833,11 +834,18 @@ def cmd_speed(args) -> int:
         METHODS[args.method].validate(dict(args.knobs or {}))
     except (ValueError, TypeError) as exc:
         return _error(f"--knobs: {exc}")
+    if args.method == "raycast" and not args.mesh:
+        return _error("--method raycast: an engine's query on meshes; time it with --mesh (the engines answer "
+                      "raycast there whatever --method says)")
     args.side_given = args.side is not None
     if args.side is None:
         args.side = 1024
     environment.configure_threads(args.threads)
     allocator = environment.tune_allocator() if args.allocator == "tuned" else "default"
+    if args.mesh:
+        if args.volume:
+            return _error("--mesh and --volume: choose one (mesh cameras are timed on root finders and engines)")
+        return _speed_mesh(args, allocator)
     ids = _split(args.backend) if args.backend else [b.id for b in registry.available()[0]]
     bad = [(bid, b) for bid, b in ((bid, registry.resolve(bid)) for bid in ids) if isinstance(b, registry.Unavailable)]
     if bad:
@@ -875,6 +883,45 @@ def cmd_speed(args) -> int:
         print("peers (bench/peers.py): peer:numba-st = numba per-ray sphere tracer (hit when φ < 1e-9, bounding-sphere "
               "clip); peer:scipy = hybrid_secant's march on numpy + scipy find_root (hybrid_chandrupatla)")
     print(speed.format_rows(rows))
+    for line in notes:
+        print(line)
+    if args.out:
+        from .results import write_json
+
+        err = _write_out_file(args.out, lambda path: write_json(path, rows))
+        if err:
+            return _error(err)
+    return 0
+
+
+def _speed_mesh(args, allocator: str) -> int:
+    """``speed --mesh`` (:mod:`bench.speed_mesh`): engines (raycast, float32) and root finders
+    (``--method``, float64) on the three mesh cameras; default backends numpy, embree, open3d (an
+    unavailable one is a line, not an error: its engine is not installed here)."""
+    from impls import registry
+
+    from . import speed_mesh
+
+    ids = _split(args.backend) or list(speed_mesh.DEFAULT_BACKENDS)
+    unknown = [bid for bid in ids if getattr(registry.resolve(bid), "unknown", False)]
+    if unknown:
+        return _error(f"--backend: {', '.join(unknown)} name no backend; `python -m bench backends` lists them")
+    if args.knobs:
+        return _error("--knobs: not with --mesh (each method runs at its default knobs there)")
+    notes: list[str] = []
+    lines = _ProgressLines(periodic=False)
+    from .heartbeat import Heartbeat
+
+    with Heartbeat(lines.line) as beat:
+        rows = speed_mesh.measure(ids, n_side=args.side, method=args.method, repeats=args.repeats,
+                                  peers=not args.no_peers, notes=notes, progress=beat.stage)
+    for row in rows:
+        row["threads"] = args.threads
+        row["allocator"] = allocator
+    print(f"mesh cameras, {args.side}² rays, {args.threads} thread(s); raycast (float32) where a backend offers it, "
+          f"else {args.method} (float64, default knobs); × unit = time / numpy closed-form sphere hit of the same rays")
+    print(speed_mesh.format_rows(rows))
+    print("versions: " + speed_mesh.versions_line(rows))
     for line in notes:
         print(line)
     if args.out:
@@ -930,6 +977,70 @@ def cmd_sampling(args) -> int:
         out = Path(args.out)
         write_atomic(out / sampling.FILE, lambda tmp: df.to_csv(tmp, index=False))
         print(f"wrote {out / sampling.FILE}")
+        if (out / "environment.json").exists():  # a run directory: its report gains the section
+            from .report import build_from_dir
+
+            build_from_dir(out)
+            print(f"rebuilt {out / 'report.html'}")
+        lock.release()
+    return 0
+
+
+def cmd_edges(args) -> int:
+    """Wrong hits and misses of each engine against the grazing offset (:mod:`bench.edges`).  Every
+    argument is checked before any ray is cast (one ``error:`` line, exit 2); a line as each stage
+    starts and at least every 30 s of it; ``--out`` is locked for the whole command and its files
+    (edges.csv, edges.png) written atomically; a run directory's report gains the section."""
+    from . import edges
+    from .heartbeat import Heartbeat
+
+    try:
+        def given(value, default):  # an option given empty stays empty, and check_arguments refuses it
+            return list(default) if value is None else [v.strip() for v in value.split(",") if v.strip()]
+
+        meshes = given(args.mesh, edges.DEFAULT_MESHES)
+        families = given(args.family, edges.FAMILIES)
+        try:
+            offsets = [float(x) for x in given(args.offsets, edges.DEFAULT_OFFSETS)]
+        except ValueError:
+            raise ValueError(f"--offsets: {args.offsets!r} must be comma-separated numbers, e.g. 1e-2,1e-5,1e-9") from None
+        edges.check_arguments(meshes, offsets, families, args.rays)
+    except ValueError as exc:
+        return _error(str(exc))
+    ids = list(dict.fromkeys((_split(args.engines) or list(edges.DEFAULT_ENGINES)) + (_split(args.backend) or [])))
+    from impls import registry
+
+    unknown = [b for b in (_split(args.backend) or []) + (_split(args.engines) or []) if b not in (edges.TRIMESH, edges.TRIMESH_EMBREE)
+               and getattr(registry.resolve(b), "unknown", False)]
+    if unknown:
+        return _error(f"--backend: {', '.join(unknown)} name no backend; `python -m bench backends` lists them")
+    lock = None
+    if args.out:
+        from .rundir import RunLock, make_dir
+
+        try:
+            lock = RunLock(make_dir(Path(args.out))).acquire()
+        except ValueError as exc:
+            return _error(str(exc))
+        except OSError as exc:
+            return _error(f"--out: cannot lock {args.out}: {exc.strerror or exc}; pass a directory you can write")
+    engines, notes = edges.engine_callables(ids, method=args.method)
+    lines = _ProgressLines(periodic=False)
+    for line in notes:
+        lines.line(line)
+    with Heartbeat(None if args.quiet else lines.line) as beat:
+        df = edges.edges_table(engines, meshes=meshes, families=families, offsets=offsets, n_rays=args.rays,
+                               seed=args.seed, stage=beat.stage)
+    print("offset δ (× mesh size) at which each engine first returns a wrong answer (false hit, false miss, or a hit "
+          "beyond its dtype's √ε depth tolerance), scanning δ downward:")
+    print(edges.markdown(df))
+    if args.out:
+        from .results import write_atomic
+
+        out = Path(args.out)
+        write_atomic(out / edges.FILE, lambda tmp: df.to_csv(tmp, index=False))
+        image = edges.plot(df, out / edges.PLOT)
+        print(f"wrote {out / edges.FILE}" + (f", {image}" if image else ""))
         if (out / "environment.json").exists():  # a run directory: its report gains the section
             from .report import build_from_dir
 
@@ -1084,6 +1195,8 @@ def main(argv: list[str] | None = None) -> int:
                     "sphere tracer, scipy's Chandrupatla refiner)")
     sp.add_argument("--volume", action="store_true", help="volume rendering instead: each backend's volume_nerf_uniform "
                     "against the plain compositing compiled by torch.compile and jax.jit (bench/peers.py)")
+    sp.add_argument("--mesh", action="store_true", help="the three mesh cameras instead: engines (raycast, float32) and "
+                    "--method (float64) side by side, default backends numpy,embree,open3d (bench/speed_mesh.py)")
     sp.add_argument("--samples", type=_int_at_least(1), default=256, help="samples per ray with --volume (default 256)")
     sp.add_argument("--repeats", type=_int_at_least(1), default=3)
     sp.add_argument("--threads", type=_int_at_least(1), default=1, help="threads per library and worker threads of the numpy/torch "
@@ -1091,6 +1204,23 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     sp.add_argument("--out", help="write the rows as JSON")
     sp.set_defaults(fn=cmd_speed)
+
+    ed = sub.add_parser("edges", help="per engine, wrong hits/misses and depth error against the grazing offset at "
+                        "mesh edges, vertices and faces parallel to the ray (bench/edges.py)")
+    ed.add_argument("--backend", action="append", help="backends to add to embree, open3d, trimesh, "
+                    "trimesh+embreex and numpy (e.g. warp,mitsuba): raycast where offered, else --method")
+    ed.add_argument("--engines", action="append", help="replace the default engines (embree,open3d,trimesh,"
+                    "trimesh+embreex,numpy) by these")
+    ed.add_argument("--method", default="hybrid_secant", help="root finder of the backends without raycast "
+                    "(float64, default knobs; default hybrid_secant)")
+    ed.add_argument("--mesh", default=None, help="stored meshes, comma-separated (default torus,fin,blob)")
+    ed.add_argument("--family", default=None, help="ray families, comma-separated (default edge,vertex,parallel)")
+    ed.add_argument("--offsets", default=None, help="grazing offsets × mesh size (default 1e-2,1e-3,…,1e-9)")
+    ed.add_argument("--rays", type=_int_at_least(2), default=64, help="rays per mesh, family and offset (default 64)")
+    ed.add_argument("--seed", type=int, default=0)
+    ed.add_argument("--out", help="write edges.csv and edges.png there; a run directory's report then shows them")
+    ed.add_argument("--quiet", action="store_true", help="no progress lines")
+    ed.set_defaults(fn=cmd_edges)
 
     sm = sub.add_parser("sampling", help="samples per ray each volume sampler needs to reach colour error targets "
                         "against the rendering integral (bench/sampling.py)")

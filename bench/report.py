@@ -467,6 +467,10 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
 
     sampling_lines = sampling_md(out_dir)
     md += sampling_lines
+    from .edges import section_html as edges_html
+    from .edges import section_md as edges_md
+
+    md += edges_md(out_dir)
     spread_lines, spread_workers = spread_section(df, env)
     if spread_lines:
         cells = spread_workers.astype(str).replace(r"\|", r"\\|", regex=True)  # a machine key's '|' is not a column
@@ -537,6 +541,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
     if sampling_lines:  # markdown table → HTML through pandas would lose nothing worth the code: shown as text
         parts += ["<h2>Samples to a colour error target</h2>", f"<p class='note'>{e(sampling_lines[2])}</p>",
                   "<pre>" + e(sampling_lines[4]) + "</pre>"]
+    parts += edges_html(out_dir, table, img)
     if spread_lines:
         parts += ["<h2>How the run was spread</h2><ul>", *[f"<li>{e(x)}</li>" for x in spread_lines], "</ul>",
                   table(spread_workers)]

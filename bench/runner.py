@@ -144,7 +144,10 @@ def skip_reason(cfg: Config, backend: Any) -> str | None:
     if isinstance(backend, Unavailable):
         return f"backend unavailable: {backend.reason}"
     if cfg.method not in backend_methods(backend):
-        return f"{cfg.backend_id} does not implement {cfg.method}"
+        spec = METHODS.get(cfg.method)
+        # a method no array library runs (MethodSpec.libs == ()): say who offers it
+        why = " (an engine's own query: only engine backends offer it)" if spec is not None and spec.libs == () else ""
+        return f"{cfg.backend_id} does not implement {cfg.method}{why}"
     if cfg.dtype not in backend_dtypes(backend):
         return f"{cfg.backend_id} does not support {cfg.dtype}"
     reason = applies(get_method(cfg.method), cfg.case)
@@ -458,7 +461,7 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     all_dtypes = list(dtypes or suite.dtypes)
     cfgs = []
     for _, _, case, method, k, knobs, rank in work:
-        for i, dtype in enumerate(all_dtypes):
+        for i, dtype in enumerate(method_dtypes(METHODS[method], all_dtypes, explicit=bool(dtypes))):
             if i > 0 and not dtypes and suite.secondary_dtype_cases is not None and (
                     k > 0 or rank >= suite.secondary_dtype_cases):
                 continue  # secondary dtypes: defaults on the first cases only (see Suite)
@@ -466,6 +469,19 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
             for bid in backend_ids[r:] + backend_ids[:r]:
                 cfgs.append(Config(case, bid, method, dtype, dict(knobs)))
     return cfgs
+
+
+def method_dtypes(spec, run_dtypes: list[str], explicit: bool) -> list[str]:
+    """The dtypes ``spec`` is planned in: the run's, or for a method that computes in its own
+    (``MethodSpec.dtypes``, an engine's ``raycast``) those, narrowed to the ones ``--dtype`` names
+    (``explicit``) when it names any of them (when it names none, the run's dtypes: the rows are
+    skipped with the reason, not left out)."""
+    own = getattr(spec, "dtypes", None)
+    if not own:
+        return list(run_dtypes)
+    if explicit:
+        return [d for d in run_dtypes if d in own] or list(run_dtypes)
+    return list(own)
 
 
 def _family(case) -> str:

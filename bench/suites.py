@@ -10,14 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 
 import numpy as np
-
-#: knob names treated as tolerances (swept over decades, tightest used while other knobs sweep)
-_TOL_NAME = re.compile(r"(tol|eps|epsilon)$")  # tol, xtol, atol, rtol, f_tol, eps…
-#: integer knobs that are not budgets (never swept by default)
-_NOT_BUDGET = re.compile(r"seed|behaviou?r|mode|index|axis", re.I)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,7 +92,13 @@ class Suite:
 
 
 def _is_tolerance(knob) -> bool:
-    return knob.kind is float and bool(_TOL_NAME.search(knob.name))
+    """A knob the suites sweep over decades: its declared role (``impls.methods.KNOB_ROLES``)."""
+    return knob.role == "tolerance"
+
+
+def _is_budget(knob) -> bool:
+    """A knob the suites sweep geometrically up to its default: its declared role."""
+    return knob.role == "budget"
 
 
 def _int_values(knob, level: str) -> list[int]:
@@ -121,15 +121,14 @@ def _tol_values(knob, level: str) -> list[float]:
 def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> list[dict]:
     """One-at-a-time sweep over a method's accuracy knobs, derived from its :class:`Knob` list.
 
-    * a knob may carry its own ``sweep`` (a tuple of values, optional attribute): used as is;
-    * a float knob named like a tolerance (``tol``, ``xtol``, ``*_tol``, ``eps``): 1e-4, 1e-8, 1e-12 (quick:
-      the report's error targets) or every decade 1e-2 … 1e-13 (full), the others at defaults;
-    * an integer knob that is a budget (steps, iterations, samples — not a seed or a mode):
-      3 (quick) or 7 (full) geometric
+    * a knob's own ``sweep`` (:class:`~impls.methods.Knob`, a tuple of values), if it has one: used as is;
+    * a knob of role ``tolerance`` (its :class:`~impls.methods.Knob` declares it): 1e-4, 1e-8, 1e-12
+      (quick: the report's error targets) or every decade 1e-2 … 1e-13 (full), the others at defaults;
+    * a knob of role ``budget`` (steps, iterations, samples): 3 (quick) or 7 (full) geometric
       values, rounded to powers of two, up to its default (quick) or 4× it (full), with every
       tolerance at its tightest swept value so the budget is what limits the error (a
       convergence curve in the budget);
-    * other knobs (sharpness, band width, relaxation…) stay at their defaults unless they carry
+    * knobs of role ``step``, ``seed`` and ``setting`` stay at their defaults unless they name a
       ``sweep``.
     With ``main_dial_only`` only the first knob is swept.  The first knob dict is always the
     all-defaults setting.  Knob dicts are complete (every knob named) and unique, in a stable order.
@@ -139,18 +138,18 @@ def default_sweep(spec, level: str = "quick", main_dial_only: bool = False) -> l
     base = {k.name: k.default for k in knobs}
     tight = {}
     for k in knobs:
-        if getattr(k, "sweep", None) is None and _is_tolerance(k):
+        if k.sweep is None and _is_tolerance(k):
             vals = _tol_values(k, level)
             if vals:
                 tight[k.name] = min(vals)
     out: list[dict] = [dict(base)]
     for k in swept:
-        explicit = getattr(k, "sweep", None)
+        explicit = k.sweep
         if explicit is not None:
             out += [{**base, k.name: v} for v in explicit]
         elif _is_tolerance(k):
             out += [{**base, k.name: v} for v in _tol_values(k, level)]
-        elif k.kind is int and not _NOT_BUDGET.search(k.name):
+        elif _is_budget(k):
             out += [{**base, **tight, k.name: v} for v in _int_values(k, level)]
     seen, unique = set(), []
     for kd in out:

@@ -16,14 +16,39 @@ import numpy as np
 from .core import methods_root
 
 
+#: what a knob does, which decides how a suite sweeps it (``bench/suites.py``, ``default_sweep``)
+KNOB_ROLES = {
+    "tolerance": "a stopping tolerance (float): swept over decades; the tightest swept value is held while a "
+                 "budget sweeps",
+    "budget": "a count of steps, iterations or samples (int): swept geometrically up to its default",
+    "step": "a step length or resolution (float): held at its default unless a suite names values",
+    "seed": "a random seed (int): never swept",
+    "setting": "an algorithm or model setting (a switch, a relaxation factor, a sharpness): never swept",
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class Knob:
+    """One accuracy or behaviour dial of a method.
+
+    ``low``/``high`` are inclusive validity bounds (``check`` rejects values outside them);
+    ``role`` is one of :data:`KNOB_ROLES`, declared by the method's author: suites sweep a knob by
+    its role, never by its name; ``sweep`` (optional) names the values to sweep instead."""
+
     name: str
     default: Any
     kind: type
     low: float  # inclusive lower bound
     doc: str
     high: float = math.inf  # inclusive upper bound
+    role: str = dataclasses.field(default="", kw_only=True)
+    #: values a suite sweeps this knob over whatever its role (None: by its role)
+    sweep: tuple | None = dataclasses.field(default=None, kw_only=True)
+
+    def __post_init__(self):
+        if self.role not in KNOB_ROLES:
+            raise ValueError(f"Knob {self.name!r}: role={self.role!r} must be one of {sorted(KNOB_ROLES)} "
+                             "(how a suite sweeps it); pass e.g. Knob(..., role='tolerance')")
 
     #: int knobs are step/sample counts held in int32 counters
     INT_MAX = 2**31 - 1
@@ -97,6 +122,9 @@ class MethodSpec:
     #: built-in backend of another library leaves it out of ``methods()``, and the runner records
     #: such a configuration as skipped ("does not implement")
     libs: tuple[str, ...] | None = None
+    #: the dtypes the method computes in whatever a run asks (an engine's own precision); the planner
+    #: plans it in these (in those of them ``--dtype`` names, when it names any); None: the run's dtypes
+    dtypes: tuple[str, ...] | None = None
 
     def algorithm(self, scene, t_min: float, t_max: float, knobs: dict[str, Any], theta: Any = None, *,
                   ladder: int) -> Any:
@@ -126,26 +154,26 @@ class MethodSpec:
 # Knob bounds are validity bounds (prepare rejects values outside them); defaults are the
 # "good" setting.  The first knob of each method is its main accuracy dial.
 
-_MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)")
-_XTOL = Knob("xtol", 1e-12, float, 0.0, "converged when the sign-change bracket is ≤ xtol wide or its ends are adjacent floats (depth units)")
+_MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)", role="budget")
+_XTOL = Knob("xtol", 1e-12, float, 0.0, "converged when the sign-change bracket is ≤ xtol wide or its ends are adjacent floats (depth units)", role="tolerance")
 _MIN_STEP = Knob("min_step", 1e-5, float, 1e-9,
-                 "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed")
+                 "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed", role="step")
 _OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,
-                 "largest forced step Δ beyond |φ|/L (halved down to min_step while a step is not certified)")
+                 "largest forced step Δ beyond |φ|/L (halved down to min_step while a step is not certified)", role="step")
 _BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's ray bounds (Field.ray_bounds: bounding "
-               "spheres, boxes, a union's hull; rays outside them are MISS at once); 0: all of [t_min, t_max]", 1)
-_HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)")
+               "spheres, boxes, a union's hull; rays outside them are MISS at once); 0: all of [t_min, t_max]", 1, role="setting")
+_HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)", role="budget")
 _LADDER = Knob("ladder", -1, int, -1, "a ray still marching after ladder_after steps goes on in ladder steps: this "
                "many marching samples evaluated together, judged pair by pair as single steps (0 or 1: off; -1: the "
                "backend's loop driver chooses: 16 on the compacting numpy/torch drivers, off on jax's masked loops)",
-               4096)
-_LADDER_AFTER = Knob("ladder_after", 64, int, 0, "marching steps before a ray goes on in ladder steps")
+               4096, role="setting")
+_LADDER_AFTER = Knob("ladder_after", 64, int, 0, "marching steps before a ray goes on in ladder steps", role="setting")
 _EXTRAPOLATE = Knob("extrapolate", 1.5, float, 0.0, "forced step at least this × the distance to the zero of the "
                     "secant through the last two marching points, within reach, so that a shallow approach "
-                    "crosses (0: off)")
+                    "crosses (0: off)", role="setting")
 _REACH = Knob("reach", 0.1, float, 0.0, "largest extrapolated step (depth units; a step not certified is rejected, "
-              "so this bounds what a rejection wastes, not what can be missed)")
-_MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0)
+              "so this bounds what a rejection wastes, not what can be missed)", role="step")
+_MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0, role="setting")
 _REFINE_DOC = {
     "bisect": "bisection (linear, ratio 1/2)",
     "secant": "safeguarded secant (order ≈ 1.618)",
@@ -169,22 +197,15 @@ SAMPLERS = {
 }
 
 
-#: the libraries (``Backend.lib``) of the engine backends, which offer ``raycast``: the built-in array
-#: backends have no ray query of their own and leave it out of ``methods()`` (a run records "does not
-#: implement raycast").  An engine's CONVERGED and MISS are its own answers, not certified by a bracket
-#: (README "Conventions"); the run validates them against the exact reference like every row.
-ENGINE_LIBS = ("embree", "open3d", "warp", "mitsuba")
-
-
 def _specs() -> list[MethodSpec]:
     specs = [
         MethodSpec(
             name="sphere_trace",
             family="root",
             knobs=(
-                Knob("tol", 1e-10, float, 0.0, "stop when |φ(o + t d)| ≤ tol"),
+                Knob("tol", 1e-10, float, 0.0, "stop when |φ(o + t d)| ≤ tol", role="tolerance"),
                 _MAX_STEPS,
-                Knob("omega", 1.0, float, 1.0, "over-relaxation factor ω (Keinert et al. 2014; 1 = plain)", 1.99),
+                Knob("omega", 1.0, float, 1.0, "over-relaxation factor ω (Keinert et al. 2014; 1 = plain)", 1.99, role="setting"),
                 _BOUNDS,
             ),
             requires=("lipschitz",), build=methods_root.build_sphere_trace,
@@ -216,14 +237,19 @@ def _specs() -> list[MethodSpec]:
         specs.append(MethodSpec(
             name=f"march_{refine}",
             family="root",
-            knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)"),
-                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps"), _BOUNDS, _LADDER,
+            knobs=(_XTOL, Knob("step", 1e-2, float, 1e-9, "marching step Δ (features thinner than Δ are missed)", role="step"),
+                   Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps", role="budget"), _BOUNDS, _LADDER,
                    _LADDER_AFTER),
             requires=(), build=methods_root.march_builder(refine), libs=_REFINE_LIBS.get(refine),
             description=f"march with constant step Δ to the first sign change (DVR/UNISURF), then {doc}",
         ))
+    # an engine's own ray query (impls/engine.py): no array-library backend runs it (libs=()), only
+    # the engine plug-ins whose methods() name it; float32, the precision the engines compute in
     specs.append(MethodSpec(
-        name="raycast", family="root", knobs=(), requires=(), libs=ENGINE_LIBS,
+        name="raycast",
+        family="root",
+        knobs=(),
+        requires=(), libs=(), dtypes=("float32",),
         description="the engine's own first-hit ray query (BVH over the mesh's triangles, or the engine's SDF-grid "
         "intersector); no knobs; precision as the engine computes",
     ))
@@ -252,14 +278,14 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="dt_unrolled", family="param_grad",
-            knobs=(Knob("steps", 64, int, 1, "number of unrolled sphere-tracing steps"), _MIN_COS),
+            knobs=(Knob("steps", 64, int, 1, "number of unrolled sphere-tracing steps", role="budget"), _MIN_COS),
             requires=("lipschitz", "smooth"), needs_t_hit=False, outputs=("dt_dtheta",),
             description="differentiable sphere tracing t_{k+1} = t_k + φ(x_k; θ)/L from t_min (lecture eq. 16), "
             "differentiated through every step; t is t_steps",
         ),
         MethodSpec(
             name="dt_finite_diff", family="param_grad",
-            knobs=(Knob("h", 1e-6, float, 1e-14, "central-difference step on each θ_i (relative to max(1, |θ_i|))"),
+            knobs=(Knob("h", 1e-6, float, 1e-14, "central-difference step on each θ_i (relative to max(1, |θ_i|))", role="step"),
                    _MIN_COS),
             requires=("smooth",), needs_t_hit=True, outputs=("dt_dtheta",),
             description="central differences (t(θ + h e_i) − t(θ − h e_i))/2h, each t re-solved by Newton from t_hit",
@@ -274,15 +300,15 @@ def _specs() -> list[MethodSpec]:
     ]
     for density, ddoc in DENSITIES.items():
         for sampler, sdoc in SAMPLERS.items():
-            knobs = [Knob("n_samples", 64, int, 1, "samples per ray N"),
-                     Knob("sharpness", 50.0, float, 1e-9, "density sharpness s (1/β)"),
-                     Knob("t_threshold", 0.0, float, 0.0, "early termination when transmittance < this (0: off)", 1.0)]
+            knobs = [Knob("n_samples", 64, int, 1, "samples per ray N", role="budget"),
+                     Knob("sharpness", 50.0, float, 1e-9, "density sharpness s (1/β)", role="setting"),
+                     Knob("t_threshold", 0.0, float, 0.0, "early termination when transmittance < this (0: off)", 1.0, role="setting")]
             if sampler == "band":
-                knobs.append(Knob("delta", 0.1, float, 1e-12, "half-width Δ of the band [t̂ − Δ, t̂ + Δ]"))
+                knobs.append(Knob("delta", 0.1, float, 1e-12, "half-width Δ of the band [t̂ − Δ, t̂ + Δ]", role="step"))
             if sampler == "stratified":
-                knobs.append(Knob("seed", 0, int, 0, "seed of the stratified jitter"))
+                knobs.append(Knob("seed", 0, int, 0, "seed of the stratified jitter", role="seed"))
             if sampler == "importance":
-                knobs.append(Knob("n_coarse", 32, int, 1, "coarse uniform samples that build the importance pdf"))
+                knobs.append(Knob("n_coarse", 32, int, 1, "coarse uniform samples that build the importance pdf", role="budget"))
             specs.append(MethodSpec(
                 name=f"volume_{density}_{sampler}", family="render", knobs=tuple(knobs), requires=(),
                 needs_t_hit=sampler == "band", outputs=("color", "opacity", "samples_used", "work_saved"), needs_color=True,

@@ -27,7 +27,9 @@ import numpy as np
 class Status(enum.IntEnum):
     """Per-ray outcome of a root finder."""
 
-    CONVERGED = 0  #: a hit within the method's tolerance; ``t`` is the depth
+    #: a hit within the method's tolerance; ``t`` is the depth (for ``raycast``, an engine's own
+    #: query, the engine's hit: no bracket or bound behind it, :mod:`impls.engine`)
+    CONVERGED = 0
     IN_PROGRESS = 1  #: internal: still iterating (never returned)
     MISS = 2  #: the ray left [t_min, t_max] with no hit; ``t`` is ``inf``
     MAX_ITER = -2  #: the step budget ran out; ``t`` is the last iterate

@@ -61,11 +61,9 @@ def _fold_last(v: Any, op: Any) -> Any:
 
 def sum_last(xp: Any, v: Any) -> Any:
     """Σ over the (short, coordinate) last axis as the explicit adds v[..., 0] + v[..., 1] + …,
-    not ``xp.sum(v, axis=-1)``.  numpy loops over one short axis per output (40% of a CSG φ
-    at 2^20 rays); XLA on the CPU emits a reduction that does not vectorise (torus ∪ box φ at
-    2^20 rays, jit: 29 ms with the reductions, 1.8 ms with the adds); torch is no slower
-    (torus ∪ box hybrid_secant, 2^20 rays, side by side: 1.28 s → 1.21–1.25 s together with
-    :func:`_const`'s cache).  The adds are elementwise operations, which also run on
+    not ``xp.sum(v, axis=-1)``: numpy loops over one short axis per output, and XLA on the CPU
+    emits a reduction over it that does not vectorise, where the adds are elementwise over
+    whole rows; torch is no slower either way.  The adds are elementwise operations, which also run on
     contiguous rows of the root finders' structure-of-arrays views (:mod:`impls.core.driver`)."""
     return _fold_last(v, xp.add)
 

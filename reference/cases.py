@@ -249,13 +249,43 @@ class Case:
 _FACTORIES: dict[str, Callable[[], Case]] = {}
 
 
+def make_case(case_id: str, scene: Field, origins, directions, *, tags: tuple[str, ...] = (), description: str = "",
+              t_min: float = 0.0, t_max: float = 10.0, color_frequency: float = 2.0) -> Case:
+    """The one case builder every case module uses: rays as contiguous float64 ``(n, 3)`` arrays,
+    tags = the scene's structural tags (its kinds, ``sdf``, ``lipschitz``, ``csg``, …) then
+    ``tags``, without repeats."""
+    return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(origins, np.float64),
+                directions=np.ascontiguousarray(directions, np.float64), t_min=t_min, t_max=t_max,
+                tags=tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags))), description=description,
+                color_frequency=color_frequency)
+
+
+def register_cases(ids, build: Callable[[], list[Case]]) -> None:
+    """The one way cases enter the catalog: ``ids`` are registered at once, without building
+    anything; ``build()`` returns the cases (exactly ``ids``) and runs at most once, when the first
+    of them is asked for (a stored mesh or network is loaded once for all of its cases)."""
+    ids = tuple(ids)
+
+    @functools.cache
+    def built() -> dict[str, Case]:
+        cases = {c.id: c for c in build()}
+        if set(cases) != set(ids):
+            raise AssertionError(f"case builder {getattr(build, '__qualname__', build)!r} built {sorted(cases)}, "
+                                 f"registered as {sorted(ids)}")
+        return cases
+
+    for cid in ids:
+        if cid in _FACTORIES:
+            raise ValueError(f"duplicate case id {cid!r}")
+    for cid in ids:
+        _FACTORIES[cid] = lambda cid=cid: built()[cid]
+
+
 def register(case_id: str):
-    """Decorator adding a zero-argument case factory to the catalog under ``case_id``."""
+    """Decorator form of :func:`register_cases` for one zero-argument case factory."""
 
     def deco(fn: Callable[[], Case]):
-        if case_id in _FACTORIES:
-            raise ValueError(f"duplicate case id {case_id!r}")
-        _FACTORIES[case_id] = fn
+        register_cases((case_id,), lambda: [fn()])
         return fn
 
     return deco
@@ -271,14 +301,6 @@ def get_case(case_id: str) -> Case:
     if case.id != case_id:
         raise AssertionError(f"factory for {case_id!r} built a case with id {case.id!r}")
     return case
-
-
-def register_group(ids, build: Callable[[], list[Case]]) -> None:
-    """Register cases built together (a stored mesh loaded once for all of its cases): ``build()``
-    returns them all, and runs at most once, when the first of ``ids`` is asked for."""
-    built = functools.cache(lambda: {c.id: c for c in build()})
-    for cid in ids:
-        register(cid)(lambda cid=cid: built()[cid])
 
 
 def case_ids() -> list[str]:
@@ -417,35 +439,16 @@ def _scene_tags(scene: Field) -> tuple[str, ...]:
 def _add(case_id: str, build: Callable[[], tuple], tags: tuple[str, ...] = (), description: str = "",
          t_min: float = 0.0, t_max: float = 10.0, color_frequency: float = 2.0) -> None:
     """Register ``case_id`` built lazily from ``build() -> (scene, origins, directions)``."""
-
-    def factory() -> Case:
-        scene, o, d = build()
-        all_tags = tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags)))
-        return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(o, np.float64),
-                    directions=np.ascontiguousarray(d, np.float64), t_min=t_min, t_max=t_max,
-                    tags=all_tags, description=description, color_frequency=color_frequency)
-
-    register(case_id)(factory)
+    register_cases((case_id,), lambda: [make_case(case_id, *build(), tags=tags, description=description, t_min=t_min,
+                                                  t_max=t_max, color_frequency=color_frequency)])
 
 
 def _cam(n: int, eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov: float = 40.0, up=(0.0, 1.0, 0.0)):
     return _rays.pinhole(eye=eye, look_at=look_at, up=up, fov_deg=fov, width=n, height=n)
 
 
-@register("sphere.camera.64x64")
-def _sphere_camera() -> Case:
-    origins, dirs = _rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=64, height=64)
-    return Case(
-        id="sphere.camera.64x64",
-        scene=Sphere(),
-        origins=origins,
-        directions=dirs,
-        t_min=0.0,
-        t_max=10.0,
-        tags=("quick", "camera", "sphere", "sdf", "lipschitz"),
-        description="unit sphere seen by a 64×64 pinhole camera at distance 3 (fov 40°); "
-        "the corners miss",
-    )
+_add("sphere.camera.64x64", lambda: (Sphere(), *_cam(64)), ("quick", "camera"),
+     "unit sphere seen by a 64×64 pinhole camera at distance 3 (fov 40°); the corners miss")
 
 
 def _register_all() -> None:

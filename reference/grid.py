@@ -77,7 +77,7 @@ import math
 import numpy as np
 
 from . import raybounds
-from .cases import register_group
+from .cases import register_cases
 from .scene import Field, SceneInfo, _points, const, safe_norm
 
 EPS = np.finfo(np.float64).eps
@@ -538,13 +538,11 @@ def grid_cases():
     sampled on 32³ and 64³ grids over [−1.4, 1.4]³ (every boundary sample ≥ 0.15 > 0: closed),
     seen by a camera, and rays grazing the 64³ grid's own surface in the equatorial plane."""
     from . import rays as _rays
-    from .cases import Case, _scene_tags
+    from .cases import make_case
     from .primitives import Torus
 
-    def make(cid, scene, o, d, tags, description, t_max=10.0):
-        return Case(id=cid, scene=scene, origins=np.ascontiguousarray(o, np.float64),
-                    directions=np.ascontiguousarray(d, np.float64), t_min=0.0, t_max=t_max,
-                    tags=tuple(dict.fromkeys(_scene_tags(scene) + tags)), description=description)
+    def make(cid, scene, o, d, tags, description):
+        return make_case(cid, scene, o, d, tags=tags, description=description)
 
     out = []
     grids = {k: grid_from_field(Torus(1.0, 0.25), (-1.4,) * 3, (1.4,) * 3, k) for k in (32, 64)}
@@ -574,6 +572,6 @@ def grid_cases():
     return out
 
 
-register_group(GRID_CASE_IDS, grid_cases)
+register_cases(GRID_CASE_IDS, grid_cases)
 
 __all__ = ["GRID_CASE_IDS", "GridSDF", "grid_cases", "grid_from_field"]

@@ -64,12 +64,10 @@ float64; results are cast back to the points' dtype and device).  torch: a
 call (``torch.autograd.grad`` and ``torch.func.jvp`` work); its backward raises a RuntimeError under ``create_graph=True``,
 so a second derivative fails loudly instead of returning a zero Hessian.  jax: ``jax.pure_callback`` under ``jax.custom_jvp`` with tangent
 ⟨∇φ, dx⟩ (``jax.jit``, ``jax.grad``, ``jax.jvp`` work; a second derivative raises, since the
-callback returning ∇φ has no derivative).  Cost: the host call dominates on every
-backend, ≈ 12 µs per point for φ and 13–15 µs for φ with ∇φ (torch autograd, jitted jax.grad)
-at 1e5 points uniform in the bounding box of the 5120-face blob (2-core CPU); the torch and jax
-bridges add no measurable cost over numpy; a call of 256 points costs 2–8 ms.  A call with a
-point the pseudonormal leaves undecided also pays the winding-number call's tree build (tens of
-milliseconds; rare).
+callback returning ∇φ has no derivative).  Cost: the host call into libigl's closest-point
+query dominates on every backend (the torch and jax bridges add nothing measurable over numpy),
+so mesh cases are the costliest per point of the catalog.  A call with a point the pseudonormal
+leaves undecided also pays the winding-number call's tree build (rare).
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from . import rays as _rays
-from .cases import LARGE_SIZES, Case, _cam, _scene_tags, large_tags, register_group
+from .cases import LARGE_SIZES, Case, _cam, large_tags, make_case, register_cases
 from .mesh import MeshSDF
 
 
@@ -44,10 +44,8 @@ def edge_grazing_rays(mesh: MeshSDF, n: int, offset: float, seed: int):
     return x - 2.0 * mesh.bounding_sphere()[1] * d, d
 
 
-def _case(case_id, scene, o, d, tags, description, t_min=0.0, t_max=10.0) -> Case:
-    return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(o, np.float64),
-                directions=np.ascontiguousarray(d, np.float64), t_min=t_min, t_max=t_max,
-                tags=tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags))), description=description)
+def _case(case_id, scene, o, d, tags, description) -> Case:
+    return make_case(case_id, scene, o, d, tags=tags, description=description)
 
 
 def _fin_thin():
@@ -97,7 +95,7 @@ def mesh_cases() -> list[Case]:
         _case("mesh.torus.camera.32x32", torus, *_cam(32, eye=(0.0, -2.5, 1.8)), ("camera",),
               "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 32×32 camera"),
         # the quick suite's mesh: the same view at 16×16 (each φ call is a host call into libigl,
-        # ≈ 12 µs a point, so a configuration costs seconds at 32×32)
+        # the costliest φ per point of the catalog)
         _case("mesh.torus.camera.16x16", torus, *_cam(16, eye=(0.0, -2.5, 1.8)), ("camera", "quick"),
               "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 16×16 camera"),
         _case("mesh.fin.camera.32x32", fin, *_cam(32, eye=(1.6, -1.9, 1.5)), ("camera", "thin"),
@@ -130,7 +128,7 @@ def _register() -> None:
     import importlib.util
 
     if all(importlib.util.find_spec(m) is not None for m in ("igl", "trimesh")):
-        register_group(MESH_CASE_IDS, mesh_cases)
+        register_cases(MESH_CASE_IDS, mesh_cases)
 
 
 _register()

@@ -4,7 +4,7 @@ Ids ``neural.blob.<family>``; the scene is :class:`reference.neural.NeuralSDF` (
 fitted to the ``blob`` mesh) with its spectral Lipschitz bound, or, where the id ends in
 ``.Llocal``, the tighter bound certified on its box (:mod:`reference.neural`).  Exact first hits come from the certified
 numerical reference (:func:`reference.numerical.first_hit_numeric`).  The network is loaded once
-for all of its cases (:func:`reference.cases.register_group`).
+for all of its cases (:func:`reference.cases.register_cases`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import functools
 import numpy as np
 
 from . import rays as _rays
-from .cases import LARGE_SIZES, Case, DeclaredLipschitz, _cam, _scene_tags, large_tags, register_group
+from .cases import LARGE_SIZES, Case, DeclaredLipschitz, _cam, large_tags, make_case, register_cases
 from .neural import NeuralSDF
 
 #: the factor of the measured slope that the ``understated`` case declares as its Lipschitz bound
@@ -71,10 +71,8 @@ def grazing_rays(net: NeuralSDF, n: int, offset: float, seed: int, back: float =
     return x - back * d, d
 
 
-def _case(case_id, scene, o, d, tags, description, t_min=0.0, t_max=6.0) -> Case:
-    return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(o, np.float64),
-                directions=np.ascontiguousarray(d, np.float64), t_min=t_min, t_max=t_max,
-                tags=tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags))), description=description)
+def _case(case_id, scene, o, d, tags, description) -> Case:
+    return make_case(case_id, scene, o, d, tags=tags, description=description, t_max=6.0)
 
 
 #: the ids :func:`neural_cases` builds, registered in the catalog without building them
@@ -98,8 +96,8 @@ def neural_cases() -> list[Case]:
     for n in LARGE_SIZES:
         out.append(_case(f"neural.blob.camera.{n}x{n}.Llocal", local, *_cam(n, fov=50.0), large_tags(n),
                          f"the network with its local bound {local.local_bound:.3g}, {n}×{n} camera (the 16×16 view "
-                         "at scale); hits from the certified numerical reference, ≈ 13 ms a ray on 2 shared cores (≈ 15 min at "
-                         "256², ≈ 4 h at 1024²)"))
+                         "at scale); hits from the certified numerical reference (its cost grows with the rays: "
+                         "minutes at 256², hours at 1024²)"))
     # grazing rays with the local bound: certifying a near miss at distance δ costs ~L/√δ
     # evaluations per ray (the reference halves intervals until |φ(a)| + |φ(b)| > L(b − a)),
     # 5× fewer than with the spectral bound
@@ -118,4 +116,4 @@ def neural_cases() -> list[Case]:
     return out
 
 
-register_group(NEURAL_CASE_IDS, neural_cases)
+register_cases(NEURAL_CASE_IDS, neural_cases)

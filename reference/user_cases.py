@@ -114,8 +114,7 @@ def load(spec: str) -> list[str]:
     if dup:
         raise ValueError(f"--cases: {spec} repeats or reuses case ids already in the catalog: {dup}; give them "
                          "ids of their own")
-    for c in checked:
-        _cases.register(c.id)(lambda c=c: c)
+    _cases.register_cases(ids, lambda: checked)
     return ids
 
 

@@ -350,6 +350,7 @@ def test_malformed_depth_range(numpy_backend, t_min, t_max):
 
 
 @SETTINGS
+# the methods numpy offers (not raycast, an engine's own query: MethodSpec.libs = ())
 @given(method=st.sampled_from(sorted(m for m, s in METHODS.items() if s.libs is None or "numpy" in s.libs)),
        data=st.data())
 def test_malformed_knobs(numpy_backend, method, data):

@@ -83,16 +83,16 @@ def fake_render(scene, o, d, t_min, t_max, t_hit, n_samples, behaviour=0):
 
 
 FAKE_METHODS = {
-    "fake_root": MethodSpec("fake_root", "root", (Knob("tol", 1e-6, float, 0.0, "tolerance"),
-                                                  Knob("max_steps", 8, int, 1, "budget"),
-                                                  Knob("behaviour", 0, int, 0, "0 ok, 1 raise, 2 shape, 3 NaN, 4 hang")),
+    "fake_root": MethodSpec("fake_root", "root", (Knob("tol", 1e-6, float, 0.0, "tolerance", role="tolerance"),
+                                                  Knob("max_steps", 8, int, 1, "budget", role="budget"),
+                                                  Knob("behaviour", 0, int, 0, "0 ok, 1 raise, 2 shape, 3 NaN, 4 hang", role="setting")),
                             ("lipschitz",), "exact hit + planted error"),
-    "fake_normal": MethodSpec("fake_normal", "gradient", (Knob("n_fd", 4, int, 1, "evals"),),
+    "fake_normal": MethodSpec("fake_normal", "gradient", (Knob("n_fd", 4, int, 1, "evals", role="budget"),),
                               (), "exact normal rotated by a planted angle", needs_t_hit=True,
                               outputs=("normal", "curvature_laplacian")),
-    "fake_dt": MethodSpec("fake_dt", "param_grad", (Knob("n_fd", 2, int, 1, "evals"),),
+    "fake_dt": MethodSpec("fake_dt", "param_grad", (Knob("n_fd", 2, int, 1, "evals", role="budget"),),
                           (), "exact dt/dθ + planted error", needs_t_hit=True, outputs=("dt_dtheta",)),
-    "fake_render": MethodSpec("fake_render", "render", (Knob("n_samples", 8, int, 1, "samples"),),
+    "fake_render": MethodSpec("fake_render", "render", (Knob("n_samples", 8, int, 1, "samples", role="budget"),),
                               (), "black image", outputs=("color",)),
 }
 _IMPL = {"fake_root": fake_root, "fake_normal": fake_normal, "fake_dt": fake_dt, "fake_render": fake_render}
@@ -165,7 +165,7 @@ def fake_volume(scene, o, d, t_min, t_max, t_hit, n_samples, sharpness, behaviou
             "evals": np.full(n, n_samples, np.int32), "color": c + PLANTED}
 
 
-_VOLUME_KNOBS = (Knob("n_samples", 8, int, 1, "samples"), Knob("sharpness", 50.0, float, 1e-9, "s"))
+_VOLUME_KNOBS = (Knob("n_samples", 8, int, 1, "samples", role="budget"), Knob("sharpness", 50.0, float, 1e-9, "s", role="setting"))
 FAKE_METHODS.update({
     f"volume_{m}_uniform": MethodSpec(f"volume_{m}_uniform", "render", _VOLUME_KNOBS, (), "fake volume", outputs=("color",))
     for m in ("nerf", "unisurf")

@@ -170,8 +170,8 @@ def test_bad_selection_is_a_clear_error(fake_methods):
 
 
 def test_default_sweep_derives_from_knobs():
-    spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t"), Knob("n_samples", 64, int, 1, "n"),
-                                      Knob("sharpness", 50.0, float, 0.0, "s")), (), "")
+    spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t", role="tolerance"), Knob("n_samples", 64, int, 1, "n", role="budget"),
+                                      Knob("sharpness", 50.0, float, 0.0, "s", role="setting")), (), "")
     sw = default_sweep(spec, "quick")
     assert all(set(k) == {"tol", "n_samples", "sharpness"} for k in sw)
     assert all(k["sharpness"] == 50.0 for k in sw)  # not a tolerance, no sweep hint: fixed
@@ -183,15 +183,15 @@ def test_default_sweep_derives_from_knobs():
     assert len(full) > len(sw) and max(k["n_samples"] for k in full) == 256
     assert len({json.dumps(k, sort_keys=True) for k in full}) == len(full)  # no duplicates
     # xtol is a tolerance; a seed is not a budget
-    spec2 = MethodSpec("m2", "render", (Knob("xtol", 1e-12, float, 0.0, "x"), Knob("seed", 0, int, 0, "seed"),
-                                        Knob("n_coarse", 32, int, 1, "n")), (), "")
+    spec2 = MethodSpec("m2", "render", (Knob("xtol", 1e-12, float, 0.0, "x", role="tolerance"), Knob("seed", 0, int, 0, "seed", role="seed"),
+                                        Knob("n_coarse", 32, int, 1, "n", role="budget")), (), "")
     sw2 = default_sweep(spec2, "quick")
     assert {k["seed"] for k in sw2} == {0}
     assert sorted({k["xtol"] for k in sw2}) == [1e-12, 1e-8, 1e-4]
     assert len({k["n_coarse"] for k in sw2}) == 3
     # an explicit hint wins
-    hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (dataclasses.make_dataclass(
-        "HKnob", [("sweep", tuple, (10.0, 100.0))], bases=(Knob,), frozen=True)("sharpness", 50.0, float, 0.0, "s"),))
+    hinted = dataclasses.replace(spec, knobs=spec.knobs[:2] + (
+        Knob("sharpness", 50.0, float, 0.0, "s", role="setting", sweep=(10.0, 100.0)),))
     assert {k["sharpness"] for k in default_sweep(hinted)} == {50.0, 10.0, 100.0}
     # the real catalog: every method gets a non-empty sweep whose knobs validate
     for m in impls.methods.METHODS.values():
@@ -467,7 +467,9 @@ def test_workloads_suite_plans_only_workload_cases_with_every_root_finder():
     ids = {c.case.id for c in cfgs}
     expected = {c.id for c in catalog() if any(fnmatch.fnmatchcase(c.id, g) for g in ("mesh.*", "grid.*", "neural.*"))}
     assert ids == expected and len(expected) >= 10
-    assert {c.dtype for c in cfgs} == {"float64"}
+    # float64, but for a method that computes in its own dtype (an engine's raycast: float32)
+    assert {c.dtype for c in cfgs if METHODS[c.method].dtypes is None} == {"float64"}
+    assert {c.dtype for c in cfgs if c.method == "raycast"} == {"float32"}
     planned = {(c.case.id, c.method) for c in cfgs}
     for case in catalog():
         if case.id not in expected:
@@ -503,3 +505,23 @@ def test_costly_writes_are_spaced_so_writing_stays_a_small_share_of_the_run(fake
     gaps = np.diff(writes[:-1])  # the last write is the run's closing one, whenever it comes
     assert (gaps >= runner.FLUSH_COST_FACTOR * cost).all(), gaps
     assert len(read_results(tmp_path)) == len(df) and df.groupby(runner.CONFIG_KEY).ngroups == n_cfg
+
+
+def test_a_method_with_its_own_dtypes_is_planned_in_them():
+    """``MethodSpec.dtypes`` (raycast: float32): planned in those whatever the suite's dtypes; narrowed
+    to the ones ``--dtype`` names; with ``--dtype`` naming none of them, planned in the run's (and
+    skipped there with the reason, not silently left out)."""
+    from bench.suites import get_suite
+
+    suite = get_suite("quick")
+    assert suite.dtypes == ("float64",)
+    cfgs = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast", "hybrid_secant"], None)
+    assert {(c.method, c.dtype) for c in cfgs} == {("raycast", "float32"), ("hybrid_secant", "float64")}
+    both = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64", "float32"])
+    assert {c.dtype for c in both} == {"float32"}
+    only64 = runner.plan(suite, ["numpy"], "sphere.grazing.1e-6", ["raycast"], ["float64"])
+    assert {c.dtype for c in only64} == {"float64"}
+    from impls import registry
+
+    reason = runner.skip_reason(only64[0], registry.resolve("numpy"))
+    assert "does not implement raycast" in reason and "engine" in reason

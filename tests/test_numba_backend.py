@@ -296,3 +296,82 @@ def test_knobs_come_from_the_catalog(nb):
         nb.prepare("hybrid_secant", scene, o, d, xtol=-1.0)
     r = run(nb, "march_newton", scene, o, d, step=0.05)  # dφ/dt by central differences: 3 evaluations each
     assert np.all(r.evals[r.status == Status.CONVERGED] % 3 == 0)
+
+
+# -- the kernels: one template per step, the refiners they compile -------------------------------
+
+
+def _march(method="march_secant", **knobs):
+    scene, _, _ = _scene("sphere")
+    spec = METHODS[method]
+    return spec.algorithm(scene, 0.0, 10.0, spec.validate(knobs), ladder=0)
+
+
+def test_the_refiners_are_mapped_explicitly_and_an_unknown_one_is_an_error():
+    """The kernels compile Bisect, Secant and Newton (0, 1, 2 in the configuration).  Any other
+    refiner — a user's subclass with its own proposal, or march_chandrupatla's scipy refinement
+    (a MarchRefine subclass whose refiner field is a placeholder Bisect) — is refused naming it and
+    what is compiled, instead of being run as another refiner's steps."""
+    import dataclasses
+
+    from impls.core.rootfind import Bisect, Newton, Secant
+    from impls.numba import driver
+
+    alg = _march()
+    for ref, k in ((Bisect(), 0), (Secant(), 1), (Newton(), 2)):
+        assert driver.configuration(dataclasses.replace(alg, refiner=ref))[2][driver.I_REFINER] == k
+
+    class DampedSecant(Secant):  # a user's refiner: another proposal
+        def _iterate(self, xp, s, t, f):
+            return t - 0.5 * f * (t - s["p"]) / (f - s["fp"])
+
+    with pytest.raises(NotImplementedError, match="DampedSecant is not one of them") as err:
+        driver.configuration(dataclasses.replace(alg, refiner=DampedSecant()))
+    assert "Bisect, Secant, Newton" in str(err.value)
+    with pytest.raises(NotImplementedError, match="MarchChandrupatla"):
+        driver.configuration(_march("march_chandrupatla"))
+
+
+def test_march_chandrupatla_is_not_offered_and_not_run_as_bisection(nb):
+    """The runner never reaches the kernels with scipy's refiner: the method is not offered
+    (``prepare`` refuses it: the run records the configuration as skipped), and solving it
+    directly is an error, not a bisection."""
+    scene, o, d = _scene("sphere")
+    assert "march_chandrupatla" not in nb.methods()
+    with pytest.raises(NotImplementedError, match="does not implement"):
+        nb.prepare("march_chandrupatla", scene, o, d, t_max=10.0)
+    knobs = METHODS["march_chandrupatla"].validate({})
+    with pytest.raises(NotImplementedError, match="MarchChandrupatla"):
+        nb.solve("march_chandrupatla", scene, o, d, t_min=0.0, t_max=10.0, **knobs)
+
+
+def test_each_step_is_written_once_and_both_kernels_are_generated_from_it():
+    """The one-ray kernel and the lanes kernel hold every line of the step templates (with the
+    ray's variables renamed: no suffix, ``_0`` … for the lanes), and the steps' arithmetic
+    appears nowhere else in the package: no hand-kept copy of a step remains."""
+    import re
+    from pathlib import Path
+
+    from impls.numba import template
+
+    one, lanes = template.one_ray_source(), template.lanes_source()
+    for name in ("START", "STEP", "LADDER"):
+        for line in getattr(template, name).strip("\n").splitlines():
+            line = line.strip()
+            if line.startswith("@EVAL"):
+                continue
+            assert re.sub(r"_K\b", "", line) in one, (name, line)
+            if name != "LADDER":  # (the lanes kernel has no ladder stage)
+                for k in range(template.LANES):
+                    assert re.sub(r"_K\b", f"_{k}", line) in lanes, (name, k, line)
+    assert lanes.count("= ev(p, ") == template.LANES and "ev_d(" not in lanes
+    # the march step, the crossing test, the secant and chord, the safeguard's lengthened step, the
+    # closed-bracket test: in the templates, and in no other module of the package
+    arithmetic = [r"_min\(\w+ \+ step", r"\(\w+ > 0\) != \(\w+ > 0\)", r"\w+ - \w+ \* \(\w+ - \w+\) / \(\w+ - \w+\)",
+                  r"\w+ \+ 0\.5 \* hh", r"<= xtol\) or \(\w+ <= \w+\) or \(\w+ >= \w+\)"]
+    steps = template.START + template.STEP + template.LADDER
+    for pattern in arithmetic:
+        assert re.search(pattern, steps), pattern
+        for path in Path(template.__file__).parent.glob("*.py"):
+            if path.name != "template.py":
+                assert not re.search(pattern, path.read_text()), (pattern, path.name)

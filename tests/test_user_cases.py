@@ -105,3 +105,33 @@ def test_a_user_case_runs_in_bench_run_from_outside_the_repository(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "bench", "run", "--cases", "nosuchmodule_xyz:CASES", "--no-progress"],
                          capture_output=True, text=True, env=env, timeout=HANG_GUARD_S)
     assert bad.returncode == 2 and "--cases" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_register_cases_builds_once_and_checks_the_ids(monkeypatch):
+    """The one registration function: ids registered without building; the builder runs once, on
+    the first request, and must build exactly the ids it registered."""
+    from reference import Sphere
+    from reference import cases as cases_mod
+    from reference.cases import case_ids, get_case, make_case, register_cases
+    from reference.rays import pinhole
+
+    # a private copy of the catalog: the cases registered here leave no trace for other tests
+    monkeypatch.setattr(cases_mod, "_FACTORIES", dict(cases_mod._FACTORIES))
+
+    calls = []
+
+    def build():
+        calls.append(1)
+        return [make_case(f"test.rc.{k}", Sphere(), *pinhole((0, 0, 3), (0, 0, 0), width=2, height=2),
+                          tags=("mine",)) for k in ("a", "b")]
+
+    register_cases(("test.rc.a", "test.rc.b"), build)
+    assert {"test.rc.a", "test.rc.b"} <= set(case_ids()) and not calls
+    a, b = get_case("test.rc.a"), get_case("test.rc.b")
+    assert len(calls) == 1 and a.tags[:1] == ("sphere",) and "mine" in b.tags
+    assert a.origins.dtype == np.float64 and a.origins.flags.c_contiguous
+    with pytest.raises(ValueError, match="duplicate case id 'test.rc.a'"):
+        register_cases(("test.rc.a",), build)
+    register_cases(("test.rc.c",), build)  # builds a and b, not c
+    with pytest.raises(AssertionError, match="registered as"):
+        get_case("test.rc.c")

@@ -163,7 +163,7 @@ def test_raycast_is_an_engine_method_the_builtins_do_not_offer():
 
     cfg = Config(case=get_case("mesh.torus.camera.16x16"), backend_id="numpy", method="raycast", dtype="float32",
                  knobs={})
-    assert skip_reason(cfg, numpy_backend) == "numpy does not implement raycast"
+    assert skip_reason(cfg, numpy_backend).startswith("numpy does not implement raycast")
 
 
 def test_the_llvm_finder_keeps_a_users_path_and_reads_versions(monkeypatch):

@@ -1,32 +1,30 @@
 """Loop driver with active-set compaction for eager backends (numpy, torch): runs a staged
 root finder of :mod:`impls.core.rootfind` to completion.
 
-Why it looks the way it does (all measured on 2^20 rays, see ``bench/speed.py``):
+Why it looks the way it does (each choice checked with `python -m bench speed`):
 
 * **Structure of arrays.**  Origins and directions are kept as contiguous (3, n) arrays and
   passed to the algorithm as their transposed (n, 3) views, so x = o + t d and every scene's
-  ``xp.sum(v * v, axis=-1)`` run over three contiguous rows instead of a stride-3 axis (numpy:
-  the CSG torus ∪ box φ is 7× faster this way).
+  ``xp.sum(v * v, axis=-1)`` run over three contiguous rows instead of a stride-3 axis (numpy's
+  strided short-axis loops dominate a CSG φ otherwise).
 * **Blocks.**  Rays go through in blocks of ``block``, which bounds the memory of the state.
-  Larger blocks mean fewer Python-level steps: sphere, 2^20 rays, ``hybrid_secant``, 256-ray
-  pool: 2^12 → 2.68 s, 2^14 → 2.33 s, 2^16 → 1.89 s, 2^17 → 1.81 s.
+  Larger blocks mean fewer Python-level steps (a step's cost is mostly per-call overhead on
+  small blocks); the default 2^16 keeps a block's state in cache.
 * **Compaction.**  Within a block only rays still iterating in the current stage are stepped;
   a ray's outputs are written the step it finishes, so ``evals`` counts exactly the
   evaluations made.  The rays that stay are compacted in place by moving the last ones into
-  the holes (:func:`_drop`, O(leaving) per array) rather than gathered (O(staying)): torus ∪
-  box, numpy, 1.26 s → 1.15 s.  A block's rays that finish at the start (outside the ray
+  the holes (:func:`_drop`, O(leaving) per array) rather than gathered (O(staying)), since
+  few rays leave per step.  A block's rays that finish at the start (outside the ray
   bounds, ``alg.start``) are dropped the same way before φ is evaluated (``alg.init`` runs on
   the others only), and rays handed on to a later stage are gathered into that stage's
-  bucket.  Rows are gathered with ``take``
-  (numpy's ``Oc[:, sel]`` on a (3, 2^16) array is 5× slower) and moved row by row.
+  bucket.  Rows are gathered with ``take`` (numpy's fancy indexing ``Oc[:, sel]`` of a
+  (3, n) array is the slower path) and moved row by row.
 * **Carry only what is read.**  A stage's rows carry only the state entries its step reads
   (``alg.reads``): every step writes ``status`` and ``phase`` afresh, and a refining ray
-  no longer needs its marching step size or bound.  Together with the start above and the
-  leaner steps and longer extrapolated steps of :mod:`impls.core.rootfind`: torus ∪ box,
-  numpy, 0.39–0.41 s → 0.34–0.35 s (side by side).
+  has no use for its marching step size or bound, so moving them would be wasted copying.
 * **Threads.**  ``workers`` threads run blocks side by side (``--threads`` of the bench
-  commands): torus ∪ box, numpy, about 1.3× faster with 2 threads on this 2-core machine;
-  torch gains little (its per-call overhead holds the GIL).
+  commands): numpy releases the GIL inside its kernels, so blocks overlap; torch gains little
+  (its per-call overhead holds the GIL).
 * **Straggler pool.**  Per-ray step counts are heavy-tailed (grazing rays).  Once fewer than
   ``pool`` rays of a block remain in a stage, they are set aside and finished together with
   the stragglers of every other block, so the long tail costs its loop overhead once, not once
@@ -93,9 +91,10 @@ def run_compacted(alg, xp, o, d, ev, *, soa: Callable[[Any], Any], block: int = 
     steps are on few rays, where the per-call overhead (under the GIL) dominates, and split
     over two threads it measured slower.  ``guard()`` is entered in every thread (numpy's
     ``errstate`` and torch's ``no_grad`` are per thread).  ``take(a, indices, axis)`` gathers
-    rows (default ``xp.take``; torch passes ``index_select``, 3–5× faster than
-    array_api_compat's ``take``, which also wraps negative indices); ``move(v, holes, src)``
-    does ``v[holes] = v[src]`` in place (torch passes ``index_copy_``, 2× faster).
+    rows (default ``xp.take``; torch passes ``index_select``: array_api_compat's ``take`` also
+    wraps negative indices, which costs a pass); ``move(v, holes, src)`` does
+    ``v[holes] = v[src]`` in place (torch passes ``index_copy_``, which skips advanced indexing's
+    checks).
     """
     n = o.shape[0]
     if take is None:
@@ -171,8 +170,7 @@ def _reads(alg, k: int):
 
 def _take(take, s: dict, gidx, Oc, Dc, sel, keys=None):
     """The rows ``sel`` (indices) of every array (of the state entries ``keys``; None: all),
-    gathered with ``take`` (numpy: 5× faster than ``Oc[:, sel]`` on (3, 2^16) arrays, 1.4× on
-    vectors).  Every entry is gathered on its own, also where a step stored one array under two
+    gathered with ``take`` (numpy's fast path for gathering rows, unlike fancy indexing).  Every entry is gathered on its own, also where a step stored one array under two
     names (a marching step's ``b`` and ``t`` on a crossing): the copies are then distinct."""
     new = {k: take(v, sel, 0) for k, v in s.items() if keys is None or k in keys}
     return new, take(gidx, sel, 0), take(Oc, sel, 1), take(Dc, sel, 1)

@@ -120,6 +120,11 @@ class MitsubaBackend(ArrayBackend):
         if self.device == "llvm" and dr.thread_count() != self.settings.threads:
             dr.set_thread_count(self.settings.threads)
 
+    def methods(self):
+        """The methods offered here (``_impl``), ``raycast`` included: the catalog leaves it to the
+        engines (``MethodSpec.libs = ()``), which name it themselves."""
+        return tuple(sorted(self._impl))
+
     def asarray(self, a, dtype):
         return np.ascontiguousarray(a, dtype=np.dtype(dtype))
 

@@ -3,29 +3,28 @@
 The algorithms are those of :mod:`impls.core.rootfind` (``SphereTrace``; ``MarchRefine`` with its
 ``ConstantStep`` or ``CertifiedStep`` rule, its ``Bisect``, ``Secant`` or ``Newton`` refiner and its
 optional ladder stage), built by the method catalog from the validated knobs
-(:meth:`impls.methods.MethodSpec.algorithm`) and read here field by field, so no knob has a
-default of its own in this module.  Each step is the array step of :mod:`impls.core.rootfind`
-written for one ray, with the same operations in the same order: the same depths, statuses
-(:class:`impls.protocol.Status`), iteration and evaluation counts as the array drivers, the same
-Lipschitz-violation check (:func:`impls.core.rootfind.lipschitz_violated`) and the same
-certified convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or φ = 0).
-A ray's stage is its ``phase`` (march, ladder, refine), as in the array drivers.
+(:meth:`impls.methods.MethodSpec.algorithm`) and read here field by field
+(:func:`configuration`), so no knob has a default of its own in this module.
 
 The certified methods (``SphereTrace``, and ``MarchRefine`` with a ``CertifiedStep`` rule: their
-first-crossing certification, certified MISS and φ's resolution) are not copied here: they run
-the array algorithm of :mod:`impls.core.rootfind` with numpy's compacting driver, each φ
-evaluation one compiled parallel kernel over the rays (:func:`_run_certified`).  The per-ray
-kernels below (``sphere_one``, ``march_one`` with a ``CertifiedStep``, and the hybrid lanes) are
-no longer reached for them.
+first-crossing certification, certified MISS and φ's resolution) run the array algorithm of
+:mod:`impls.core.rootfind` itself with numpy's compacting driver, each φ evaluation one compiled
+parallel kernel over the rays (:func:`_run_certified`).
 
+The constant-step marchers run in compiled kernels generated from one template of each step
+(:mod:`impls.numba.template`): the array step of :mod:`impls.core.rootfind` written for one ray,
+with the same operations in the same order, so the same depths, statuses
+(:class:`impls.protocol.Status`), iteration and evaluation counts as the array drivers, the same
+Lipschitz-violation check (:func:`impls.core.rootfind.lipschitz_violated`) and the same certified
+convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or φ = 0).  Only the
+refiners the template has are compiled (:data:`REFINERS`); another is an error, not a stand-in.
 Where the array drivers step every ray still iterating once per loop step (compacting or
-masking), this driver runs each ray to completion on its own (``prange`` over rays, threads
+masking), these kernels run each ray to completion on its own (``prange`` over rays, threads
 ``NumbaSettings.threads``), with its state in registers: no per-step overhead, which is what the
 array drivers' ladder stage exists to amortise, so the driver's choice for the knob
-``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).  A ray's steps are one chain of
-dependent operations, so the hybrid and the constant-step marchers (without derivatives or ladder
-steps) run two rays in turn per thread (:mod:`impls.numba.lanes`: the same steps, 1.5× faster
-on the speed scenes); the others run one ray at a time (``march_one``, ``sphere_one``).
+``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).  Without derivatives or ladder
+steps two rays are stepped in turn per thread (the lanes kernel, whose rays' independent chains of
+operations overlap); Newton's refinement and the ladder run one ray at a time (``march_one``).
 
 φ along a ray is the compiled scene (:mod:`impls.numba.fields`); dφ/dt, for Newton, is numpy's
 central difference (:mod:`impls.numba.derivatives`), 3 evaluations.
@@ -39,7 +38,8 @@ import math
 import numpy as np
 
 from ..core.driver import _whole_at_least
-from ..core.rootfind import BAD, CONV, IN, LIPV, MAXI, MISS, NONF, Bisect, CertifiedStep, Newton, SphereTrace
+from ..core.rootfind import (BAD, CONV, IN, LIPV, MAXI, MISS, NONF, Bisect, CertifiedStep, ConstantStep, MarchRefine,
+                             Newton, Secant, SphereTrace)
 
 #: per-ray ladder samples where the knob leaves it to the driver (-1): none (module docstring)
 LADDER = 0
@@ -73,7 +73,7 @@ class NumbaSettings:
     def record(self) -> dict:
         """The settings as recorded with a result: ``{"driver": kind, field: value, …, "lanes": rays
         stepped in turn per thread by the lanes kernel}``."""
-        from .lanes import LANES
+        from .template import LANES
 
         return {"driver": self.kind, **dataclasses.asdict(self), "lanes": LANES}
 
@@ -92,9 +92,33 @@ def _lip_eps(alg, dtype) -> float:
     return 16.0 * alg.gain * float(np.finfo(np.dtype(dtype)).eps)
 
 
+#: the refiners the kernels compile, by their number in the configuration (``I_REFINER``); by exact
+#: class: a subclass may change the proposal (``_iterate``), which the kernels would not follow
+REFINERS = {Bisect: 0, Secant: 1, Newton: 2}
+
+
+def compiled_refiner(alg) -> int:
+    """The kernels' number of the refiner of ``alg``, a ``MarchRefine`` (exactly: a subclass, such
+    as ``march_chandrupatla``'s, replaces its steps) with a ``ConstantStep`` rule; any other
+    algorithm or refiner is a NotImplementedError naming it and what the kernels compile (they
+    must not run another refiner's steps in its place)."""
+    compiled = ", ".join(c.__name__ for c in REFINERS)
+    if type(alg) is not MarchRefine or type(alg.rule) is not ConstantStep:
+        raise NotImplementedError(
+            f"the numba kernels compile MarchRefine with a ConstantStep rule (refiners {compiled}); got "
+            f"{type(alg).__name__} with {type(getattr(alg, 'rule', None)).__name__} (the certified methods run "
+            "the core algorithm: _run_certified)")
+    ref = type(alg.refiner)
+    if ref not in REFINERS:
+        raise NotImplementedError(f"the numba kernels compile the refiners {compiled}; {ref.__module__}."
+                                  f"{ref.__qualname__} is not one of them")
+    return REFINERS[ref]
+
+
 def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
     """``(kind, floats, ints)`` of a root finder built by the catalog: ``kind`` "sphere" or
-    "march", its numbers in the kernels' layout (index names ``F_*``, ``I_*``)."""
+    "march", its numbers in the kernels' layout (index names ``F_*``, ``I_*``).  A constant-step
+    marcher's refiner is mapped by :func:`compiled_refiner` (an unknown one is an error)."""
     fc = np.zeros(14)
     ic = np.zeros(8, np.int64)
     fc[F_TMIN], fc[F_TMAX], fc[F_SCALE], fc[F_LEPS] = alg.t_min, alg.t_max, alg.scale, _lip_eps(alg, dtype)
@@ -103,15 +127,15 @@ def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
         fc[F_INVLIP], fc[F_TOL], fc[F_OMEGA] = alg.inv_lip, alg.tol, alg.omega
         ic[I_PROBE] = alg.probe
         return "sphere", fc, ic
-    rule, ref = alg.rule, alg.refiner
+    rule = alg.rule
     fc[F_XTOL] = alg.xtol
     ic[I_LADDER], ic[I_LADDER_AFTER] = alg.ladder, alg.ladder_after
-    ic[I_REFINER] = 0 if isinstance(ref, Bisect) else (2 if isinstance(ref, Newton) else 1)
     if isinstance(rule, CertifiedStep):
         ic[I_CERT], ic[I_PROBE] = 1, rule.probe
         fc[F_INVLIP], fc[F_MINSTEP], fc[F_CAP] = rule.inv_lip, rule.min_step, rule.cap
         fc[F_EXTRA], fc[F_REACH] = rule.extrapolate, rule.reach
     else:
+        ic[I_REFINER] = compiled_refiner(alg)
         fc[F_STEP] = rule.step
         fc[F_MINSTEP] = rule.min_step
     if rule.check is not None:
@@ -155,16 +179,17 @@ def kernels_source(key: str) -> str:
 
     The module is put together from the sources themselves, not rewritten: the scene's ``phi``
     and ``bounds`` (``key``), the body of :func:`_make_kernels` (its imports made absolute) and
-    the lanes kernel (:func:`impls.numba.lanes.source`); the same algorithm text, compiled the
-    same way, with the top-level kernels' caching turned on (``Dispatcher.enable_caching``)."""
+    the kernels generated from the step templates (:func:`impls.numba.template.source`); the same
+    algorithm text, compiled the same way, with the top-level kernels' caching turned on
+    (``Dispatcher.enable_caching``)."""
     import inspect
     import textwrap
 
-    from . import lanes
+    from . import template
 
     body = inspect.getsource(_make_kernels).split("\n")
     start = next(i for i, ln in enumerate(body) if ln.startswith("def _make_kernels")) + 1
-    stop = next(i for i, ln in enumerate(body) if ln.strip() == "from . import lanes")
+    stop = next(i for i, ln in enumerate(body) if ln.strip() == "from . import template")
     body = textwrap.dedent("\n".join(body[start:stop]))
     for rel, absolute in ((" .derivatives ", " impls.numba.derivatives "), (" .fields ", " impls.numba.fields ")):
         body = body.replace("from" + rel + "import", "from" + absolute + "import")
@@ -185,12 +210,10 @@ def kernels_source(key: str) -> str:
         "phi, bounds = _scene_jit(phi), _scene_jit(bounds)",
         "",
         body,
-        "from impls.numba.lanes import CHUNK",
+        "from impls.numba.template import CHUNK",
         "",
-        lanes.source(),
+        template.source(),
         "",
-        "chunk_lanes_jit = njit(error_model='numpy')(chunk_lanes)",
-        "run_lanes = njit(parallel=True, error_model='numpy')(run_lanes)",
         "for _k in (run_march, run_lanes, phi_rays):",
         "    _k.enable_caching()",
         "",
@@ -286,177 +309,21 @@ def _make_kernels(phi, bounds):
         status = BAD if not fin else (MISS if outside else IN)
         return (t_min if outside else lo), hi, status
 
-    @njit(error_model="numpy")
-    def march_one(p, o0, o1, o2, d0, d1, d2, fc, ic):
-        """MarchRefine.init, .step_march, .step_ladder and .step_refine for one ray, with a
-        ConstantStep rule (the certified rule runs the core algorithm: :func:`_run_certified`)."""
-        t_min, t_max, xtol, leps = fc[F_TMIN], fc[F_TMAX], fc[F_XTOL], fc[F_LEPS]
-        has_check, refiner = ic[I_HASCHECK] != 0, ic[I_REFINER]
-        max_steps = ic[I_MAXSTEPS]
-        ladder, ladder_after = ic[I_LADDER], ic[I_LADDER_AFTER]
-        step, check = fc[F_STEP], fc[F_CHECK]
-        deriv = refiner == 2
-        cost = 3 if deriv else 1
-        t, hi, status = start(p, o0, o1, o2, d0, d1, d2, t_min, t_max, ic[I_BOUNDS] != 0)
-        if status != IN:
-            return final_t(t, status), status, 0, 0
-        df = 0.0
-        if deriv:
-            f, df = ev_d(p, o0, o1, o2, d0, d1, d2, t)
-        else:
-            f = ev(p, o0, o1, o2, d0, d1, d2, t)
-        evals = cost
-        if not math.isfinite(f):
-            return nan, NONF, 0, evals
-        if f == 0:
-            return t, CONV, 0, evals
-        mag = ((abs(o0) + abs(o1)) + abs(o2)) + fc[F_SCALE]
-        p_, fp, a, fa, b = t, f, t, f, t
-        wq = inf
-        iters = 0
-        use_ladder = ladder > 1
-        phase = 0
-        while True:
-            if phase == 0:  # -- step_march --
-                t_n = _min(t + step, hi)
-                df_n = 0.0
-                if deriv:
-                    f_n, df_n = ev_d(p, o0, o1, o2, d0, d1, d2, t_n)
-                else:
-                    f_n = ev(p, o0, o1, o2, d0, d1, d2, t_n)
-                zero = f_n == 0
-                fin = math.isfinite(f_n)
-                cross = fin and (zero or ((f_n > 0) != (f > 0)))
-                gone = (t_n >= hi) or not math.isfinite(t_n)
-                miss = (not cross) and gone
-                conv = cross and (zero or (t_n - t <= xtol))
-                nonf = (not fin) and math.isfinite(t_n)
-                lv = has_check and lipv(f, f_n, t, t_n, check, mag, leps)
-                iters += 1
-                evals += cost
-                status = verdict(nonf, conv, iters >= max_steps, miss, lv)
-                if use_ladder:
-                    phase = (1 if (cross or iters >= ladder_after) else 0) + (1 if cross else 0)
-                else:
-                    phase = 1 if cross else 0
-                p_, fp, a, fa, b = t, f, t, f, t_n
-                if refiner != 0:
-                    wq = 4.0 * (t_n - t)
-                t, f, df = t_n, f_n, df_n
-            elif phase == 1 and use_ladder:  # -- step_ladder --
-                hstep = step
-                T, F, DF = np.empty(ladder), np.empty(ladder), np.empty(ladder)  # (rays that reach a ladder only)
-                for j in range(ladder):
-                    T[j] = _min(t + hstep * float(j + 1), hi)
-                    if deriv:
-                        F[j], DF[j] = ev_d(p, o0, o1, o2, d0, d1, d2, T[j])
-                    else:
-                        F[j] = ev(p, o0, o1, o2, d0, d1, d2, T[j])
-                e = ladder - 1
-                stopped = False
-                cross_e = False
-                fin_e = True
-                lv_e = False
-                tp, fpj = t, f
-                for j in range(ladder):
-                    Tj, Fj = T[j], F[j]
-                    crossj = (Fj == 0) or ((Fj > 0) != (fpj > 0))
-                    finj = math.isfinite(Fj)
-                    event = crossj or not finj
-                    lvj = has_check and lipv(fpj, Fj, tp, Tj, check, mag, leps)
-                    event = event or lvj
-                    if event:
-                        e, stopped, cross_e, fin_e, lv_e = j, True, crossj, finj, lvj
-                        break
-                    tp, fpj = Tj, Fj
-                Te, Fe = T[e], F[e]
-                Tpe = t if e == 0 else T[e - 1]
-                Fpe = f if e == 0 else F[e - 1]
-                DFpe = df if e == 0 else DF[e - 1]
-                nonf = stopped and (not fin_e) and math.isfinite(Te)
-                lv = stopped and lv_e
-                onto = cross_e or not stopped
-                miss = ((not stopped) and (Te >= hi)) or not math.isfinite(Te)
-                conv = cross_e and ((Fe == 0) or (Te - Tpe <= xtol))
-                iters += 1
-                evals += cost * ladder
-                status = verdict(nonf, conv, iters >= max_steps, miss, lv)
-                t_new = Te if onto else Tpe
-                f_new = Fe if onto else Fpe
-                p_, fp, a, fa, b = Tpe, Fpe, Tpe, Fpe, t_new
-                phase = (1 if cross_e else 0) + 1
-                if refiner != 0:
-                    wq = 4.0 * (Te - Tpe)
-                if deriv:
-                    df = DF[e] if onto else DFpe
-                t, f = t_new, f_new
-            else:  # -- step_refine --
-                mid = 0.5 * (a + b)
-                i2 = iters % 3 == 0
-                if refiner == 0:
-                    c = mid
-                else:
-                    if refiner == 1:
-                        c = t - f * (t - p_) / (f - fp)
-                    else:
-                        c = t - f / df
-                    hh = 0.5 * xtol
-                    stp = abs(c - t)
-                    lift = stp + 0.5 * hh
-                    if stp < hh:
-                        c = t + lift if t - a <= b - t else t - lift
-                    slow = i2 and (b - a > 0.5 * wq)
-                    if not ((c >= a) and (c <= b) and not slow):
-                        c = mid
-                df_c = 0.0
-                if deriv:
-                    f_c, df_c = ev_d(p, o0, o1, o2, d0, d1, d2, c)
-                else:
-                    f_c = ev(p, o0, o1, o2, d0, d1, d2, c)
-                same_a = (f_c > 0) == (fa > 0)
-                na = c if same_a else a
-                nb = b if same_a else c
-                nmid = 0.5 * (na + nb)
-                conv = (f_c == 0) or (nb - na <= xtol) or (nmid <= na) or (nmid >= nb)
-                if refiner == 0:
-                    t_out = c
-                else:
-                    z = c - f_c * (c - t) / (f_c - f)
-                    z = _min(_max(z, na), nb)
-                    t_out = z if (conv and (f_c != 0) and (z == z)) else c
-                iters += 1
-                evals += cost
-                status = verdict(not math.isfinite(f_c), conv, iters >= max_steps, False, False)
-                if refiner != 0 and i2:
-                    wq = b - a
-                p_, fp = t, f
-                a, b = na, nb
-                t, f = t_out, f_c
-                if deriv:
-                    df = df_c
-            if status != IN:
-                return final_t(t, status), status, iters, evals
-
-    @njit(parallel=True, error_model="numpy")
-    def run_march(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
-        for i in prange(O.shape[0]):
-            t, s, it, ne = march_one(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], fc, ic)
-            out_t[i], out_s[i], out_i[i], out_e[i] = t, s, it, ne
-
     @njit(parallel=True, error_model="numpy")
     def phi_rays(O, D, T, p, F):
         """φ(o_i + t_i d_i) for every ray i: the certified methods' evaluation (:func:`run_loop`)."""
         for i in prange(T.shape[0]):
             F[i] = ev(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], T[i])
 
-    from . import lanes
+    from . import template
 
-    ns = {"start": start, "ev": ev, "lipv": lipv, "verdict": verdict, "final_t": final_t, "_max": _max, "_min": _min,
-          "math": math, "prange": prange, "inf": inf, "IN": IN, "NONF": NONF, "CONV": CONV, "CHUNK": lanes.CHUNK,
+    # the generated kernels' globals: what the cached module (kernels_source) defines at its top level
+    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "verdict": verdict, "final_t": final_t,
+          "_max": _max, "_min": _min, "math": math, "np": np, "njit": njit, "prange": prange, "inf": inf, "IN": IN,
+          "NONF": NONF, "CONV": CONV, "CHUNK": template.CHUNK,
           **{k: v for k, v in globals().items() if k[:2] in ("F_", "I_")}}
-    exec(compile(lanes.source(), "<isobench numba lanes>", "exec"), ns)  # noqa: S102 - our own generated source
-    ns["chunk_lanes_jit"] = njit(error_model="numpy")(ns["chunk_lanes"])
-    run_lanes = njit(parallel=True, error_model="numpy")(ns["run_lanes"])
+    exec(compile(template.source(), "<isobench numba kernels>", "exec"), ns)  # noqa: S102 - our own generated source
+    run_march, run_lanes = ns["run_march"], ns["run_lanes"]
 
     return {"march": run_march, "lanes": run_lanes, "phi_rays": phi_rays}
 
@@ -479,7 +346,7 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
         out = _run_certified(kernel, params, alg, o, d)
     else:
         if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1:
-            kind = "lanes"  # (impls.numba.lanes: no derivatives, no ladder stage)
+            kind = "lanes"  # (no derivatives, no ladder stage: impls.numba.template)
         n = o.shape[0]
         out = {"t": np.empty(n, o.dtype), "status": np.empty(n, np.int32), "iterations": np.empty(n, np.int32),
                "evals": np.empty(n, np.int32)}

@@ -26,10 +26,10 @@ class _FastTorchNamespace:
     the cost, and on 2^16 rays torch's ``isfinite`` kernel is the slow one.
 
     Each keeps the array-API meaning for the arguments isobench passes and falls back to
-    array_api_compat otherwise.  Measured on this machine (float64, 1 thread): ``where`` 2.5 →
-    1.8 µs on 256 elements (array_api_compat first reconciles dtypes); ``clip`` with scalar
-    bounds 2.7 → 1.9 µs (``clamp``); ``isfinite`` of 2^16 floats 101 → 48 µs as x − x == 0
-    (finite x gives +0, ±inf and NaN give NaN); ``take_along_axis`` without array_api_compat's
+    array_api_compat otherwise: ``where`` without array_api_compat's dtype reconciliation (the
+    root finders pass matching dtypes); ``clip`` with scalar bounds as ``clamp``; ``isfinite``
+    as x − x == 0 (finite x gives +0, ±inf and NaN give NaN; one fused elementwise kernel
+    instead of torch's two-pass one); ``take_along_axis`` without array_api_compat's
     negative-index fix-up (the root finders' indices are never negative)."""
 
     def __getattr__(self, name):
@@ -88,7 +88,7 @@ class TorchBackend(ArrayBackend):
                    "(impls.torch.backend.xp_fast; per-call overhead)",
                    "on a machine whose cores are busy, torch's OpenMP intra-op threads spin at every parallel region's "
                    "barrier: set OMP_WAIT_POLICY=PASSIVE and OMP_NUM_THREADS before torch is imported (the bench "
-                   "commands do, bench.environment.configure_threads) — measured 10-20× slower otherwise"),
+                   "commands do, bench.environment.configure_threads): a spinning thread holds the core its partner needs"),
         )
         super().__init__(device, settings)
         self.torch_device = torch.device(device)

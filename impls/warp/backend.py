@@ -92,6 +92,11 @@ class WarpBackend(ArrayBackend):
         self._meshes: dict = {}
         self._scenes: dict = {}
 
+    def methods(self):
+        """The methods offered here (``_impl``), ``raycast`` included: the catalog leaves it to the
+        engines (``MethodSpec.libs = ()``), which name it themselves."""
+        return tuple(sorted(self._impl))
+
     def asarray(self, a, dtype):
         return np.ascontiguousarray(a, dtype=np.dtype(dtype))
 

@@ -1,0 +1,1 @@
+"""Embree (through embreex) as an engine backend: :mod:`impls.embree.backend`."""

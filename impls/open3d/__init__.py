@@ -1,0 +1,1 @@
+"""Open3D's RaycastingScene as an engine backend: :mod:`impls.open3d.backend`."""
