@@ -13,7 +13,9 @@ What it offers: ``raycast`` — ``Scene.ray_intersect_preliminary`` on the scene
 ``Mesh`` for a :class:`reference.mesh.MeshSDF`), float32 as Mitsuba computes (rays, depths and
 the grid are single precision), so it runs at dtype float32 only.  CONVERGED is the engine's
 hit, MISS its "no hit" (README "Conventions": an engine's answer, not a certified bracket);
-``iterations`` and ``evals`` are 0.  The search covers [t_min, t_max]: the ray starts at
+``iterations`` and ``evals`` are 0; the output ``normal`` (as :mod:`impls.engine`'s) is the
+geometric normal of the hit (``compute_surface_interaction``: the face's for a mesh, the
+interpolant's gradient for the grid), normalised in float64, NaN on a MISS.  The search covers [t_min, t_max]: the ray starts at
 o + t_min·d (float64, then rounded) with ``maxt`` = t_max − t_min, and t_min is added back.
 
 No dt/dθ (param_grad family): isobench's grid and mesh scenes have no parameters θ (a
@@ -113,6 +115,7 @@ class MitsubaBackend(ArrayBackend):
         super().__init__(device, settings)
         self.variant = VARIANTS[device]
         self._scenes: dict = {}
+        self._built = False
 
     def _use(self):
         if mi.variant() != self.variant:
@@ -148,15 +151,20 @@ class MitsubaBackend(ArrayBackend):
             reason = self.declines(method, scene)
             if reason:
                 raise Declined(reason)
+            if dtype != "float32":
+                raise ValueError(f"raycast: dtype={dtype!r}; Mitsuba computes in float32: use dtype='float32'")
         return super().prepare(method, scene, origins, directions, dtype=dtype, **kw)
 
     def compile(self, fn, o, d, th):
         """Build the scene and compile the query by running ``fn`` on all the rays: Dr.Jit traces
         a one-ray batch as scalars (literals), so only a batch of the timed size compiles the kernel
         the timed runs reuse."""
+        self._built = False
         t0 = time.perf_counter()
         fn(o, d, None)
-        return fn, time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        self.last_compile_cache = "compiled" if self._built else "reused"  # (the scene, for this object)
+        return fn, took
 
     def _scene(self, scene):
         key = (id(scene), self.variant)
@@ -164,6 +172,7 @@ class MitsubaBackend(ArrayBackend):
         if got is None or got[0] is not scene:
             got = (scene, scenes.build(scene))
             self._scenes[key] = got
+            self._built = True
         return got[1]
 
     def solve(self, method, scene, o, d, *, t_min, t_max, theta=None, **knobs):
@@ -184,11 +193,16 @@ class MitsubaBackend(ArrayBackend):
         ray.maxt = mi.Float(np.full(n, maxt, np.float32))  # an array, not a literal: one kernel for every t_max
         pi = mscene.ray_intersect_preliminary(ray)
         valid = pi.is_valid()
-        dr.eval(pi.t, valid)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, valid)  # si.n: the geometric normal
+        dr.eval(pi.t, valid, si.n)
         dr.sync_thread()  # the query has run (on a GPU too) before the copies below
         hit, t = np.array(valid, dtype=bool), np.array(pi.t, dtype=np.float64)
+        nrm = np.stack([np.array(si.n.x), np.array(si.n.y), np.array(si.n.z)], axis=1).astype(np.float64)
         t_out = np.where(hit, t + t_min, np.inf)
         status = np.where(hit, Status.CONVERGED, Status.MISS).astype(np.int32)
         t_out[bad], status[bad] = np.nan, Status.BAD_INPUT
+        from ..warp.mesh import unit_normals  # (numpy only: no Warp import)
+
         zeros = np.zeros(n, np.int32)
-        return {"t": t_out.astype(o.dtype), "status": status, "iterations": zeros, "evals": zeros.copy()}
+        return {"t": t_out.astype(o.dtype), "status": status, "iterations": zeros, "evals": zeros.copy(),
+                "normal": unit_normals(nrm, hit & ~bad)}

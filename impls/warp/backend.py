@@ -91,6 +91,7 @@ class WarpBackend(ArrayBackend):
         wp.init()
         self._meshes: dict = {}
         self._scenes: dict = {}
+        self._built = False
 
     def methods(self):
         """The methods offered here (``_impl``), ``raycast`` included: the catalog leaves it to the
@@ -130,18 +131,23 @@ class WarpBackend(ArrayBackend):
             reason = self.declines(method, scene)
             if reason:
                 raise Declined(reason)
-            if method == "raycast" and dtype == "float64":
-                raise Declined("warp's mesh ray query computes in float32 (wp.Mesh holds vec3f points): run raycast "
-                               "at dtype float32")
+            if method == "raycast" and dtype != "float32":
+                raise ValueError(f"raycast: dtype={dtype!r}; warp's mesh ray query computes in float32 (wp.Mesh holds "
+                                 "vec3f points): use dtype='float32'")
             if method in ROOT_OFFERED and dtype == "float32":
                 raise Declined("warp runs the root finders in float64 only (the scene kernels are written in float64)")
         return super().prepare(method, scene, origins, directions, dtype=dtype, **kw)
 
     def compile(self, fn, o, d, th):
-        """Build the mesh's BVH or compile the scene's kernel by running ``fn`` on the first ray."""
+        """Build the mesh's BVH or compile the scene's kernel by running ``fn`` on the first ray;
+        ``last_compile_cache``: "compiled" when this call built them, "reused" when this backend
+        had them for this scene object."""
+        self._built = False
         t0 = time.perf_counter()
         fn(o[:1], d[:1], None)
-        return fn, time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        self.last_compile_cache = "compiled" if self._built else "reused"
+        return fn, took
 
     def _scene(self, scene):
         key = id(scene)
@@ -151,6 +157,7 @@ class WarpBackend(ArrayBackend):
 
             got = (scene, warp_scene(scene, self.device))
             self._scenes[key] = got
+            self._built = True
         return got[1]
 
     def _mesh(self, mesh):
@@ -161,6 +168,7 @@ class WarpBackend(ArrayBackend):
 
             got = (mesh, WarpMesh(mesh, self.device))
             self._meshes[key] = got
+            self._built = True
         return got[1]
 
     def ray_eval(self, scene, theta=None):
