@@ -1,0 +1,1 @@
+"""Mitsuba 3 backend (a plug-in): :mod:`impls.mitsuba.backend`."""

@@ -1,0 +1,1 @@
+"""Warp backend (a plug-in): :mod:`impls.warp.backend`."""
