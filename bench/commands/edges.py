@@ -13,9 +13,9 @@ HELP = ("per engine, wrong hits/misses and depth error against the grazing offse
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--backend", action="append", help="backends to add to embree, open3d, trimesh, "
-                   "trimesh+embreex and numpy (e.g. warp,mitsuba): raycast where offered, else --method")
-    p.add_argument("--engines", action="append", help="replace the default engines (embree,open3d,trimesh,"
+    p.add_argument("--backend", action="append", help="backends to add to embree, open3d, warp, mitsuba, trimesh, "
+                   "trimesh+embreex and numpy (e.g. jax:cpu, warp:cuda): raycast where offered, else --method")
+    p.add_argument("--engines", action="append", help="replace the default engines (embree,open3d,warp,mitsuba,trimesh,"
                    "trimesh+embreex,numpy) by these")
     p.add_argument("--method", default="hybrid_secant", help="root finder of the backends without raycast "
                    "(float64, default knobs; default hybrid_secant)")

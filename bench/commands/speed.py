@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--volume", action="store_true", help="volume rendering instead: each backend's volume_nerf_uniform "
                     "against the plain compositing compiled by torch.compile and jax.jit (bench/studies/peers.py)")
     p.add_argument("--mesh", action="store_true", help="the three mesh cameras instead: engines (raycast, float32) and "
-                   "--method (float64) side by side, default backends numpy,embree,open3d (bench/studies/speed_mesh.py)")
+                   "--method (float64) side by side, default backends numpy,embree,open3d,warp,mitsuba (bench/studies/speed_mesh.py)")
     p.add_argument("--samples", type=int_at_least(1), default=256, help="samples per ray with --volume (default 256)")
     p.add_argument("--repeats", type=int_at_least(1), default=3)
     p.add_argument("--threads", type=int_at_least(1), default=1, help="threads per library and worker threads of the numpy/torch "

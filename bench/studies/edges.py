@@ -18,8 +18,8 @@ exact float64 first hit (:meth:`reference.mesh.MeshSDF.first_hit`); rays the ref
 cannot tell from a near miss) are counted as ``not_judged`` and left out, as ``bench run``
 leaves them out.  Each *engine* answers the same rays:
 
-* a backend offering ``raycast`` (``embree``, ``open3d``, and whatever ``--backend`` adds, e.g.
-  ``warp``, ``mitsuba``): its float32 first hit;
+* a backend offering ``raycast`` (``embree``, ``open3d``, ``warp``, ``mitsuba``, and any other
+  ``--backend`` adds): its float32 first hit;
 * any other backend: the root finder ``--method`` (default ``hybrid_secant``, numpy) in float64
   at its default knobs (CONVERGED is a hit; any other status on a hitting ray is a miss, as
   ``bench run`` counts it);
@@ -52,7 +52,7 @@ import pandas as pd
 DEFAULT_OFFSETS = tuple(10.0 ** -k for k in range(2, 10))
 DEFAULT_MESHES = ("torus", "fin", "blob")
 FAMILIES = ("edge", "vertex", "parallel")
-DEFAULT_ENGINES = ("embree", "open3d", "trimesh", "trimesh+embreex", "numpy")
+DEFAULT_ENGINES = ("embree", "open3d", "warp", "mitsuba", "trimesh", "trimesh+embreex", "numpy")
 #: the engines computed here rather than by a backend
 TRIMESH, TRIMESH_EMBREE = "trimesh", "trimesh+embreex"
 FILE, PLOT = "edges.csv", "edges.png"

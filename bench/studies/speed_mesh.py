@@ -32,7 +32,7 @@ import numpy as np
 
 #: mesh → camera (eye, field of view) of its catalog camera case
 CAMERAS = {"torus": ((0.0, -2.5, 1.8), 40.0), "fin": ((1.6, -1.9, 1.5), 40.0), "blob": ((0.0, 0.0, 3.0), 50.0)}
-DEFAULT_BACKENDS = ("numpy", "embree", "open3d")
+DEFAULT_BACKENDS = ("numpy", "embree", "open3d", "warp", "mitsuba")
 PEER = "trimesh+embreex"
 
 
