@@ -817,7 +817,7 @@ def test_raycast_depth_and_normal_against_exact(any_backend):
     """A camera at the torus mesh: every ray's hit or miss as the exact float64 hit says, each depth
     within float32's √ε · max(1, T) (the tolerance bench judges float32 rows by), the normal the
     hit face's (engines' float32 normals, to float32 rounding)."""
-    from bench.stability import depth_tolerance
+    from bench.studies.stability import depth_tolerance
 
     b, scene = _engine(any_backend), _mesh_scene()
     o, d = _mesh_camera()

@@ -97,8 +97,8 @@ def test_a_mesh_run_picks_an_engine_at_1e_4_and_a_float64_method_at_1e_12(tmp_pa
     if not all(_importable(m) for _, m in ENGINES.values()):
         pytest.skip("embreex and open3d are not both importable here (pip install -e '.[engines]')")
     pytest.importorskip("igl")
-    from bench.results import read_results
-    from bench.summary import which_to_pick
+    from bench.run.results import read_results
+    from bench.report.summary import which_to_pick
 
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(_fake_entry_points(tmp_path)), str(ROOT),
                                                         os.environ.get("PYTHONPATH", "")]))

@@ -5,7 +5,7 @@ root finders and the exact references, and what they decline.
   evaluation counts and depths as the numpy backend, ray by ray (φ is bit for bit numba's).
 * ``raycast`` (Warp's mesh query, Mitsuba's sdfgrid and Mesh intersection) is float32: no false
   hit or miss on the camera cases, and every hit within float32's √ε · max(1, T) of the exact
-  depth — the tolerance the stability matrix judges a float32 row by (:mod:`bench.stability`).
+  depth — the tolerance the stability matrix judges a float32 row by (:mod:`bench.studies.stability`).
 """
 
 from __future__ import annotations
@@ -159,7 +159,7 @@ def test_raycast_is_an_engine_method_the_builtins_do_not_offer():
                                 "engine's SDF-grid intersector); no knobs; precision as the engine computes")
     numpy_backend = registry.resolve("numpy")
     assert "raycast" not in numpy_backend.methods()
-    from bench.runner import Config, skip_reason
+    from bench.run.configuration import Config, skip_reason
 
     cfg = Config(case=get_case("mesh.torus.camera.16x16"), backend_id="numpy", method="raycast", dtype="float32",
                  knobs={})
