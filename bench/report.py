@@ -255,10 +255,31 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
             "best max error": best["error_max"], "at knob": knob_label(method, best["knob"]),
             "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
             "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
+            "kernel": _kernel(best.get("compile_cache")),
             "evals/ray mean": best["evals_per_ray"], "p99": best.get("evals_p99"), "max": best.get("evals_max"),
             "ray statuses": _statuses(best.get("status_counts")),
         })
     return pd.DataFrame(rows)
+
+
+def _kernel(cache) -> str:
+    """A row's ``compile_cache`` as the report says it: compiled (cold), reused (warm) or ""."""
+    return {"compiled": "compiled (cold)", "reused": "reused (warm)"}.get(cache, "") if isinstance(cache, str) else ""
+
+
+def compile_table(df: pd.DataFrame) -> pd.DataFrame:
+    """Per backend, compile time split by whether the kernel was compiled in this run (cold) or
+    reused (warm: from the persistent cache or from a kernel this run compiled before;
+    ``compile_cache``); configurations whose backend does not say are "not stated"."""
+    ok = _ok(df).drop_duplicates(["case_id", "method", "dtype", "backend", "knob"])
+    if not len(ok) or "compile_s" not in ok:
+        return pd.DataFrame()
+    kernel = ok["compile_cache"] if "compile_cache" in ok else pd.Series("", index=ok.index)
+    ok = ok.assign(kernel=[_kernel(c) or "not stated" for c in kernel],
+                   compile_s=pd.to_numeric(ok["compile_s"], errors="coerce"))
+    g = ok.groupby(["backend", "kernel"])["compile_s"]
+    return pd.DataFrame({"configurations": g.size(), "compile total [s]": g.sum(), "median [s]": g.median(),
+                         "max [s]": g.max()}).reset_index()
 
 
 knob_label = summary.knob_label
@@ -421,6 +442,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             figs.append(("conv", title, png))
             series_all.append((title, series))
     summ, targets, supp, skipped = summary_table(df), fastest_to_target(df), support_matrix(df), not_run(df)
+    compiles = compile_table(df)
     rates = rates_table(series_all)
     stab_cells, stab_note = stability_section(df, out_dir)
     env_df = pd.DataFrame(sorted(env.items()), columns=["key", "value"])
@@ -449,6 +471,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
           "## Best accuracy per backend", "", md_table(summ), "",
           "## Fastest configuration reaching an error target", "", md_table(targets), "",
           *_stability_md(stab_cells, stab_note), "",
+          "## Compile time, cold and warm", "", md_table(compiles), "",
           "## Time versus error", "", *md_img("time"), "",
           "## Convergence", "", *md_img("conv"), "", md_table(rates), "",
           "## Support matrix (configurations)", "", md_table(supp), ""]
@@ -513,6 +536,9 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
             "<p class='note'>The cheapest knob setting whose max error is at or below the target: median time per "
             "call, its multiple of the closed-form time, and the knob setting.</p>", table(targets),
             _stability_html(stab_cells, stab_note),
+            "<h2>Compile time, cold and warm</h2><p class='note'>Per backend: the configurations whose kernel "
+            "was compiled in this run (cold) and those that reused one (warm: from the persistent cache, or "
+            "compiled earlier in the run for the same structure, its knobs traced).</p>", table(compiles),
             "<h2>Time versus error</h2><p class='note'>One plot per method family, case, quantity and dtype; one "
             "point per knob setting (faint markers), a line through each backend's (and method's) Pareto-optimal "
             "settings; colour = method, marker = backend; lower-left is better. ✕ at the top edge: an infinite error "
