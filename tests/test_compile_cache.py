@@ -52,9 +52,9 @@ def test_a_second_run_reuses_every_kernel_and_no_cache_compiles_afresh(tmp_path)
     if "jax:cpu" in backends:
         jax_cold = ok["cold"][ok["cold"]["backend"] == "jax:cpu"].drop_duplicates(["method", "knob"])
         per_method = jax_cold.groupby("method")["compile_cache"].agg(list)
-        # each method compiles its first setting; its settings that differ in traced knobs (the
-        # tolerance sweeps) reuse that kernel
-        assert all(v[0] == "compiled" and "reused" in v[1:] for v in per_method), per_method
+        # each method compiles; its settings that differ only in traced knobs (the tolerance
+        # sweeps) reuse a kernel compiled for another setting
+        assert all("compiled" in v and "reused" in v for v in per_method), per_method
     assert set(ok["warm"]["compile_cache"]) == {"reused"}, ok["warm"][["backend", "method", "compile_cache"]]
     # --no-cache: nothing from disk; numba compiles (and reuses within the run); jax states only
     # the reuse of a kernel this run compiled (whether a fresh compile hit a cache it cannot say)

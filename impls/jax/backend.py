@@ -6,6 +6,7 @@ are placed on the backend's device explicitly, so the global default device does
 
 from __future__ import annotations
 
+import collections
 import time
 
 import jax
@@ -51,6 +52,8 @@ from ..protocol import Capabilities  # noqa: E402
 from . import derivatives, driver  # noqa: E402
 
 
+#: compiled kernels a backend object keeps for reuse (:meth:`JaxBackend.compile_configuration`)
+KEEP_KERNELS = 64
 #: (method, traced knob names) whose trace failed: the method's code needs those knobs as constants
 _TRACED_FAILED: set = set()
 
@@ -102,7 +105,9 @@ class JaxBackend(ArrayBackend):
     fori_loop = staticmethod(lax.fori_loop)  # a long unroll does not become a long trace
 
     def __init__(self, device: str = "cpu", settings: driver.MaskedSettings | None = None):
-        self._kernels: dict = {}  # compile_configuration's kernels, one per structure
+        # compile_configuration's kernels, one per structure, the least recently used dropped past
+        # KEEP_KERNELS (a catalog sweep compiles thousands; a run plans a case's configurations together)
+        self._kernels: collections.OrderedDict = collections.OrderedDict()
         self.capabilities = Capabilities(
             dtypes=("float64", "float32"),
             devices=_devices(),
@@ -146,9 +151,9 @@ class JaxBackend(ArrayBackend):
     def compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
         """One kernel per structure: the knobs are traced arguments of the jitted function where the
         method's code allows it (:func:`_traced_sets`), so configurations that differ only in
-        those knobs run one compiled kernel, kept for the life of the backend object.  The
-        kernel is keyed by everything compiled into it: the method, the scene and colour objects
-        (their parameters are constants of the kernel), the depth range, the knobs compiled in,
+        those knobs run one compiled kernel (the backend object keeps the last ``KEEP_KERNELS``).
+        The kernel is keyed by everything compiled into it: the method, the scene and colour
+        objects (their parameters are constants of the kernel), the depth range, the knobs compiled in,
         the driver settings and the rays' shapes and dtype.  ``last_compile_cache``: "reused" when
         the kernel came from this table or from the persistent cache, "compiled" otherwise (None
         without a cache directory and nothing to reuse).  A traced knob is a weakly typed scalar,
@@ -161,7 +166,10 @@ class JaxBackend(ArrayBackend):
                    *((None,) if a is None else (tuple(a.shape), str(a.dtype)) for a in (o, d, th)))
             t0 = time.perf_counter()
             kept = self._kernels.get(key)
-            if kept is None:
+            if kept is not None:
+                self._kernels.move_to_end(key)
+                self.last_compile_cache = "reused"
+            else:
 
                 def fn(o, d, th, traced, static=static):
                     return call(o, d, th, {**static, **traced})
@@ -178,8 +186,8 @@ class JaxBackend(ArrayBackend):
                     continue
                 # the scene and colour objects are kept alive with the kernel: their ids are in the key
                 self._kernels[key] = kept = (compiled, scene, extra)
-            else:
-                self.last_compile_cache = "reused"
+                while len(self._kernels) > KEEP_KERNELS:
+                    self._kernels.popitem(last=False)
             compiled = kept[0]
             traced = {k: knobs[k] for k in names}
             return (lambda o, d, th: compiled(o, d, th, traced)), spent + time.perf_counter() - t0
