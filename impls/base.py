@@ -111,7 +111,8 @@ class ArrayBackend:
     with every result), and implements the hooks:
 
     * ``asarray(a, dtype)``, ``to_numpy(a)``, ``synchronize(out)``, ``versions()``, optionally
-      ``compile(fn, *args)``;
+      ``compile(fn, *args)`` and ``compile_configuration`` (one kernel shared by configurations
+      that differ only in knobs: jax);
     * ``ray_eval(scene, theta)`` → ``ev(o, d, t, deriv) -> (φ, dφ/dt or None, cost)`` along rays;
     * ``grad_hess(scene, x, hess, theta=None)`` → ``(∇φ, Hessian or None, cost)`` at points;
     * ``theta_jacobian(fun, theta)`` → ``(J, cost)``, the Jacobian (n, P) of θ ↦ fun(θ) (n,);
