@@ -111,7 +111,8 @@ class ArrayBackend:
     with every result), and implements the hooks:
 
     * ``asarray(a, dtype)``, ``to_numpy(a)``, ``synchronize(out)``, ``versions()``, optionally
-      ``compile(fn, *args)``;
+      ``compile(fn, *args)`` and ``compile_configuration`` (one kernel shared by configurations
+      that differ only in knobs: jax);
     * ``ray_eval(scene, theta)`` → ``ev(o, d, t, deriv) -> (φ, dφ/dt or None, cost)`` along rays;
     * ``grad_hess(scene, x, hess, theta=None)`` → ``(∇φ, Hessian or None, cost)`` at points;
     * ``theta_jacobian(fun, theta)`` → ``(J, cost)``, the Jacobian (n, P) of θ ↦ fun(θ) (n,);
@@ -195,6 +196,15 @@ class ArrayBackend:
         """Compile ``fn`` for ``example_args``; returns (callable, compile seconds or None)."""
         return fn, None
 
+    def compile_configuration(self, call: Callable, knobs: dict, o: Any, d: Any, th: Any, **structure: Any
+                              ) -> tuple[Callable, float | None]:
+        """Compile one configuration: ``call(o, d, th, knobs)`` runs the method; returns
+        (``run(o, d, th)``, compile seconds or None).  ``structure`` names what else the
+        configuration is bound to (``method``, ``scene``, ``t_range``, ``extra``), for a backend
+        that shares one kernel between configurations differing only in knobs (jax); the default
+        compiles each configuration on its own with :meth:`compile`."""
+        return self.compile(lambda o, d, th: call(o, d, th, knobs), o, d, th)
+
     def versions(self) -> dict[str, str]:
         return {}
 
@@ -241,11 +251,12 @@ class ArrayBackend:
         th = None if t_hit is None else self.asarray(t_hit, dtype)
         impl = self._impl[method]
 
-        def fn(o, d, th):
+        def call(o, d, th, knobs):
             return impl(self, scene, o, d, t_min=float(t_min), t_max=float(t_max), t_hit=th, **extra, **knobs)
 
         self.last_compile_cache = None  # compile() may say whether it reused a kernel
-        run_fn, compile_s = self.compile(fn, o, d, th)
+        run_fn, compile_s = self.compile_configuration(call, knobs, o, d, th, method=method, scene=scene,
+                                                       t_range=(float(t_min), float(t_max)), extra=extra)
         compile_cache = self.last_compile_cache
 
         def result(out: Any) -> RayResult:

@@ -187,3 +187,18 @@ def test_report_with_an_unreadable_stability_stage_says_so(tmp_path):
     report.build(pd.concat([frame(), _stability_rows()], ignore_index=True), {"run_id": "r"}, tmp_path)
     html = (tmp_path / "report.html").read_text()
     assert "the stability stage could not be read" in html and "1/2 families survived" in html
+
+
+def test_compile_table_splits_cold_and_warm_per_backend():
+    """The report's compile section: per backend, configurations whose kernel was compiled in the
+    run (cold) apart from those that reused one (warm), and those whose backend does not say."""
+    rows = [("jax:cpu", "a", "compiled", 2.0), ("jax:cpu", "b", "reused", 0.5), ("jax:cpu", "c", "reused", 0.25),
+            ("numpy", "a", None, 0.0)]
+    df = pd.DataFrame([{"case_id": "c", "method": "m", "dtype": "float64", "backend": b, "knob": k, "quantity": "depth",
+                        "outcome": "ok", "compile_cache": cc, "compile_s": s} for b, k, cc, s in rows])
+    t = tables.compile_table(df).set_index(["backend", "kernel"])
+    assert t.loc[("jax:cpu", "compiled (cold)"), "configurations"] == 1
+    assert t.loc[("jax:cpu", "reused (warm)"), "configurations"] == 2
+    assert t.loc[("jax:cpu", "reused (warm)"), "compile total [s]"] == 0.75
+    assert t.loc[("jax:cpu", "reused (warm)"), "max [s]"] == 0.5
+    assert t.loc[("numpy", "not stated"), "configurations"] == 1

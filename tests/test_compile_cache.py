@@ -46,14 +46,20 @@ def test_a_second_run_reuses_every_kernel_and_no_cache_compiles_afresh(tmp_path)
     assert len(ok["cold"]) and set(ok["cold"]["backend"]) == set(backends)
     # cold: each backend compiles (numba once per scene structure and kernel, reused by the other
     # knob settings and by the other method sharing the kernel: the certified methods evaluate φ
-    # with one kernel; jax once per configuration)
+    # with one kernel; jax once per method and structure, the knob settings sharing it: knobs traced)
     cold = ok["cold"].groupby(["backend"])["compile_cache"].agg(set)
     assert all("compiled" in v and v <= {"compiled", "reused"} for v in cold), cold
-    assert set(ok["cold"].loc[ok["cold"]["backend"] == "jax:cpu", "compile_cache"]) <= {"compiled"}
+    if "jax:cpu" in backends:
+        jax_cold = ok["cold"][ok["cold"]["backend"] == "jax:cpu"].drop_duplicates(["method", "knob"])
+        per_method = jax_cold.groupby("method")["compile_cache"].agg(list)
+        # each method compiles; its settings that differ only in traced knobs (the tolerance
+        # sweeps) reuse a kernel compiled for another setting
+        assert all("compiled" in v and "reused" in v for v in per_method), per_method
     assert set(ok["warm"]["compile_cache"]) == {"reused"}, ok["warm"][["backend", "method", "compile_cache"]]
-    # --no-cache: nothing from disk; numba compiles (and reuses within the run), jax states nothing
+    # --no-cache: nothing from disk; numba compiles (and reuses within the run); jax states only
+    # the reuse of a kernel this run compiled (whether a fresh compile hit a cache it cannot say)
     none = ok["none"]
-    assert none.loc[none["backend"] == "jax:cpu", "compile_cache"].isna().all()
+    assert set(none.loc[none["backend"] == "jax:cpu", "compile_cache"].dropna()) <= {"reused"}
     assert "compiled" in set(none.loc[none["backend"] == "numba", "compile_cache"]) or "numba" not in backends
     for name in ("warm", "none"):
         a, b = runs["cold"][SAME], runs[name][SAME]

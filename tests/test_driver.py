@@ -96,7 +96,11 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     assert (ref["iterations"] > 12).any() and (ref["iterations"] < 5).any()  # levels really compact
     if method != "sphere_trace":
         assert (ref["evals"] > ref["iterations"] + 1).any()  # ladder steps taken
-    for chunk, ratio, last, cap in ((n, 2, 4, 1), (100, 3, 8, 1), (333, 2, 1, 30), (64, 8, 16, 1000)):
+    # chunks: whole, with padding (100, 333: not dividing n), tiny; ratios 3, 4, 8 (2: level_sizes
+    # below); last level sizes 1 to 16; caps from 1 step (every straggler handed on) to none
+    # reached.  Every level is a copy of the stage loops in the compiled program, so the settings
+    # keep the levels few (at most 6): compile time grows with their number, the code paths do not
+    for chunk, ratio, last, cap in ((n, 4, 4, 1), (100, 3, 8, 1), (333, 4, 1, 30), (64, 8, 16, 1000)):
         got = run(chunk, ratio, last, cap)
         for k in ("status", "iterations", "evals"):
             np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}: chunk={chunk} ratio={ratio} last={last} "

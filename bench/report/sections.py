@@ -10,7 +10,7 @@ reading order:
 4. *Stability matrix* (:mod:`bench.studies.stability`): the scoreboard, then every root finder
    × backend × dtype against each adversarial ray family at default knobs, from the run's
    stability stage (``stability/``) when it has one, else from the run's own rows.
-5. *Time versus error* and *Convergence* plots (:mod:`bench.report.plots`) with the fitted rates.
+5. *Compile time, cold and warm* (per backend), then *Time versus error* and *Convergence* plots (:mod:`bench.report.plots`) with the fitted rates.
 6. *Support matrix* (backend × method: configurations ran / skipped / failed) and the reasons.
 7. *Claims ledger* when the run directory has ``claims.csv`` (plots inlined).
 8. *Samples to a colour error target* when the directory has ``sampling.csv``.
@@ -27,7 +27,7 @@ import pandas as pd
 
 from . import summary
 from .document import Bullets, Cell, Document, Figure, Figures, Grid, Group, Heading, Paragraph, Preformatted, Table
-from .tables import (CLAIM_COLUMNS, claims_in_reading_order, config_outcomes, fastest_to_target, not_run, rates_table,
+from .tables import (CLAIM_COLUMNS, claims_in_reading_order, compile_table, config_outcomes, fastest_to_target, not_run, rates_table,
                      spread_section, summary_table, support_matrix)
 
 STABILITY_RULE = (
@@ -124,6 +124,10 @@ def _bench_sections(df: pd.DataFrame, figs: list, series_all: list, stab: list) 
         Paragraph("The cheapest knob setting whose max error is at or below the target: median time per call, its "
                   "multiple of the closed-form time, and the knob setting."), Table(fastest_to_target(df)),
         *stab,
+        Heading("Compile time, cold and warm"),
+        Paragraph("Per backend: the configurations whose kernel was compiled in this run (cold) and those that "
+                  "reused one (warm: from the persistent cache, or compiled earlier in the run for the same "
+                  "structure, its knobs traced)."), Table(compile_table(df)),
         Heading("Time versus error"),
         Paragraph("One plot per method family, case, quantity and dtype; one point per knob setting (faint "
                   "markers), a line through each backend's (and method's) Pareto-optimal settings; colour = method, "

@@ -29,10 +29,31 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
             "best max error": best["error_max"], "at knob": knob_label(method, best["knob"]),
             "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
             "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
+            "kernel": _kernel(best.get("compile_cache")),
             "evals/ray mean": best["evals_per_ray"], "p99": best.get("evals_p99"), "max": best.get("evals_max"),
             "ray statuses": _statuses(best.get("status_counts")),
         })
     return pd.DataFrame(rows)
+
+
+def _kernel(cache) -> str:
+    """A row's ``compile_cache`` as the report says it: compiled (cold), reused (warm) or ""."""
+    return {"compiled": "compiled (cold)", "reused": "reused (warm)"}.get(cache, "") if isinstance(cache, str) else ""
+
+
+def compile_table(df: pd.DataFrame) -> pd.DataFrame:
+    """Per backend, compile time split by whether the kernel was compiled in this run (cold) or
+    reused (warm: from the persistent cache or from a kernel this run compiled before;
+    ``compile_cache``); configurations whose backend does not say are "not stated"."""
+    ok = _ok(df).drop_duplicates(["case_id", "method", "dtype", "backend", "knob"])
+    if not len(ok) or "compile_s" not in ok:
+        return pd.DataFrame()
+    kernel = ok["compile_cache"] if "compile_cache" in ok else pd.Series("", index=ok.index)
+    ok = ok.assign(kernel=[_kernel(c) or "not stated" for c in kernel],
+                   compile_s=pd.to_numeric(ok["compile_s"], errors="coerce"))
+    g = ok.groupby(["backend", "kernel"])["compile_s"]
+    return pd.DataFrame({"configurations": g.size(), "compile total [s]": g.sum(), "median [s]": g.median(),
+                         "max [s]": g.max()}).reset_index()
 
 
 knob_label = summary.knob_label

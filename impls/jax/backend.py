@@ -6,6 +6,7 @@ are placed on the backend's device explicitly, so the global default device does
 
 from __future__ import annotations
 
+import collections
 import time
 
 import jax
@@ -51,6 +52,40 @@ from ..protocol import Capabilities  # noqa: E402
 from . import derivatives, driver  # noqa: E402
 
 
+#: compiled kernels a backend object keeps for reuse (:meth:`JaxBackend.compile_configuration`)
+KEEP_KERNELS = 64
+#: (method, traced knob names) whose trace failed: the method's code needs those knobs as constants
+_TRACED_FAILED: set = set()
+
+
+def _traced_sets(method: str, knobs: dict) -> list[tuple[str, ...]]:
+    """The knob sets to try as traced arguments of ``method``'s kernel, most first: every number
+    knob; the float knobs (tolerances, step sizes; the int knobs are often sizes or switches:
+    samples per ray, ladder width, bounds on/off); the first knob (the method's main accuracy
+    dial, which a suite sweeps) if it is a float; none.  Sets that failed to trace before for
+    this method are left out, so each method pays a failed trace at most once per process."""
+    nums = tuple(sorted(k for k, v in knobs.items() if isinstance(v, (int, float)) and not isinstance(v, bool)))
+    floats = tuple(sorted(k for k, v in knobs.items() if isinstance(v, float)))
+    first = next(iter(knobs), None)
+    sets = [nums, floats, (first,) if isinstance(knobs.get(first), float) else (), ()]
+    out = []
+    for names in sets:
+        if names not in out and (not names or (method, names) not in _TRACED_FAILED):
+            out.append(names)
+    return out
+
+
+def _identity(obj):
+    """A kernel-table key for an object compiled into a kernel: the object itself where it is
+    hashable (frozen dataclass scenes and colour fields compare by value, so equal scenes built
+    twice share a kernel), else its id (the table keeps the object alive with the kernel)."""
+    try:
+        hash(obj)
+    except TypeError:
+        return ("id", id(obj))
+    return obj
+
+
 def _devices() -> tuple[str, ...]:
     devs = ["cpu"]
     try:
@@ -70,6 +105,9 @@ class JaxBackend(ArrayBackend):
     fori_loop = staticmethod(lax.fori_loop)  # a long unroll does not become a long trace
 
     def __init__(self, device: str = "cpu", settings: driver.MaskedSettings | None = None):
+        # compile_configuration's kernels, one per structure, the least recently used dropped past
+        # KEEP_KERNELS (a catalog sweep compiles thousands; a run plans a case's configurations together)
+        self._kernels: collections.OrderedDict = collections.OrderedDict()
         self.capabilities = Capabilities(
             dtypes=("float64", "float32"),
             devices=_devices(),
@@ -109,6 +147,51 @@ class JaxBackend(ArrayBackend):
         took = time.perf_counter() - t0
         self.last_compile_cache = None if not PERSISTENT_CACHE else ("reused" if _cache_hits[0] > hits else "compiled")
         return compiled, took
+
+    def compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
+        """One kernel per structure: the knobs are traced arguments of the jitted function where the
+        method's code allows it (:func:`_traced_sets`), so configurations that differ only in
+        those knobs run one compiled kernel (the backend object keeps the last ``KEEP_KERNELS``).
+        The kernel is keyed by everything compiled into it: the method, the scene and colour
+        objects (their parameters are constants of the kernel), the depth range, the knobs compiled in,
+        the driver settings and the rays' shapes and dtype.  ``last_compile_cache``: "reused" when
+        the kernel came from this table or from the persistent cache, "compiled" otherwise (None
+        without a cache directory and nothing to reuse).  A traced knob is a weakly typed scalar,
+        so it enters float32 arithmetic as the Python constant it replaces does."""
+        spent = 0.0
+        for names in _traced_sets(method, knobs):
+            static = {k: v for k, v in knobs.items() if k not in names}
+            key = (method, _identity(scene), t_range, tuple(sorted((k, _identity(v)) for k, v in extra.items())),
+                   tuple(sorted(static.items())), names, self.device, self.settings,
+                   *((None,) if a is None else (tuple(a.shape), str(a.dtype)) for a in (o, d, th)))
+            t0 = time.perf_counter()
+            kept = self._kernels.get(key)
+            if kept is not None:
+                self._kernels.move_to_end(key)
+                self.last_compile_cache = "reused"
+            else:
+
+                def fn(o, d, th, traced, static=static):
+                    return call(o, d, th, {**static, **traced})
+
+                try:
+                    compiled, _ = self.compile(fn, o, d, th, {k: knobs[k] for k in names})
+                except (TypeError, ValueError):
+                    if not names:
+                        raise
+                    # the method's code branches on (or sizes arrays by) one of these knobs:
+                    # compile them in, for this method from now on
+                    _TRACED_FAILED.add((method, names))
+                    spent += time.perf_counter() - t0
+                    continue
+                # the scene and colour objects are kept alive with the kernel: their ids are in the key
+                self._kernels[key] = kept = (compiled, scene, extra)
+                while len(self._kernels) > KEEP_KERNELS:
+                    self._kernels.popitem(last=False)
+            compiled = kept[0]
+            traced = {k: knobs[k] for k in names}
+            return (lambda o, d, th: compiled(o, d, th, traced)), spent + time.perf_counter() - t0
+        raise AssertionError("unreachable: the last set of traced knobs is empty")  # pragma: no cover
 
     def versions(self):
         import jaxlib

@@ -21,7 +21,7 @@ from ..core import rootfind
 from ..core.driver import _whole_at_least
 
 
-# Measured (bench/speed.py, torus ∪ box, 2^20 rays, hybrid_secant): a masked step costs about
+# Measured (bench/studies/speed.py, torus ∪ box, 2^20 rays, hybrid_secant): a masked step costs about
 # 7-9 ns per ray on a 2^16-ray batch, about 30 ns on a 2^20-ray one (the state no longer stays
 # in cache) and about 25 ns on 64 rays, so chunks of 2^16.  Batches shrink 4× per level: every
 # level is a copy of every stage's loop with φ inlined, so XLA's compile time grows with the
