@@ -140,6 +140,13 @@ def resolve_or_skip(backend_id: str):
     return b
 
 
+def require_method(backend, method: str) -> None:
+    """Skip, with the reason, where ``backend`` does not offer ``method`` (an engine offers only
+    ``raycast``; a compiled plug-in declines what it does not compile)."""
+    if method not in backend.methods():
+        pytest.skip(f"{backend.id} does not offer {method}")
+
+
 @pytest.fixture(scope="session", params=backend_params(BACKEND_IDS))
 def backend(request):
     return resolve_or_skip(request.param)

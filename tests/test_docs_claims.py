@@ -38,7 +38,12 @@ def render() -> str:
     _load(LEDGER)
     rows = [HEAD, "", "| id | the claim | where the lecture makes it | scope | how isobench checks it |",
             "|---|---|---|---|---|"]
-    for c in LEDGER._claims.values():
+    # in the ledger's numbering (1a, 1b, 2a, …, 12), whatever order the claim modules were imported in
+    def number(c):
+        digits = "".join(ch for ch in c.id if ch.isdigit())
+        return int(digits), c.id[len(digits):]
+
+    for c in sorted(LEDGER._claims.values(), key=number):
         rows.append(f"| {c.id} | {_cell(c.statement)} | {_cell(c.equation)} | {_cell(c.scope) or '—'} | "
                     f"{_cell(c.how_checked)} |")
     return "\n".join(rows) + "\n"

@@ -51,9 +51,11 @@ def test_a_different_structure_compiles_its_own_kernel():
     b = resolve_or_skip("jax:cpu")
     o, d = _rays()
     _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=1.0), o, d, "float64")
-    prep, _ = _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=0.5), o, d, "float64")  # a parameter compiled in
-    assert prep.compile_cache != "reused" and len(b._kernels) == 2
-    prep, _ = _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=0.5), o[:16], d[:16], "float64")  # another shape
-    assert prep.compile_cache != "reused" and len(b._kernels) == 3
-    prep, _ = _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=0.5), o, d, "float64", max_steps=64)  # an int knob
+    # a kernel of its own is a new entry of the backend's table (its compile_cache may still say
+    # "reused": jax's persistent cache on disk can hold it from an earlier session)
+    _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=0.5), o, d, "float64")  # a parameter compiled in
+    assert len(b._kernels) == 2
+    _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=0.5), o[:16], d[:16], "float64")  # another shape
+    assert len(b._kernels) == 3
+    _result(b, Sphere(center=(0.0, 0.0, 0.0), radius=0.5), o, d, "float64", max_steps=64)  # an int knob
     assert len(b._kernels) == 4

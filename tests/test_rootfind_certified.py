@@ -14,12 +14,13 @@ import pytest
 from impls import Status
 from impls.protocol import Declined
 from reference import CallableField, Plane, Sphere, catalog, rays
-from tests.conftest import resolve_or_skip
+from tests.conftest import require_method, resolve_or_skip
 
 ROOT = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton")
 
 
 def solve(backend, method, scene, o, d, t_min=0.0, t_max=10.0, **knobs):
+    require_method(backend, method)
     prep = backend.prepare(method, scene, o, d, dtype="float64", t_min=t_min, t_max=t_max, **knobs)
     out = prep.run()
     backend.synchronize(out)

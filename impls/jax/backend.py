@@ -75,6 +75,17 @@ def _traced_sets(method: str, knobs: dict) -> list[tuple[str, ...]]:
     return out
 
 
+def _is_trace_error(exc: BaseException) -> bool:
+    """Whether ``exc`` says a traced value was used where the method's code needs a constant (a
+    Python branch on it, an array sized by it) — the one failure that sends a knob back to being
+    compiled in.  Any other error is the configuration's own and propagates, so that one bad
+    configuration cannot stop later kernels of its method from tracing their knobs."""
+    trace_errors = tuple(getattr(jax.errors, n) for n in ("ConcretizationTypeError", "TracerArrayConversionError",
+                                                           "TracerIntegerConversionError", "TracerBoolConversionError")
+                         if hasattr(jax.errors, n))
+    return isinstance(exc, trace_errors) or "Tracer" in str(exc) or "concrete" in str(exc)
+
+
 def _identity(obj):
     """A kernel-table key for an object compiled into a kernel: the object itself where it is
     hashable (frozen dataclass scenes and colour fields compare by value, so equal scenes built
@@ -176,9 +187,9 @@ class JaxBackend(ArrayBackend):
 
                 try:
                     compiled, _ = self.compile(fn, o, d, th, {k: knobs[k] for k in names})
-                except (TypeError, ValueError):
-                    if not names:
-                        raise
+                except (TypeError, ValueError) as exc:
+                    if not names or not _is_trace_error(exc):
+                        raise  # a fault of the scene or the knobs, not of tracing them
                     # the method's code branches on (or sizes arrays by) one of these knobs:
                     # compile them in, for this method from now on
                     _TRACED_FAILED.add((method, names))
