@@ -129,11 +129,13 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
 
 def _scale_cases(suite: Suite, spec) -> list[Case]:
     """The cameras at scale ``suite.scale_cases`` names for ``spec`` (its name, else its family)
-    that it applies to, in catalog order."""
+    whose scene meets its requirements, in catalog order.  Only the scene's requirements are
+    checked here, not :func:`applies`' reference answers: those cost minutes at 1024² and are
+    computed once, by the run (a camera without them becomes a skipped row with the reason)."""
     globs = suite.scale_cases.get(spec.name, suite.scale_cases.get(spec.family, ()))
     if not globs:
         return []
-    return [c for c in catalog(",".join(globs), {LARGE}) if applies(spec, c) is None]
+    return [c for c in catalog(",".join(globs), {LARGE}) if spec.skip_reason(c.scene) is None]
 
 
 def _family(case) -> str:
