@@ -150,6 +150,23 @@ def trimesh_embree_first_hits(mesh, o: np.ndarray, d: np.ndarray) -> np.ndarray:
     return first
 
 
+def resolve_engine(bid: str, method: str, notes: list):
+    """``(backend, method, dtype)`` that answers the first hit for ``bid``: its ``raycast`` in
+    float32 where it offers one, else ``method`` in float64; None, with a line in ``notes``
+    saying why, when the backend is unavailable or offers neither."""
+    from impls import registry
+
+    b = registry.resolve(bid)
+    if isinstance(b, registry.Unavailable):
+        notes.append(f"{bid}: skipped: {b.reason}")
+        return None
+    m, dtype = ("raycast", "float32") if "raycast" in b.methods() else (method, "float64")
+    if m not in b.methods():
+        notes.append(f"{bid}: skipped: it offers neither raycast nor {method}")
+        return None
+    return b, m, dtype
+
+
 def engine_callables(ids: list[str], method: str = "hybrid_secant") -> tuple[dict[str, Callable], list[str]]:
     """``{engine: (f(mesh, o, d) -> first-hit depths (inf: a miss; NaN: a ray the method flagged with
     a failure status, no answer), the dtype it computes in)}`` for the engines that can run here,
@@ -158,7 +175,7 @@ def engine_callables(ids: list[str], method: str = "hybrid_secant") -> tuple[dic
     in float64 at default knobs."""
     import importlib.util
 
-    from impls import Status, registry
+    from impls import Status
 
     out, notes = {}, []
     for eid in ids:
@@ -171,14 +188,10 @@ def engine_callables(ids: list[str], method: str = "hybrid_secant") -> tuple[dic
             else:
                 out[eid] = (trimesh_embree_first_hits, "float32")
             continue
-        b = registry.resolve(eid)
-        if isinstance(b, registry.Unavailable):
-            notes.append(f"{eid}: skipped: {b.reason}")
+        engine = resolve_engine(eid, method, notes)
+        if engine is None:
             continue
-        m, dtype = ("raycast", "float32") if "raycast" in b.methods() else (method, "float64")
-        if m not in b.methods():
-            notes.append(f"{eid}: skipped: it offers neither raycast nor {m}")
-            continue
+        b, m, dtype = engine
 
         def run(mesh, o, d, b=b, m=m, dtype=dtype):
             prep = b.prepare(m, mesh, o, d, dtype=dtype, t_min=0.0, t_max=10.0 * mesh.size)

@@ -62,6 +62,24 @@ def unit_timer(o: np.ndarray, d: np.ndarray):
     return lambda: lean_sphere_hits(o, d, bufs[0], (bufs[1], bufs[2]))
 
 
+def time_prepared(b, p, o: np.ndarray, d: np.ndarray, repeats: int):
+    """``(first call s, times, units, ratios, output)`` of the prepared method ``p`` of backend ``b``:
+    one synchronised first call (compilation, warm-up) timed apart, then ``repeats`` synchronised
+    calls each beside the closed-form unit of the same rays (:func:`times_against_unit`)."""
+    t0 = time.perf_counter()
+    out = p.run()
+    b.synchronize(out)
+    first = time.perf_counter() - t0
+
+    def call():
+        res = p.run()
+        b.synchronize(res)
+        return res
+
+    times, units, ratios, out = times_against_unit(call, unit_timer(o, d), repeats)
+    return first, times, units, ratios, out
+
+
 def scenes(n_side: int):
     """``{name: (scene, origins, directions)}`` of the two scenes with n_side² rays."""
     from reference import Sphere
@@ -98,17 +116,7 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
         configure_driver(b, threads)
         for name, (scene, o, d) in cases.items():
             p = b.prepare(method, scene, o, d, t_min=0.0, t_max=t_max, **(knobs or {}))
-            t0 = time.perf_counter()
-            out = p.run()
-            b.synchronize(out)
-            first = time.perf_counter() - t0
-
-            def call():
-                res = p.run()
-                b.synchronize(res)
-                return res
-
-            times, units, ratios, out = times_against_unit(call, unit_timer(o, d), repeats)
+            first, times, units, ratios, out = time_prepared(b, p, o, d, repeats)
             runs.append((name, bid, b.id, p.result(out), {
                 "scene": name, "backend": bid, "method": method, "rays": int(o.shape[0]),
                 "time_s": float(np.median(times)), "unit_s": float(np.median(units)),

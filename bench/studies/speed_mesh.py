@@ -10,7 +10,7 @@ default knobs; the peer ``trimesh+embreex`` (trimesh's default intersector when 
 installed) answers too.  Scored as :mod:`bench.speed` scores the analytic scenes:
 
 * time as a multiple of the *unit*, the closed-form ray–sphere intersection of the same rays in
-  numpy (:func:`bench.speed.unit_timer`), timed next to every call (:func:`bench.timing.times_against_unit`);
+  numpy (:func:`bench.studies.speed.unit_timer`), timed next to every call (:func:`bench.run.timing.times_against_unit`);
   the engine's BVH build is ``compile_s``, apart;
 * depth error against the exact float64 first hit (:class:`reference.cases.Case` answers: the
   watertight ray–triangle hits of :class:`reference.mesh.MeshSDF`) over the rays the reference
@@ -26,7 +26,6 @@ from __future__ import annotations
 import importlib.metadata
 import importlib.util
 import json
-import time
 
 import numpy as np
 
@@ -66,20 +65,16 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
     """One row per mesh camera × backend (and × peer), module docstring.  A backend that cannot run
     (unavailable, or offering neither raycast nor ``method``) is a line in ``notes``; one that
     raises on a camera is a row with its ``error``."""
-    from impls import registry
+    from .edges import resolve_engine
 
     notes = [] if notes is None else notes
     cams = cameras(n_side, meshes)
     runs = []  # (mesh, row, t, flagged)
     for bid in backend_ids:
-        b = registry.resolve(bid)
-        if isinstance(b, registry.Unavailable):
-            notes.append(f"{bid}: skipped: {b.reason}")
+        engine = resolve_engine(bid, method, notes)
+        if engine is None:
             continue
-        m, dtype = ("raycast", "float32") if "raycast" in b.methods() else (method, "float64")
-        if m not in b.methods():
-            notes.append(f"{bid}: skipped: it offers neither raycast nor {method}")
-            continue
+        b, m, dtype = engine
         versions = json.dumps(b.versions(), sort_keys=True)
         for name, case in cams.items():
             if progress:
@@ -100,23 +95,12 @@ def _time_backend(b, method: str, dtype: str, case, row: dict, repeats: int):
     CONVERGED depths, +inf elsewhere); ``(row with error, None, None)`` when it raises."""
     from impls import Status
 
-    from ..run.timing import times_against_unit
-    from .speed import unit_timer
+    from .speed import time_prepared
 
     try:
         p = b.prepare(method, case.scene, case.origins, case.directions, dtype=dtype, t_min=case.t_min,
                       t_max=case.t_max)
-        t0 = time.perf_counter()
-        out = p.run()
-        b.synchronize(out)
-        first = time.perf_counter() - t0
-
-        def call():
-            res = p.run()
-            b.synchronize(res)
-            return res
-
-        times, units, ratios, out = times_against_unit(call, unit_timer(case.origins, case.directions), repeats)
+        first, times, units, ratios, out = time_prepared(b, p, case.origins, case.directions, repeats)
         r = p.result(out)
     except Exception as exc:  # one backend's failure is its row
         return {**row, "error": f"{type(exc).__name__}: {exc}"[:300]}, None, None
