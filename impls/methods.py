@@ -156,21 +156,25 @@ class MethodSpec:
 
 _MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)", role="budget")
 _XTOL = Knob("xtol", 1e-12, float, 0.0, "converged when the sign-change bracket is ≤ xtol wide or its ends are adjacent floats (depth units)", role="tolerance")
-_MIN_STEP = Knob("min_step", 1e-5, float, 1e-9,
-                 "smallest forced step Δ beyond |φ|/L: surface crossings with a chord shorter than this can be missed", role="step")
-_OVERSTEP = Knob("overstep", 1e-2, float, 1e-9,
-                 "largest forced step Δ beyond |φ|/L (halved down to min_step while a step is not certified)", role="step")
+_MIN_STEP = Knob("min_step", 1e-4, float, 1e-9,
+                 "first-crossing tolerance: a CONVERGED depth is within min_step + xtol of the first crossing (a pair "
+                 "of crossings with chord < min_step just before it can be passed over); a step this short may stand "
+                 "uncertified on a nearly tangent ray, whose answer is then UNCERTIFIED", role="step")
+_OVERSTEP = Knob("overstep", 0.0, float, 0.0,
+                 "largest forced step Δ beyond |φ|/L, halved down to min_step while a step is not certified "
+                 "(≤ min_step, the default: no forced steps beyond min_step, the plain IDR march)", role="step")
 _BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's ray bounds (Field.ray_bounds: bounding "
                "spheres, boxes, a union's hull; rays outside them are MISS at once); 0: all of [t_min, t_max]", 1, role="setting")
 _HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)", role="budget")
 _LADDER = Knob("ladder", -1, int, -1, "a ray still marching after ladder_after steps goes on in ladder steps: this "
                "many marching samples evaluated together, judged pair by pair as single steps (0 or 1: off; -1: the "
-               "backend's loop driver chooses: 16 on the compacting numpy/torch drivers, off on jax's masked loops)",
+               "backend's loop driver chooses: 16 on the compacting numpy/torch drivers, off on jax's masked loops; "
+               "the hybrids go on in ladder steps only once a step stood uncertified)",
                4096, role="setting")
 _LADDER_AFTER = Knob("ladder_after", 64, int, 0, "marching steps before a ray goes on in ladder steps", role="setting")
-_EXTRAPOLATE = Knob("extrapolate", 1.5, float, 0.0, "forced step at least this × the distance to the zero of the "
-                    "secant through the last two marching points, within reach, so that a shallow approach "
-                    "crosses (0: off)", role="setting")
+_EXTRAPOLATE = Knob("extrapolate", 1.05, float, 0.0, "over-relaxed steps (2|φ|/L/(1 + σ), σ the secant's slope) "
+                    "and a crossing step of this × the secant's distance to its zero, within reach, once the stretch "
+                    "it leaves uncertified is predicted under min_step (0: off, plain steps max(|φ|/L, Δ))", role="setting")
 _REACH = Knob("reach", 0.1, float, 0.0, "largest extrapolated step (depth units; a step not certified is rejected, "
               "so this bounds what a rejection wastes, not what can be missed)", role="step")
 _MIN_COS = Knob("min_cos", 1e-6, float, 0.0, "ILL_CONDITIONED when |⟨∇φ, d⟩|/|∇φ| < min_cos (grazing)", 1.0, role="setting")

@@ -88,7 +88,8 @@ class RayResult:
     * BAD_INPUT (non-finite origin or direction, zero direction), NON_FINITE, LIPSCHITZ_VIOLATED
       — every float output NaN, ``t`` included;
     * MAX_ITER — ``t`` the last iterate (its error still shrinks with the budget), other outputs NaN;
-    * UNCERTIFIED — ``t`` inf (no crossing found, but not over certified steps) or the depth at
+    * UNCERTIFIED — ``t`` inf (no crossing found, but not over certified steps), the depth of a
+      crossing not proved the first (the hybrids: a step stood uncertified before it), or the depth at
       which φ fell within its rounding (no resolved sign change); other outputs NaN;
     * ILL_CONDITIONED — dt/dθ at a grazing hit: the value is returned but not trustworthy.
     """

@@ -99,9 +99,12 @@ def test_the_two_sphere_gap_gives_no_later_crossing(backend, method):
     res = _solve(backend, method, scene, o, d, 10.0)
     bad = check_guarantee(scene, o, d, res, 10.0, allowance(method, {}))
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
-    # the gap's rays all hit: the hybrids answer every one (sphere tracing may spend its budget)
+    # the gap's rays all hit: the hybrids answer every one, CONVERGED or — where the ray passes the
+    # other sphere within min_step before its crossing, which the bound cannot certify at that
+    # cost — UNCERTIFIED (93 of the 4000 on numpy; sphere tracing may spend its budget)
     if method != "sphere_trace":
-        assert np.mean(res.status == Status.CONVERGED) > 0.99
+        assert np.all(np.isin(res.status, (Status.CONVERGED, Status.UNCERTIFIED)))
+        assert np.mean(res.status == Status.CONVERGED) > 0.95
 
 
 @pytest.mark.slow

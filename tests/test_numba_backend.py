@@ -128,7 +128,10 @@ def test_root_finders_agree_with_numpy(nb, name, method, ladder):
     kw = dict(t_max=10.0, max_steps=20000) if method == "sphere_trace" else dict(t_max=10.0, ladder=ladder)
     a, b = run(nb, method, scene, o, d, **kw), run(registry.resolve("numpy"), method, scene, o, d, **kw)
     np.testing.assert_array_equal(a.status, b.status)
-    assert (a.status == Status.CONVERGED).sum() >= 40 and (a.status == Status.MISS).any(), a.status_counts()
+    # hits answered (a hybrid's ladder spaces its samples by the forced step near the MLP's surface, whose
+    # pairs stand uncertified: those hits are UNCERTIFIED, with their depth, on both backends)
+    answered = np.isin(a.status, (Status.CONVERGED, Status.UNCERTIFIED))
+    assert answered.sum() >= 40 and (a.status == Status.MISS).any(), a.status_counts()
     if name in BLAS:
         np.testing.assert_allclose(a.t, b.t, rtol=0, atol=1e-12)
         # a convergence test that close can fall a step or more apart (Newton's φ' is a central

@@ -41,7 +41,7 @@ import dataclasses
 
 import numpy as np
 
-from .rootfind import CONV, IN, MAXI, NONF, MarchRefine
+from .rootfind import CONV, IN, MAXI, NONF, UNC, MarchRefine
 
 
 def refine(a, b, fa, fb, o, d, ev, *, xtol: float, budget):
@@ -114,6 +114,10 @@ class MarchChandrupatla(MarchRefine):
             # frontier reaches it (MarchRefine._certify), else the certification stage samples
             # towards it from the last certified point, bisecting an earlier crossing it finds
             later = (status == CONV) & (s["u"] + self.rule.min_step < t)
+            # a frontier stopped behind the last certified sample (MarchRefine.step_refine): UNCERTIFIED
+            unc = later & (s["u"] < s["cp"])
+            later = later & ~unc
+            status = np.where(unc, UNC, status)
             new.update(status=np.where(later, IN, status), a=np.where(later, t, s["a"]), b=np.where(later, t, s["b"]),
                        cm=later, phase=np.where(later, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
         return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}

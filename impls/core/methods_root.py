@@ -95,7 +95,8 @@ def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, 
     cls, refiner = (MarchChandrupatla, Bisect) if refine == "chandrupatla" else (MarchRefine, REFINERS[refine])
     return cls(rule=rule, refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"],
                        t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
-                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"], scale=rounding_scale(scene), gain=rounding_gain(scene),
+                       ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
+                       scale=rounding_scale(scene), gain=rounding_gain(scene),
                        resolve=resolves(scene))
 
 

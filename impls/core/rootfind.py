@@ -446,6 +446,21 @@ class ConstantStep:
         return {}
 
 
+#: the hybrid's crossing step is taken once the stretch it would leave uncertified, x₀ − r, is
+#: predicted within this many ``min_step`` (:meth:`CertifiedStep.size`); the over-relaxed step is
+#: this fraction of the largest step the secant's slope certifies (a margin against a slope that
+#: grows: 1 had 0.38 rejected steps per ray on bench speed's torus ∪ box, 0.9 has 0.06).  Measured
+#: on that scene at 256² and 1024²: GATE 0.3, 0.5, 1, 3, 10 cost 6.72, 6.55, 5.95, 6.42, 7.20
+#: evaluations per ray (docs/methods.md)
+GATE = 1.0
+OVER_RELAX = 0.9
+#: below this slope (in units of L) a ray is taken to pass a surface nearly tangent rather than
+#: approach it, and the forced step Δ keeps it moving (at 1/64 the MLP camera's hits, approached at
+#: slopes about 0.03 of its loose bound, stood uncertified; at 1/1024 rays grazing a sphere within
+#: 1e-6 crawl 269 evaluations per ray to the same UNCERTIFIED)
+PASSING_SLOPE = 1.0 / 256.0
+
+
 @dataclasses.dataclass(frozen=True)
 class CertifiedStep:
     """IDR-style hybrid step h = max(|φ|/L, Δ) with a per-ray forced step Δ (state ``dl``) in
@@ -479,30 +494,45 @@ class CertifiedStep:
         return self.overstep
 
     def holds(self, stage: str) -> frozenset[str]:
-        return frozenset({"dl", "unc"} | ({"p", "fp"} if stage == "step_march" and self.extrapolate else set()))
+        march = {"pl"} | ({"p", "fp"} if self.extrapolate else set())
+        return frozenset({"dl", "g"} | (march if stage == "step_march" else set()))
 
     def radius(self, xp, f):
         """|φ|/L, the radius of the unbounding sphere (no multiplication for L = 1, an SDF's)."""
         return xp.abs(f) if self.inv_lip == 1.0 else xp.abs(f) * self.inv_lip
 
     def init(self, xp, t) -> dict:
-        # unc: the ray stood on a step no sphere certified (≤ min_step): a MISS is then uncertified
-        return {"dl": xp.full_like(t, self.cap), "unc": xp.zeros_like(t, dtype=xp.bool)}
+        # g: where the first stretch no certified sphere covered begins (a step ≤ min_step that
+        # stood uncertified; inf: none): a MISS is then uncertified, and a crossing is certified
+        # only if it lies within min_step of g.  pl: the length of a probe past a landing within
+        # φ's rounding of 0 (0: none pending; −1: the ray's one probe is spent)
+        return {"dl": xp.full_like(t, self.cap), "g": xp.full_like(t, math.inf), "pl": xp.zeros_like(t)}
 
     def size(self, xp, s, t, f):
         r = self.radius(xp, f)
         h = xp.maximum(r, s["dl"])
         if self.extrapolate:
-            # the secant through the last two points predicts the zero a shallow approach is heading
-            # for (sphere tracing closes in on it only geometrically); aim a little beyond it, within
-            # reach, so that the step crosses.  With p < t, x > 0 exactly when |φ| decreased
-            # without a sign change (or stayed the same: x = reach, a step judged like any
-            # other); x is 0 or NaN where p = t (after a rejection, at the start) and negative on a
-            # receding ray, and h stays.
+            # σ: the fall of |φ|/L per unit depth over the last step (≤ 1 by the bound), the slope at
+            # which the ray approaches the surface (NaN after a rejection or at the start: p = t).
+            # Over-relaxation (Keinert et al. 2014): where φ falls linearly at slope σ the spheres of
+            # t and t + h overlap while h ≤ 2r/(1 + σ), so that step stands certified and leaves
+            # (1 − σ)/(1 + σ) of the distance to the surface, against 1 − σ for the plain step r
+            # (a receding ray, σ ≤ 0: 2r).  A step whose spheres do not overlap after all is rejected
+            # (the ray stays, and steps r next).  Below the slope PASSING_SLOPE (a ray passing a
+            # surface, nearly tangent) the forced step Δ keeps it moving.  The crossing step: the
+            # secant through the last two points predicts the zero at x₀ = r/σ; the step e·x₀
+            # (within reach) crosses and leaves uncertified the stretch from the sphere's end t + r
+            # to the crossing, x₀ − r, which the certification stage must then cover (_certify),
+            # so it is taken once that is within GATE·min_step.
             with _quiet(xp):
-                x = xp.minimum(self.extrapolate * (f * (t - s["p"]) / (s["fp"] - f)), self.reach)
-            h = xp.where(x > h, x, h)
-        return r, h
+                sig = xp.minimum((self.radius(xp, s["fp"]) - r) / (t - s["p"]), 1.0)
+                over = xp.where(sig > -1.0, r + OVER_RELAX * (2.0 * r / (1.0 + xp.maximum(sig, 0.0)) - r), r)
+                x0 = r / sig
+                x = xp.minimum(self.extrapolate * x0, self.reach)
+                base = xp.where(sig > PASSING_SLOPE, over, xp.maximum(h, over))
+                cross = (sig > 0) & (x0 - r <= GATE * self.min_step) & (x > base)
+            h = xp.where(cross, x, base)
+        return r, xp.maximum(h, s["pl"])
 
     def end(self, xp, t, h, hi, t_max):
         t_n = xp.minimum(t + h, hi)
@@ -774,12 +804,16 @@ class MarchRefine(_Search):
         rc = rc_n = unres = None
         if rule.certifies:
             # certified radii (|φ|/L less φ's rounding); a landing within φ's rounding of 0 (in the
-            # range) shows no side: no crossing is taken from it, and the ray ends UNCERTIFIED there
+            # range) shows no side: no crossing is taken from it.  The ray stays and probes once
+            # min_step past it (a step that lands on the surface, as sphere tracing does head-on,
+            # then brackets it); a second such landing ends the ray UNCERTIFIED there
             rc = certified_radius(xp, f, t, rule.inv_lip, mag, self.rg)
             r_n, res_n = rule.radius(xp, f_n), resolution(xp, t_n, mag, self.rg)
             rc_n = xp.maximum(r_n - res_n, 0.0)  # (certified_radius and unresolved, sharing their terms)
             unres = (r_n <= res_n) & (t_n <= hi)
             cross = cross & ~unres
+            retry = unres & (s["pl"] == 0)
+            unres = unres & ~retry
         # at hi, or past every finite depth (t_max = inf and no ray bound): the ray left
         gone = (t_n >= hi) | ~xp.isfinite(t_n) | beyond
         miss = ~cross & gone
@@ -791,6 +825,9 @@ class MarchRefine(_Search):
         lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check, mag, self.gain) & ~beyond
         t_land = t_n
         ok, new, loose = rule.judge(xp, s, cross, rc, rc_n, h, t_n)
+        if rule.certifies:  # a landing to probe past: the ray stays
+            ok, loose = ok & ~retry, loose & ~retry
+            new["pl"] = xp.where(retry, (t_land - t) + rule.min_step, xp.where(s["pl"] != 0, -1.0, 0.0))
         if ok is not None:  # a step that does not stand: the ray stays where it was
             miss = miss & ok
             t_n, f_n = xp.where(ok, t_n, t), xp.where(ok, f_n, f)
@@ -798,18 +835,27 @@ class MarchRefine(_Search):
                 df_n = xp.where(ok, df_n, s["df"])
         iters = s["iterations"] + 1
         if rule.certifies:
-            # a MISS is certified only if no step stood uncertified on the way
-            unc = s["unc"] | loose
-            unc_miss = miss & unc
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | unres)
+            # a MISS is certified only if no step stood uncertified on the way; a crossing is the
+            # first to within min_step only if the first such step began within min_step of it
+            g = xp.where(loose & (s["g"] == math.inf), t + rc, s["g"])
+            unc_miss = miss & (g < math.inf)
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
+                              unc=unc_miss | unres | (conv & (g + rule.min_step < t)))
             t_n = xp.where(unc_miss, math.inf, xp.where(unres, t_land, t_n))
-            new.update(unc=unc, u=t + rc, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
+            # the frontier: the end of the stretch certified spheres covered from the start on
+            new.update(g=g, u=xp.minimum(t + rc, g), cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
         else:
             status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
-        phase = xp.astype(cross | (iters >= self.ladder_after), xp.int32) + to_refine if self.ladder > 1 else to_refine
+        # (a certifying rule's ray goes on in ladder steps only once a step stood uncertified: before
+        # that, the ladder's forced spacing near a surface would stand uncertified and flag the crossing;
+        # after it, the answer is UNCERTIFIED anyway unless the crossing comes within min_step)
+        to_ladder = iters >= self.ladder_after
+        if rule.certifies:
+            to_ladder = to_ladder & (new["g"] < math.inf)
+        phase = xp.astype(cross | to_ladder, xp.int32) + to_refine if self.ladder > 1 else to_refine
         # on a crossing the bracket is [a, b] = [t, t_n] and the secant starts from (p, t) = (t, t_n);
         # for other rows a, b are overwritten before they are used
         new.update(t=t_n, f=f_n, p=t, fp=f, a=t, fa=f, b=t_n, phase=phase, status=status, iterations=iters,
@@ -880,15 +926,20 @@ class MarchRefine(_Search):
         if rule.certifies:
             Rpe = at(Rp)
             conv = cross_e & (Te - Tpe <= self.xtol)
-            # pairs the ray stepped over that stood uncertified (≤ min_step): a MISS is then uncertified
+            # pairs the ray stepped over that stood uncertified (≤ min_step): the first one's start
+            # is where the covered stretch ends (g, as in step_march)
             j = xp.asarray(np.arange(k), device=_device(t))[None, :]
             taken = (j < e) | ((j == e) & onto[:, None])
-            unc = s["unc"] | xp.any(stands & ~sure & ~cross & taken, axis=1)
-            unc_miss = miss & unc
+            loose = stands & ~sure & ~cross & taken
+            fl = xp.argmax(xp.astype(loose, xp.int8), axis=1)[:, None]
+            g_l = xp.take_along_axis(Tp, fl, axis=1)[:, 0] + xp.take_along_axis(Rp, fl, axis=1)[:, 0]
+            g = xp.where(xp.any(loose, axis=1) & (s["g"] == math.inf), g_l, s["g"])
+            unc_miss = miss & (g < math.inf)
             unres_e = stopped & at(unresF)
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | unres_e)
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
+                              unc=unc_miss | unres_e | (conv & (g + rule.min_step < Tpe)))
             t_new = xp.where(unc_miss, math.inf, xp.where(unres_e, Te, xp.where(onto, Te, Tpe)))
-            new.update(unc=unc, u=Tpe + Rpe, cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto))
+            new.update(g=g, u=xp.minimum(Tpe + Rpe, g), cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto))
         else:
             conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
             status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
@@ -934,13 +985,17 @@ class MarchRefine(_Search):
         (:meth:`_certify`); otherwise the ray goes on to the certification stage with its answer."""
         new, c, f_c, same_a, closed = self._refine_step(xp, s, o, d, ev)
         conv = closed
+        unc = None
         if self.rule.certifies:
             lo = xp.where(f_c == 0, c, new["a"])
             later = closed & (s["u"] + self.rule.min_step < lo)
+            # a frontier stopped behind the last certified sample by a stretch that stood
+            # uncertified cannot be moved on by samples from there: UNCERTIFIED, with its depth
+            unc = later & (s["u"] < s["cp"])
             conv = closed & ~later
-            new["cm"] = later
+            new["cm"] = later & ~unc
             new["phase"] = xp.astype(later, xp.int32) + (len(self.stages) - 2)
-        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps)
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
         return _typed(xp, dict(s, **new), s)
 
     def step_certify(self, xp, s, o, d, ev):
@@ -951,8 +1006,8 @@ class MarchRefine(_Search):
         cm = s["cm"]
         new, c, f_c, same_a, closed = self._refine_step(
             xp, s, o, d, ev, c=lambda prop: xp.where(cm, self._certify_sample(xp, s, s["a"], mag), prop))
-        conv = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
-        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps)
+        conv, unc = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
         return _typed(xp, dict(s, **new), s)
 
     def _certify_sample(self, xp, s, a, mag):
@@ -961,7 +1016,7 @@ class MarchRefine(_Search):
         surface is crossed at slope σ (in units of L), the unbounding spheres of cp and cp + h
         overlap while h ≤ 2ρ/(1 + σ), ρ the sphere's radius at cp; σ is estimated as ρ/(a − cp)
         (exact for a plane), and ``kap`` ∈ (0, 1] moves the step back towards ρ after a sample
-        whose sphere did not overlap.  A step of min_step stands whatever (the rule's allowance)."""
+        whose sphere did not overlap (a plain step, κ → 0, always does)."""
         rule = self.rule
         cp = s["cp"]
         rp = certified_radius(xp, s["fcp"], cp, rule.inv_lip, mag, self.rg)
@@ -969,23 +1024,26 @@ class MarchRefine(_Search):
         with _quiet(xp):
             sig = xp.minimum(rp / y, 1.0)
         h = rp + s["kap"] * (2.0 * rp / (1.0 + sig) - rp)
-        h = xp.maximum(h, xp.minimum(rule.min_step, y))
         return xp.minimum(cp + h, a)
 
     def _certify(self, xp, s, new, c, f_c, same_a, closed, mag):
         """Certification that the bracket's crossing is the ray's first, for a certifying step
-        rule; updates ``new`` (the step's state) and returns the rows CONVERGED.
+        rule; updates ``new`` (the step's state) and returns the rows CONVERGED and the rows that
+        give up (UNCERTIFIED).
 
-        The march proved no crossing before the frontier ``u`` (its last sphere's end: every
-        earlier stretch was covered by certified spheres, or was at most ``min_step`` long), and
-        the crossing step proved one in [u, b].  A sample on the start's side whose sphere leaves
-        at most ``min_step`` between the frontier and itself extends the frontier to its sphere's
-        end.  A closed bracket is CONVERGED when u + ``min_step`` reaches its start ``a``: then
-        every crossing before the bracket lies in a stretch of at most min_step no sphere covered
-        (a pair of crossings with chord < min_step).  Otherwise the row enters certification mode:
-        its answer stays, and it samples from the last certified point towards ``a``
+        The march proved no crossing before the frontier ``u`` (the end of the stretch certified
+        spheres covered from the start, without a gap), and the crossing step proved one in
+        [u, b].  A sample on the start's side whose sphere reaches back to the frontier extends
+        it to its sphere's end.  A closed bracket is CONVERGED when u + ``min_step`` reaches its
+        start ``a``: the first crossing then lies in [a − min_step, b], so the depth is within
+        min_step + xtol of it (a pair of crossings with chord < min_step in that last stretch is
+        what can be passed over).  Otherwise the row enters certification mode: its answer
+        stays, and it samples from the last certified point towards ``a``
         (:meth:`_certify_sample`) until the frontier reaches it — or a sample shows the other
-        sign: an earlier crossing, whose bracket [cp, c] refinement then takes up afresh."""
+        sign: an earlier crossing, whose bracket [cp, c] refinement then takes up afresh — or the
+        frontier crawls (a sphere under 1/``CERTIFY_REACH`` of what is left: a tangency) or a
+        sample lands within φ's rounding of 0: then the row gives up, UNCERTIFIED with its
+        answer's depth."""
         rule = self.rule
         cm, u, cp = s["cm"], s["u"], s["cp"]
         rc = certified_radius(xp, f_c, c, rule.inv_lip, mag, self.rg)
@@ -994,13 +1052,17 @@ class MarchRefine(_Search):
         unres = unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
         side = (same_a & (f_c != 0)) | (cm & unres)
         earlier = cm & ~side
-        # (the allowance plus the rounding of the positions: a floor step of min_step must stand)
-        stands = side & (c - rc - u <= rule.min_step + (4.0 * _eps(c)) * xp.abs(c))
+        # (to the rounding of the positions: a plain step from cp must stand)
+        stands = side & (c - rc - u <= (4.0 * _eps(c)) * xp.abs(c))
         u_n = xp.where(stands, xp.maximum(u, c + rc), u)
         adv = stands & (c > cp)
         lo = xp.where(cm, s["a"], xp.where(f_c == 0, c, new["a"]))
         certified = u_n + rule.min_step >= lo
         conv = xp.where(cm, ~earlier & certified, closed & certified)
+        # a frontier that moves on by less than 1/CERTIFY_REACH of what is left to cover is near a
+        # tangency (spheres of radius σ·distance, σ → 0): UNCERTIFIED rather than thousands of samples
+        # (a sample within φ's rounding of 0, an empty sphere, likewise)
+        give_up = cm & ~certified & ((stands & (rc * CERTIFY_REACH < lo - rule.min_step - u_n)) | unres)
         keep = cm & ~earlier  # certification goes on: the answer and its bracket stay
         restart = earlier  # refinement of [cp, c] from the secant (cp, fcp) → (c, f_c)
         for k in ("t", "f", "p", "fp", "a", "b", "wq", "df"):
@@ -1017,13 +1079,18 @@ class MarchRefine(_Search):
         new.update(u=u_n, cp=xp.where(adv, c, cp), fcp=xp.where(adv, f_c, s["fcp"]),
                    kap=xp.where(cm, xp.where(stands, xp.minimum(2.0 * s["kap"], 1.0), 0.5 * s["kap"]), s["kap"]),
                    cm=keep | (~cm & closed & ~certified))
-        return conv
+        return conv, give_up
 
 
 #: the state a certifying rule's refinement stage keeps (:meth:`MarchRefine._certify`): the
 #: frontier ``u``, the last certified sample ``cp`` and its φ ``fcp``, the certification step's
 #: relaxation ``kap`` and the mode ``cm``
 CERTIFY_STATE = frozenset({"u", "cp", "fcp", "kap", "cm"})
+
+#: certification gives up (UNCERTIFIED) when a sample's sphere is under 1/this of the stretch left
+#: to cover: at slope σ each sample covers about a factor (1 + σ)/(1 − σ), so this stops the rays
+#: that would need more than about 32·ln(stretch/min_step) samples (σ < 1/64: near a tangency)
+CERTIFY_REACH = 64.0
 
 
 STATE_OUT = ("t", "status", "iterations", "evals")
