@@ -463,12 +463,14 @@ PASSING_SLOPE = 1.0 / 256.0
 
 @dataclasses.dataclass(frozen=True)
 class CertifiedStep:
-    """IDR-style hybrid step h = max(|φ|/L, Δ) with a per-ray forced step Δ (state ``dl``) in
-    [``min_step``, ``overstep``], standing only when certified free of surface by overlapping
-    unbounding spheres (Keinert et al. 2014), when it crosses, or when it is no longer than
-    ``min_step``; an optional extrapolation towards the zero of the secant through the last two
-    points (``extrapolate``, within ``reach``); a leaving step is evaluated where it ends
-    (``probe``, within t_max).  Every step checks the bound L = 1/``inv_lip`` it relies on."""
+    """The hybrid's step rule (:meth:`size`): over-relaxed certified steps, a crossing step once
+    the stretch it leaves uncertified is under ``GATE`` · ``min_step`` (``extrapolate``, within
+    ``reach``), and, on a ray passing a surface nearly tangent, a per-ray forced step Δ (state
+    ``dl``) in [``min_step``, ``overstep``].  A step stands when certified free of surface by
+    overlapping unbounding spheres (Keinert et al. 2014), when it crosses, or when it is no longer
+    than ``min_step`` (uncertified: :class:`MarchRefine` records where, state ``g``); a leaving step
+    is evaluated where it ends (``probe``, within t_max).  Every step checks the bound L =
+    1/``inv_lip`` it relies on."""
 
     inv_lip: float
     min_step: float
@@ -678,29 +680,25 @@ class MarchRefine(_Search):
     crossed twice within one step (a feature thinner than the step) is not seen — that
     is marching's documented limit.
 
-    :class:`CertifiedStep` (IDR-style hybrid): h_k = max(r_k, Δ_k) with r_k = |φ(t_k)|/L, the
-    sphere-tracing step, and Δ_k a per-ray forced step in [``min_step``, ``overstep``].  The
-    forced step lets grazing rays (where sphere tracing converges only linearly) cross the
-    surface in a few steps.  A step longer than r_k is *certified* free of surface when the
-    unbounding spheres of its ends overlap, r_k + r_{k+1} ≥ h_k (Keinert et al., "Enhanced
-    Sphere Tracing", 2014: every point of the step is then within r of one end, where |φ| > 0).
-    An uncertified step without a sign change is rejected (the ray stays at t_k) and Δ_k is
-    halved, down to ``min_step``, where it stands uncertified (then a MISS is UNCERTIFIED); a
-    step that stands doubles Δ_k back up to ``overstep``.  A crossing step proves a root, not
-    the first: its bracket is refined, then certified (stage ``step_certify``,
-    :meth:`_certify`).  So a crossing is missed only if it is one of a pair with chord shorter
-    than ``min_step`` in a stretch no certified sphere covered; with ``overstep`` = ``min_step``
-    this is the plain IDR march (no rejections).  Extrapolation
-    (``extrapolate`` = e > 0): where |φ| fell over the last step without a sign change, the
-    step is at least min(e·x, ``reach``), x = φ_k (t_k − t_{k−1})/(φ_{k−1} − φ_k) the
-    distance to the zero of the secant through the last two points.  A shallow approach to a
-    surface (at angle θ sphere tracing shrinks its steps by about 1 − sin θ each) then crosses
-    as soon as the predicted crossing is within reach; the step is judged like any other
-    (accepted only if it crosses or is certified), so what can be missed does not change, and
-    ``reach`` only bounds what a rejected step wastes (docs/methods.md has the measured trade-off).
+    :class:`CertifiedStep` (IDR-style hybrid, :meth:`CertifiedStep.size`): over-relaxed steps
+    h_k = 0.9 · 2r_k/(1 + σ_k), r_k = |φ(t_k)|/L and σ_k the secant's slope over the last step
+    (Keinert et al., "Enhanced Sphere Tracing", 2014), and a crossing step ``extrapolate`` × the
+    secant's distance to its zero once the stretch it leaves uncertified is predicted within
+    ``GATE`` · ``min_step``; below the slope ``PASSING_SLOPE`` a forced step Δ_k ∈ [``min_step``,
+    ``overstep``].  A step longer than r_k is *certified* free of surface when the unbounding
+    spheres of its ends overlap, r_k + r_{k+1} ≥ h_k (every point of the step is then within r of
+    one end, where |φ| > 0).  An uncertified step without a sign change is rejected (the ray stays
+    at t_k) and Δ_k halves, down to ``min_step``, where it stands uncertified: the *frontier* (the
+    end of the stretch certified spheres covered from the start) stops there (state ``g``), a
+    MISS is then UNCERTIFIED, and so is a crossing more than ``min_step`` past it.  A crossing
+    step proves a root, not the first: its bracket is refined, then certified (stage
+    ``step_certify``, :meth:`_certify`): CONVERGED when the frontier reaches ``min_step`` before
+    the bracket, so the depth is within ``min_step`` + ``xtol`` of the first crossing.  A landing
+    within φ's rounding of 0 is probed past once (state ``pl``).
 
-    Ladder steps (``ladder`` = K > 1): after ``ladder_after`` marching steps a ray marches
-    K steps per iteration — K samples at a common spacing evaluated together, the pairs judged
+    Ladder steps (``ladder`` = K > 1): after ``ladder_after`` marching steps (for a certifying
+    rule, only once a step stood uncertified: near a surface the ladder's forced spacing would
+    stand uncertified and flag the crossing) a ray marches K steps per iteration — K samples at a common spacing evaluated together, the pairs judged
     in order as single steps are (:meth:`step_ladder`).  The rays that need them (grazing rays;
     constant-step marching over long empty stretches) need hundreds to thousands of steps, and
     a loop step on few rays costs its per-call overhead whatever their number.  Every sample
