@@ -250,7 +250,8 @@ def test_reported_evals_equal_counted_calls_in_ladder_steps(request, any_backend
     if METHODS[method].family == "root" and "min_step" in {k.name for k in METHODS[method].knobs}:
         # the hybrids go on in ladder steps only once a step stood uncertified: rays passing the
         # sphere 1e-5 away (nearer than min_step) do, searched without the ray bounds (which they miss)
-        o = np.concatenate([o, [[-3.0, 1.0 + 1e-5, 0.0], [-3.0, 0.0, 1.0 + 2e-5]]])
+        c, rad = np.array(SPHERE.center), SPHERE.radius
+        o = np.concatenate([o, c + [[-3.0, rad + 1e-5, 0.0], [-3.0, 0.0, rad + 2e-5]]])
         d = np.concatenate([d, [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
         extra = {"bounds": 0}
     else:
