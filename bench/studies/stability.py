@@ -118,7 +118,7 @@ def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
            "reasons": []}
     failed, errs, ok_rows, judged_rows = False, [], 0, 0
     statuses: dict[str, int] = {}
-    for _, r in rows.iterrows():
+    for r in rows.to_dict("records"):  # plain dicts: a Series per row costs more than judging it
         outcome = str(r.get("outcome", ""))
         if outcome == "failed":
             failed = True
@@ -145,7 +145,7 @@ def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
         n_fm = int(_num(r.get("n_false_miss"))) - int(_num(declined))  # silent: reported MISS
         err = _num(r.get("error_max_finite"), float("nan"))
         n_nf = int(_num(r.get("n_converged_nonfinite")))
-        if "n_converged_nonfinite" not in r.index or pd.isna(r.get("n_converged_nonfinite")):
+        if "n_converged_nonfinite" not in r or pd.isna(r.get("n_converged_nonfinite")):
             # older rows: an infinite max error that no false hit or miss explains is a CONVERGED NaN
             n_nf = int(_num(r.get("error_max"), 0.0) == math.inf and n_fh + int(_num(r.get("n_false_miss"))) == 0)
         over = int(not math.isnan(err) and err > tol)
@@ -191,7 +191,8 @@ def stability_cells(df: pd.DataFrame, family_of=catalog_family, scale_of=catalog
     d = d[(fam == "root") & q.isin(["depth", ""])]
     if not len(d):
         return pd.DataFrame(columns=cols)
-    d = d.assign(adv_family=[family_of(str(c)) for c in d["case_id"]])
+    fams = {c: family_of(c) for c in set(map(str, d["case_id"]))}  # once per case: a catalog look-up each
+    d = d.assign(adv_family=[fams[str(c)] for c in d["case_id"]])
     d = d[d["adv_family"].notna()]
     rows = []
     for (method, backend, dtype, family), g in d.groupby(["method", "backend", "dtype", "adv_family"]):
