@@ -74,9 +74,26 @@ def stages_main(args: argparse.Namespace, out: str, stability_suite: str | None,
     return notes
 
 
-def _child(conn, target, arguments) -> None:
+def _die_with_parent(parent: int) -> None:
+    """``prctl(PR_SET_PDEATHSIG, SIGTERM)`` where the C library has it (Linux; else nothing), and
+    exit at once if ``parent`` already died before it was set (this process was then adopted)."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def _child(conn, target, arguments, parent: int) -> None:
     """The second process's entry: run ``target(*arguments)`` and send back its notes (or the
-    exception that escaped it, as text)."""
+    exception that escaped it, as text).  On Linux it asks to be sent SIGTERM when the first
+    process dies (``PR_SET_PDEATHSIG``), so a killed run leaves no stage writing its directory
+    behind (``--resume`` may then take it over)."""
+    _die_with_parent(parent)
     try:
         got = target(*arguments)
     except BaseException as exc:  # noqa: BLE001 - whatever happens here is a note, never the run's end
@@ -99,7 +116,7 @@ class SideStages:
         ctx = multiprocessing.get_context("spawn")
         receive, send = ctx.Pipe(duplex=False)
         try:
-            self.process = ctx.Process(target=_child, args=(send, self.target, self.arguments),
+            self.process = ctx.Process(target=_child, args=(send, self.target, self.arguments, os.getpid()),
                                        name="isobench-side-stages", daemon=True)
             self.process.start()
         except Exception as exc:  # noqa: BLE001 - e.g. no more processes: the notes say so
