@@ -109,16 +109,19 @@ def _statuses(v) -> dict[str, int]:
         return {}
 
 
-def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
-    """The verdict and numbers of one cell from its result rows (any number of cases)."""
+def judge_cell(rows, dtype: str, scale_of=catalog_scale) -> dict:
+    """The verdict and numbers of one cell from its result rows (any number of cases): a frame,
+    or its rows as dicts (``DataFrame.to_dict("records")``, which :func:`stability_cells` makes
+    once for all cells: per cell it costs more than the judging)."""
+    rows = rows.to_dict("records") if isinstance(rows, pd.DataFrame) else list(rows)
     out = {"verdict": "n/a", "error_max": float("nan"), "tolerance": float("nan"), "n_false_hit": 0,
            "n_false_miss": 0, "n_flagged": 0, "n_nonfinite": 0, "n_over_tol": 0, "n_not_judged": 0,
            "evals_max": float("nan"),
-           "iterations_max": float("nan"), "statuses": {}, "cases": sorted(set(map(str, rows["case_id"]))),
+           "iterations_max": float("nan"), "statuses": {}, "cases": sorted({str(r["case_id"]) for r in rows}),
            "reasons": []}
     failed, errs, ok_rows, judged_rows = False, [], 0, 0
     statuses: dict[str, int] = {}
-    for r in rows.to_dict("records"):  # plain dicts: a Series per row costs more than judging it
+    for r in rows:
         outcome = str(r.get("outcome", ""))
         if outcome == "failed":
             failed = True
@@ -194,8 +197,13 @@ def stability_cells(df: pd.DataFrame, family_of=catalog_family, scale_of=catalog
     fams = {c: family_of(c) for c in set(map(str, d["case_id"]))}  # once per case: a catalog look-up each
     d = d.assign(adv_family=[fams[str(c)] for c in d["case_id"]])
     d = d[d["adv_family"].notna()]
+    groups: dict[tuple, list[dict]] = {}
+    for r in d.to_dict("records"):  # once: a frame's rows as dicts per cell cost more than judging them
+        if any(pd.isna(r[k]) for k in ("method", "backend", "dtype")):
+            continue  # as groupby drops a missing key
+        groups.setdefault((r["method"], r["backend"], r["dtype"], r["adv_family"]), []).append(r)
     rows = []
-    for (method, backend, dtype, family), g in d.groupby(["method", "backend", "dtype", "adv_family"]):
+    for (method, backend, dtype, family), g in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
         cell = judge_cell(g, str(dtype), scale_of)
         rows.append({"method": method, "backend": backend, "dtype": dtype, "family": family,
                      "mark": MARKS[cell["verdict"]], **cell})
