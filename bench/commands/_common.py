@@ -180,6 +180,19 @@ def load_user_cases(args) -> str | None:
     return None
 
 
+def configure_process(args) -> dict[str, str]:
+    """Threads, caches and allocator of ``bench run``'s options (``--threads``, ``--cache-dir``,
+    ``--no-cache``, ``--allocator``), before any array library or backend is imported; returns the
+    caches' environment record.  The run's process and its side-stage process call it alike."""
+    from ..run.environment import configure_caches, configure_threads, default_cache_dir, tune_allocator
+
+    configure_threads(args.threads)
+    record = configure_caches(None if args.no_cache else Path(args.cache_dir) if args.cache_dir else default_cache_dir())
+    if args.allocator == "tuned":
+        tune_allocator()
+    return record
+
+
 def run_claims_into(out: Path, *, quick: bool, console, only: list[str] | None = None) -> str:
     """Call the claims ledger (``bench.claims.run_claims``, the claims ``only`` or all) into
     ``out``; never raises.  Returns a one-line note for the report and the console ("" when it

@@ -57,24 +57,27 @@ def start_executor(args, lines):
     return executor, ""
 
 
-def _first_screen_lines(df, env: dict, out: Path) -> list[str]:
+def _first_screen_lines(df, env: dict, out: Path, fs=None) -> list[str]:
     """The report's answers in a few lines: which to pick at 1e-8, the stability scoreboard, the
-    claims' verdict counts (:func:`bench.report.summary.first_screen`); nothing if they cannot be made."""
+    claims' verdict counts (:func:`bench.report.summary.first_screen`; ``fs``: the one the report
+    was built with, else made here); nothing if they cannot be made."""
     from ..report import summary, tables
     from ..studies import stability
 
     try:
-        cells, _ = tables.stability_section(df, out)
-        board = stability.scoreboard_lines(stability.scoreboard(cells)) if len(cells) else []
-        fs = summary.first_screen(df, env, claims=tables.read_claims(out), scoreboard=board)
+        if fs is None:
+            cells, _ = tables.stability_section(df, out)
+            board = stability.scoreboard_lines(stability.scoreboard(cells)) if len(cells) else []
+            fs = summary.first_screen(df, env, claims=tables.read_claims(out), scoreboard=board)
         text = summary.terminal_text(fs).splitlines()[1:]  # the first line repeats the counts above
         return [t[:160] for t in text]
     except Exception as exc:  # the summary must never cost the run its exit code
         return [f"(summary unavailable: {type(exc).__name__}: {exc})"]
 
 
-def closing_summary(df, env: dict, out: Path, lines: ProgressLines) -> tuple[int, list[str]]:
-    """The closing lines (counts, failures, incompleteness, report path) and the exit code:
+def closing_summary(df, env: dict, out: Path, lines: ProgressLines, fs=None) -> tuple[int, list[str]]:
+    """The closing lines (counts, failures, incompleteness, report path; ``fs``: the report's first
+    screen, :func:`bench.report.build.build`'s) and the exit code:
     0, or 1 when the run is incomplete (its --budget ran out) or no configuration ran."""
     from ..report.tables import config_outcomes
 
@@ -95,7 +98,7 @@ def closing_summary(df, env: dict, out: Path, lines: ProgressLines) -> tuple[int
                         f"{' and others' if len(g) > 1 else ''}: {reason}")
         if by_reason.ngroups > 5:
             said.append(f"  … {by_reason.ngroups - 5} more kinds of failure: see the report")
-    said += _first_screen_lines(df, env, out)
+    said += _first_screen_lines(df, env, out, fs)
     said.append(f"report: {out / 'report.html'}")
     for text in said:
         print(text, flush=True)

@@ -17,8 +17,8 @@ import json
 import sys
 from pathlib import Path
 
-from ._common import (ALLOCATOR_HELP, DEFAULT_REPORTS, ProgressLines, UsageError, error, int_at_least,
-                      load_user_cases, make_console, resolve_backends, run_claims_into, seconds, split)
+from ._common import (ALLOCATOR_HELP, DEFAULT_REPORTS, ProgressLines, UsageError, configure_process, error,
+                      int_at_least, load_user_cases, make_console, resolve_backends, run_claims_into, seconds, split)
 from ._run_options import LIST_OPTIONS, RESUMED_OPTIONS, contradictions, empty_option, restore_run_options, run_options
 from ._run_stages import closing_summary, run_stability_into, start_executor
 
@@ -111,18 +111,6 @@ def _check_options(args) -> None:
         raise UsageError(err)
 
 
-def _configure_process(args) -> dict[str, str]:
-    """Threads, caches and allocator, before any array library or backend is imported; returns
-    the caches' environment record."""
-    from ..run.environment import configure_caches, configure_threads, default_cache_dir, tune_allocator
-
-    configure_threads(args.threads)
-    record = configure_caches(None if args.no_cache else Path(args.cache_dir) if args.cache_dir else default_cache_dir())
-    if args.allocator == "tuned":
-        tune_allocator()
-    return record
-
-
 def _reference_cache(args) -> Path | None:
     """Where a run keeps costly reference answers: ``<cache dir>/reference`` (None with
     ``--no-cache`` or ``--no-reference-cache``)."""
@@ -194,7 +182,7 @@ def _run(args, held: list) -> int:
     from ..run.rundir import claim_out
 
     _check_options(args)
-    cache_record = _configure_process(args)
+    cache_record = configure_process(args)
     console = make_console()
     suite, cases = _select(args)
     run_id = plan.new_run_id()
@@ -212,13 +200,15 @@ def _run(args, held: list) -> int:
     if msg:
         raise UsageError(msg)
     held += [executor] if executor else []
+    side = _start_side_stages(args, suite, out, executor, lines)
+    held += [side] if side else []
     lines.line(f"run {'(resumed) ' if args.resume else ''}suite {suite.name}: {len(cases)} cases, backends "
                f"{', '.join(backends)}; budget {'none' if budget is None else f'{budget:g} s'}; out {out}")
     options = _run_options_of(args, suite, backends, policy, budget, run_id, executor,
                               {"threads": str(args.threads), "run_options": run_options(args, list(args.specs.values())),
                                **cache_record})
     df = _execute(suite, backends, out, options, console, lines, live)
-    return _finish(args, suite, backends, out, df, console, lines, executor)
+    return _finish(args, suite, backends, out, df, console, lines, executor, side)
 
 
 def _run_options_of(args, suite, backends, policy, budget, run_id, executor, env_extra):
@@ -252,26 +242,57 @@ def _execute(suite, backends, out: Path, options, console, lines: ProgressLines,
             raise UsageError(str(exc)) from None
 
 
-def _finish(args, suite, backends, out: Path, df, console, lines: ProgressLines, executor) -> int:
-    """The stability stage and the claims (unless left out), the report, the closing summary."""
+def _stages(args, suite) -> tuple[str, ...]:
+    """The accuracy-only stages this run has after its configurations: "stability" (the suite's
+    stability stage, unless left out or the plan is narrowed), "claims" (unless --no-claims)."""
+    stability = suite.stability and not (args.no_stability or args.case or args.method or args.dtype)
+    return (("stability",) if stability else ()) + (() if args.no_claims else ("claims",))
+
+
+def _start_side_stages(args, suite, out: Path, executor, lines: ProgressLines):
+    """The stages in a second process, started now (:mod:`bench.commands._side_stages`), or None
+    where they run after the configurations (no core for them, a cluster executor, none asked)."""
+    from ._side_stages import SideStages, concurrent_ok
+
+    stages = _stages(args, suite)
+    if not stages or not concurrent_ok(args, executor):
+        return None
+    lines.line(f"{' and '.join(stages)}: in a second process, beside the configurations (accuracy only)")
+    child_args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k != "fn"})
+    return SideStages(stages, (child_args, str(out), suite.stability if "stability" in stages else None,
+                               "claims" in stages, suite.name == "quick")).start()
+
+
+def _finish(args, suite, backends, out: Path, df, console, lines: ProgressLines, executor, side=None) -> int:
+    """The stability stage and the claims (unless left out; waited for when a second process runs
+    them), the report, the closing summary."""
     from ..report import build as report
     from ..run.results import write_json
     from ..run.suites import get_suite
+    from ._side_stages import CONCURRENT, SEQUENTIAL
 
     env = json.loads((out / "environment.json").read_text())
-    if suite.stability and not (args.no_stability or args.case or args.method or args.dtype):
+    stages = _stages(args, suite)
+    if side is not None:
+        lines.line(f"waiting for {' and '.join(stages)} (second process)")
+        env.update({stage: note or "ran" for stage, note in side.wait().items()})
+        env["side_stages"] = CONCURRENT
+        write_json(out / "environment.json", env)
+    elif stages:
+        env["side_stages"] = SEQUENTIAL
+    if side is None and "stability" in stages:
         lines.line(f"stability: root finders × dtypes on one case per adversarial ray family ({suite.stability})")
         note = run_stability_into(out, get_suite(suite.stability), backends, args, console, executor)
         env["stability"] = note or "ran"
         write_json(out / "environment.json", env)
-    if not args.no_claims:
+    if side is None and "claims" in stages:
         lines.line("claims: checking the lecture's claims")
         note = run_claims_into(out, quick=suite.name == "quick", console=console)
         env["claims"] = note or "ran"
         write_json(out / "environment.json", env)
     lines.line("report: writing report.md and report.html")
-    report.build(df, env, out)
-    code, errors = closing_summary(df, env, out, lines)
+    fs = report.build(df, env, out)
+    code, errors = closing_summary(df, env, out, lines, fs)
     nominal = {"quick": 240.0, "full": 900.0}.get(suite.name)
     if nominal and float(env.get("elapsed_s", 0)) > nominal:
         print(f"note: the {suite.name} suite took {env.get('elapsed_s')} s, more than its nominal {nominal:g} s "

@@ -16,8 +16,10 @@ __all__ = ["STABILITY_DIR", "build", "build_from_dir"]
 
 
 def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] | None = None,
-          regressions: pd.DataFrame | None = None) -> None:
-    """Write ``report.md``, ``report.html`` and ``plots/*.png`` for results ``df`` into ``out_dir``.
+          regressions: pd.DataFrame | None = None):
+    """Write ``report.md``, ``report.html`` and ``plots/*.png`` for results ``df`` into ``out_dir``;
+    returns the first screen (:func:`bench.report.summary.first_screen`), which ``bench run``'s
+    closing lines print (so the stability cells and claims are not read and judged twice).
 
     The first screen (:mod:`bench.report.summary`) comes first: failures, ``regressions`` against a
     baseline when given, "which to pick", the stability ``scoreboard`` lines (default: from the
@@ -37,6 +39,7 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
     doc = sections.document(df, env, out_dir, figs=figs, series_all=series_all, stab_cells=stab_cells,
                             stab_note=stab_note, claims=claims, fs=fs)
     document.write(doc, out_dir)
+    return fs
 
 
 def build_from_dir(run_dir: Path) -> None:

@@ -87,6 +87,24 @@ def takes_one_argument(fn: Callable) -> bool:
     return True
 
 
+def warmup_policy(backend: Any, policy: TimingPolicy) -> TimingPolicy:
+    """``policy`` for ``backend``: its ``warmup`` calls only for a backend that compiles
+    (``capabilities.jit``; one that does not say, or whose capabilities break, counts as one).
+
+    Why: the warm-up call absorbs what a compiling backend does on a kernel's second call
+    (numba's dispatch, Warp's module load, XLA's first-run allocations).  A backend that does not
+    compile (numpy, torch eager, the engines) pays its one-time costs (allocator growth, lazy
+    imports, caches) in the first call, which is timed alone and reported as ``first_call_s``;
+    after it the calibration call is already warm and is the first timing sample.  The samples
+    stay honest: at least ``min_repeats`` of them, their median and interquartile range reported,
+    so a sample still warming up would show as spread, not hide in the median."""
+    try:
+        compiles = bool(getattr(backend.capabilities, "jit", True))
+    except Exception:  # noqa: BLE001 - a plug-in's broken capabilities: keep the warm-up
+        compiles = True
+    return policy if compiles or not policy.warmup else dataclasses.replace(policy, warmup=0)
+
+
 def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
     depths, isolating their error from root finding) and time it: (prepared, timing, output).
@@ -110,7 +128,8 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
         raise BackendFault("backend.synchronize must take the output of Prepared.run(): synchronize(out) "
                            "(docs/backends.md); it cannot be called with one argument")
     timing, out = measure(lambda: backend_call(backend, "Prepared.run()", prep.run),
-                          lambda o: backend_call(backend, "backend.synchronize(out)", lambda: sync(o)), policy)
+                          lambda o: backend_call(backend, "backend.synchronize(out)", lambda: sync(o)),
+                          warmup_policy(backend, policy))
     return prep, timing, out
 
 

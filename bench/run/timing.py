@@ -4,7 +4,8 @@ Protocol (after pyperf and pytest-benchmark):
 
 1. The first call (compilation, caches, allocator warm-up) is timed alone: ``first_call_s``.
    Backends that compile ahead of time report ``compile_s`` separately (``Prepared.compile_s``).
-2. ``warmup`` further untimed calls.
+2. ``warmup`` further untimed calls, for a backend that compiles (one that does not is warm after
+   its first call: :func:`bench.run.configuration.warmup_policy`).
 3. Calibration: the number of calls per sample, ``loops``, is the smallest power of two whose
    total time reaches ``min_sample_s``, so a sample of a microsecond kernel is not timer
    resolution noise (pyperf's ``--min-time`` calibration).  A sample is total time / loops.

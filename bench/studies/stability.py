@@ -109,16 +109,19 @@ def _statuses(v) -> dict[str, int]:
         return {}
 
 
-def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
-    """The verdict and numbers of one cell from its result rows (any number of cases)."""
+def judge_cell(rows, dtype: str, scale_of=catalog_scale) -> dict:
+    """The verdict and numbers of one cell from its result rows (any number of cases): a frame,
+    or its rows as dicts (``DataFrame.to_dict("records")``, which :func:`stability_cells` makes
+    once for all cells: per cell it costs more than the judging)."""
+    rows = rows.to_dict("records") if isinstance(rows, pd.DataFrame) else list(rows)
     out = {"verdict": "n/a", "error_max": float("nan"), "tolerance": float("nan"), "n_false_hit": 0,
            "n_false_miss": 0, "n_flagged": 0, "n_nonfinite": 0, "n_over_tol": 0, "n_not_judged": 0,
            "evals_max": float("nan"),
-           "iterations_max": float("nan"), "statuses": {}, "cases": sorted(set(map(str, rows["case_id"]))),
+           "iterations_max": float("nan"), "statuses": {}, "cases": sorted({str(r["case_id"]) for r in rows}),
            "reasons": []}
     failed, errs, ok_rows, judged_rows = False, [], 0, 0
     statuses: dict[str, int] = {}
-    for _, r in rows.iterrows():
+    for r in rows:
         outcome = str(r.get("outcome", ""))
         if outcome == "failed":
             failed = True
@@ -145,7 +148,7 @@ def judge_cell(rows: pd.DataFrame, dtype: str, scale_of=catalog_scale) -> dict:
         n_fm = int(_num(r.get("n_false_miss"))) - int(_num(declined))  # silent: reported MISS
         err = _num(r.get("error_max_finite"), float("nan"))
         n_nf = int(_num(r.get("n_converged_nonfinite")))
-        if "n_converged_nonfinite" not in r.index or pd.isna(r.get("n_converged_nonfinite")):
+        if "n_converged_nonfinite" not in r or pd.isna(r.get("n_converged_nonfinite")):
             # older rows: an infinite max error that no false hit or miss explains is a CONVERGED NaN
             n_nf = int(_num(r.get("error_max"), 0.0) == math.inf and n_fh + int(_num(r.get("n_false_miss"))) == 0)
         over = int(not math.isnan(err) and err > tol)
@@ -191,10 +194,16 @@ def stability_cells(df: pd.DataFrame, family_of=catalog_family, scale_of=catalog
     d = d[(fam == "root") & q.isin(["depth", ""])]
     if not len(d):
         return pd.DataFrame(columns=cols)
-    d = d.assign(adv_family=[family_of(str(c)) for c in d["case_id"]])
+    fams = {c: family_of(c) for c in set(map(str, d["case_id"]))}  # once per case: a catalog look-up each
+    d = d.assign(adv_family=[fams[str(c)] for c in d["case_id"]])
     d = d[d["adv_family"].notna()]
+    groups: dict[tuple, list[dict]] = {}
+    for r in d.to_dict("records"):  # once: a frame's rows as dicts per cell cost more than judging them
+        if any(pd.isna(r[k]) for k in ("method", "backend", "dtype")):
+            continue  # as groupby drops a missing key
+        groups.setdefault((r["method"], r["backend"], r["dtype"], r["adv_family"]), []).append(r)
     rows = []
-    for (method, backend, dtype, family), g in d.groupby(["method", "backend", "dtype", "adv_family"]):
+    for (method, backend, dtype, family), g in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
         cell = judge_cell(g, str(dtype), scale_of)
         rows.append({"method": method, "backend": backend, "dtype": dtype, "family": family,
                      "mark": MARKS[cell["verdict"]], **cell})

@@ -1,0 +1,150 @@
+"""``bench run``'s accuracy-only stages (the stability stage, the claims ledger) in a second
+process, beside the timed configurations, where the machine has a core for it.
+
+Why: neither stage reads the configurations' rows (the stability stage is a plan of its own,
+written to ``stability/``; the claims write ``claims.csv`` and their plots), and neither is
+timed (accuracy only), so where they run changes no number they report.  Run one after the
+other they are about a third of a quick run's wall time.  Every library already runs
+``--threads`` threads per process (:func:`bench.run.environment.configure_threads`), so with at
+least twice that many cores the second process has cores of its own and the configurations'
+timings keep theirs; with fewer (or with ``--cluster``/``--scheduler``, whose executor lives in
+the first process) the stages run after the configurations, as before.  environment.json
+records which (``side_stages``).
+
+Contract: the report is written after both finish; the second process writes only its own files
+(``stability/``, ``claims.csv``, ``claim_*.png``), each atomically as it goes (the runner's and
+the ledger's own writes), so a process that dies keeps what it finished; a stage that fails,
+or a second process that dies or cannot start, is a note in environment.json and the report
+(``stability``/``claims``), never the run's end.  The child is started with ``spawn`` (a fresh
+interpreter: no forked copy of a half-imported torch/jax/XLA thread pool) and terminated if the
+first process leaves early (``close``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+from pathlib import Path
+
+from ._common import configure_process, make_console, resolve_backends, run_claims_into, split
+from ._run_stages import run_stability_into
+
+#: environment.json's ``side_stages`` values
+CONCURRENT, SEQUENTIAL = "second process, beside the configurations", "after the configurations"
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def concurrent_ok(args, executor, cores: int | None = None) -> bool:
+    """Whether the side stages may run beside the configurations: no cluster executor (its
+    client is this process) and a core for each process's ``--threads`` threads."""
+    cores = usable_cores() if cores is None else cores
+    return executor is None and cores >= 2 * max(int(args.threads), 1)
+
+
+def stages_main(args: argparse.Namespace, out: str, stability_suite: str | None, claims: bool, quick: bool) -> dict:
+    """The side stages, as the second process runs them: threads, caches and allocator as the
+    first process set them, the same backends and user cases; returns the notes
+    ``{"stability": …, "claims": …}`` ("" = it ran) of the stages asked for."""
+    from impls import registry
+
+    from ..run.suites import get_suite
+    from ._common import load_user_cases
+
+    configure_process(args)
+    console = make_console()
+    notes = {}
+    err = load_user_cases(args)
+    if stability_suite is not None:
+        if err:
+            notes["stability"] = f"stability stage failed: {err}"
+        else:
+            backends, msg = resolve_backends(split(args.backend) or registry.default_ids(), args.threads, specs={})
+            notes["stability"] = (f"stability stage failed: {msg}" if msg else
+                                  run_stability_into(Path(out), get_suite(stability_suite), backends, args, console))
+    if claims:
+        notes["claims"] = run_claims_into(Path(out), quick=quick, console=console)
+    return notes
+
+
+def _die_with_parent(parent: int) -> None:
+    """``prctl(PR_SET_PDEATHSIG, SIGTERM)`` where the C library has it (Linux; else nothing), and
+    exit at once if ``parent`` already died before it was set (this process was then adopted)."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def _child(conn, target, arguments, parent: int) -> None:
+    """The second process's entry: run ``target(*arguments)`` and send back its notes (or the
+    exception that escaped it, as text).  On Linux it asks to be sent SIGTERM when the first
+    process dies (``PR_SET_PDEATHSIG``), so a killed run leaves no stage writing its directory
+    behind (``--resume`` may then take it over)."""
+    _die_with_parent(parent)
+    try:
+        got = target(*arguments)
+    except BaseException as exc:  # noqa: BLE001 - whatever happens here is a note, never the run's end
+        got = {"error": f"{type(exc).__name__}: {exc}"}
+    conn.send(got)
+    conn.close()
+
+
+class SideStages:
+    """``target(*arguments)`` (default :func:`stages_main`) in a spawned process; :meth:`wait`
+    gives its notes, each stage asked for (``stages``) with a note saying why when the process
+    failed to start, raised or died."""
+
+    def __init__(self, stages: tuple[str, ...], arguments: tuple, target=stages_main):
+        self.stages, self.arguments, self.target = stages, arguments, target
+        self.process = self.conn = None
+        self.start_error = ""
+
+    def start(self) -> "SideStages":
+        ctx = multiprocessing.get_context("spawn")
+        receive, send = ctx.Pipe(duplex=False)
+        try:
+            self.process = ctx.Process(target=_child, args=(send, self.target, self.arguments, os.getpid()),
+                                       name="isobench-side-stages", daemon=True)
+            self.process.start()
+        except Exception as exc:  # noqa: BLE001 - e.g. no more processes: the notes say so
+            self.start_error = f"{type(exc).__name__}: {exc}"
+            self.process = None
+        send.close()
+        self.conn = receive
+        return self
+
+    def wait(self) -> dict[str, str]:
+        """Block until the second process ends; its notes, one per stage asked for."""
+        got, why = {}, self.start_error and f"the second process did not start: {self.start_error}"
+        if self.process is not None:
+            try:
+                got = self.conn.recv()  # returns when the child sends, or raises EOFError when it died
+            except (EOFError, OSError):
+                got = {}
+            self.process.join()
+            if "error" in got:
+                why = f"the second process raised {got.pop('error')}"
+            elif not got:
+                why = f"the second process died (exit code {self.process.exitcode})"
+        return {s: str(got[s]) if s in got else f"{s} failed: {why}" for s in self.stages}
+
+    def close(self) -> None:
+        """Terminate the second process if it is still running (the first one leaves early)."""
+        if self.process is not None and self.process.is_alive():
+            self.process.terminate()
+            self.process.join(5)
+        if self.conn is not None:
+            self.conn.close()
