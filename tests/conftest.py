@@ -163,6 +163,13 @@ LONGEST_FILES = ("test_cli.py", "test_conformance.py", "test_bench_resume.py", "
                  "test_reference_derivatives.py", "test_rootfind_certified.py", "test_cluster.py")
 
 
+def pytest_configure(config):
+    # pytest-xdist (≥ 3.6) queues files by their number of tests unless told not to: keep the order
+    # below, which is by time (test_cli.py's 44 tests include the quick-suite run)
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's tests keep their order
