@@ -150,3 +150,26 @@ def require_method(backend, method: str) -> None:
 @pytest.fixture(scope="session", params=backend_params(BACKEND_IDS))
 def backend(request):
     return resolve_or_skip(request.param)
+
+
+#: the test files that take longest (measured with --durations on 2 cores: the shared quick-suite
+#: run, the conformance suite on every backend, the bench runs in a subprocess), longest first.
+#: Under ``-n auto --dist loadfile`` a file runs whole on one worker, in collection order: a long
+#: file collected late (test_cli.py sorts mid-list) starts when the others are nearly done and
+#: leaves the other workers idle until it ends.  Started first, the long files run beside the
+#: many short ones.  (Only the order changes; every file still runs whole, its own tests in order.)
+LONGEST_FILES = ("test_cli.py", "test_conformance.py", "test_bench_resume.py", "test_plugin.py",
+                 "test_certified_at_scale.py", "test_compile_cache.py", "test_claims_checks.py",
+                 "test_reference_derivatives.py", "test_rootfind_certified.py", "test_cluster.py")
+
+
+def pytest_configure(config):
+    # pytest-xdist (≥ 3.6) queues files by their number of tests unless told not to: keep the order
+    # below, which is by time (test_cli.py's 44 tests include the quick-suite run)
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's tests keep their order

@@ -20,9 +20,13 @@ KEY = ["case_id", "backend", "dtype", "method", "knob", "quantity"]
 
 @pytest.mark.slow
 def test_killed_run_is_finished_by_resume(tmp_path):
+    """A quick-suite run killed after its first rows reached disk, then resumed.  Its plan is the
+    quick suite's for three methods (two families, 24 configurations, each timed for at least
+    1 s before the kill): enough rows on both sides of the kill, without re-timing the catalog."""
     out = tmp_path / "run"
+    methods = ["sphere_trace", "hybrid_secant", "normal"]
     args = [sys.executable, "-m", "bench", "run", "--suite", "quick", "--backend", "numpy", "--out", str(out),
-            "--no-progress", "--no-claims"]
+            "--method", ",".join(methods), "--no-progress", "--no-claims"]
     p = subprocess.Popen(args + ["--min-time", "1.0", "--min-repeats", "3"], cwd=ROOT, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE)
     deadline = time.monotonic() + HANG_GUARD_S
@@ -52,7 +56,7 @@ def test_killed_run_is_finished_by_resume(tmp_path):
     from bench.run import runner
     from bench.run.suites import get_suite
 
-    plan = runner.plan(get_suite("quick"), ["numpy"], None, None, None)
+    plan = runner.plan(get_suite("quick"), ["numpy"], None, methods, None)
     assert {tuple(map(str, c.key)) for c in plan} == set(map(tuple, full[runner.CONFIG_KEY].astype(str).itertuples(
         index=False, name=None)))
     assert (out / "report.html").exists()

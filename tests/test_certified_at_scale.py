@@ -8,6 +8,8 @@ tracing); a certified MISS must be a true miss.  The truth is the scenes' exact 
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -60,10 +62,11 @@ def allowance(method: str, knobs: dict) -> float:
     return knobs.get("min_step", 1e-5)
 
 
-def check_guarantee(scene, o, d, res, t_max: float, allow: float) -> dict:
+def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None) -> dict:
     """Counts of rays breaking the documented guarantee: a CONVERGED ray after a skipped crossing
-    pair at least ``allow`` wide or off every crossing, a MISS on a ray with a crossing."""
-    intervals = scene.ray_intervals(o, d)
+    pair at least ``allow`` wide or off every crossing, a MISS on a ray with a crossing.
+    ``intervals``: the scene's exact ``ray_intervals(o, d)``, when already computed."""
+    intervals = scene.ray_intervals(o, d) if intervals is None else intervals
     bad_conv, bad_miss = [], []
     for i, iv in enumerate(intervals):
         st, t = int(res.status[i]), float(res.t[i])
@@ -80,6 +83,26 @@ def check_guarantee(scene, o, d, res, t_max: float, allow: float) -> dict:
         elif st == Status.MISS and crossings.size:
             bad_miss.append(i)
     return {"converged off the first crossing": bad_conv, "certified miss with a crossing": bad_miss}
+
+
+@functools.lru_cache(maxsize=None)
+def thin_walls_and_intervals(seed: int):
+    """:func:`thin_walls` and its exact ray intervals (2 s of the reference's for 256² rays),
+    computed once per seed and shared by every backend and method (read, never written)."""
+    scene, o, d = thin_walls(seed)
+    return scene, o, d, scene.ray_intervals(o, d)
+
+
+@functools.lru_cache(maxsize=None)
+def mesh_camera(mesh: str):
+    """The catalog mesh case, 256² rays at its camera's pose and the mesh's exact first hits
+    (13 s of the reference's for the torus's 4096 faces), computed once per mesh and shared by
+    every backend (the tests pass copies of the rays and never write the hits)."""
+    case = get_case(f"mesh.{mesh}.camera.32x32")
+    eye = tuple(case.origins[0])
+    o, d = rays.pinhole(eye=eye, look_at=(0, 0, 0), fov_deg=40.0, width=256, height=256)
+    exact = case.scene.first_hit(o, d, 0.0)
+    return case, o, d, np.where(exact <= case.t_max, exact, np.inf)
 
 
 def _solve(backend, method, scene, o, d, t_max, **knobs):
@@ -115,9 +138,9 @@ def test_thin_walls_at_256_squared(backend, method, seed):
     if backend.id.startswith("jax") and seed:
         pytest.skip("jax compiles each scene structure: one seed checks it")
     _offered(backend, method)
-    scene, o, d = thin_walls(seed)
-    res = _solve(backend, method, scene, o, d, 10.0)
-    bad = check_guarantee(scene, o, d, res, 10.0, allowance(method, {}))
+    scene, o, d, intervals = thin_walls_and_intervals(seed)
+    res = _solve(backend, method, scene, o.copy(), d.copy(), 10.0)
+    bad = check_guarantee(scene, o, d, res, 10.0, allowance(method, {}), intervals)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
     assert np.mean(np.isin(res.status, (Status.CONVERGED, Status.MISS))) > 0.95
 
@@ -129,12 +152,8 @@ def test_mesh_cameras_at_256_squared_find_the_first_crossing(backend, mesh):
     with 256² rays: no CONVERGED depth past the first crossing (the mesh's exact first hit), no
     certified MISS on a hitting ray."""
     _offered(backend, "hybrid_secant")
-    case = get_case(f"mesh.{mesh}.camera.32x32")
-    eye = tuple(case.origins[0])
-    o, d = rays.pinhole(eye=eye, look_at=(0, 0, 0), fov_deg=40.0, width=256, height=256)
-    exact = case.scene.first_hit(o, d, 0.0)
-    exact = np.where(exact <= case.t_max, exact, np.inf)
-    res = _solve(backend, "hybrid_secant", case.scene, o, d, case.t_max)
+    case, o, d, exact = mesh_camera(mesh)
+    res = _solve(backend, "hybrid_secant", case.scene, o.copy(), d.copy(), case.t_max)
     conv = res.status == Status.CONVERGED
     later = conv & (res.t > exact + 1e-9)
     assert not later.any(), (int(later.sum()), float(np.max(res.t[later] - exact[later])))

@@ -150,10 +150,17 @@ def test_committed_baseline_has_no_accuracy_regression(quick_run):
 
 @pytest.mark.slow
 def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
+    """The quick suite's plan (and its stability and report stages) on numpy beside a plug-in
+    that loads, one that does not and one that returns a bad status.  The plan is the quick
+    suite's for three methods: the two the faulty plug-ins offer (sphere_trace, hybrid_secant)
+    and one of another family (normal, fed by the root finder's hits): every row the faults
+    could touch, without timing the whole catalog's numpy rows twice over."""
     out = tmp_path / "plug"
     broken = "tests.test_bench_fakes:BrokenFactoryBackend"
     bad_status = "tests.test_bench_fakes:BadStatusBackend"
+    methods = ["sphere_trace", "hybrid_secant", "normal"]
     p = bench("run", "--suite", "quick", "--accuracy-only", "--no-claims", "--no-progress", "--out", str(out),
+              "--method", ",".join(methods),
               "--backend", f"numpy,tests.test_bench_fakes:FakeBackend,{broken},{bad_status}")
     assert p.returncode == 0, p.stdout + p.stderr
     assert "Traceback" not in p.stdout + p.stderr
@@ -168,7 +175,7 @@ def test_plugged_in_and_broken_backends_are_rows_not_crashes(tmp_path):
     from bench.run import runner
     from bench.run.suites import get_suite
 
-    plan = runner.plan(get_suite("quick"), ["numpy"], None, None, None)
+    plan = runner.plan(get_suite("quick"), ["numpy"], None, methods, None)
     np_keys = set(map(tuple, df.loc[df["backend"] == "numpy", runner.CONFIG_KEY].astype(str).itertuples(
         index=False, name=None)))
     assert np_keys == {tuple(map(str, c.key)) for c in plan}  # no numpy row lost

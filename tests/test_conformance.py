@@ -321,8 +321,12 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     n_camera = len(o)
     if method in ("sphere_trace", "hybrid_secant", "hybrid_chandrupatla"):
         # plain sphere tracing certifies a miss that passes δ·r from the surface in ~√(1/δ) steps
-        # (never, when δ·r < tol): it gets δ ≥ 1e-8
-        o2, d2 = silhouette_rays(ball, delta_min=1e-8 if method == "sphere_trace" else 1e-12)
+        # (never, when δ·r < tol), and converges on a hit at δ in ~ln(1/tol)/√(2δ) steps (93k at
+        # δ = 1e-8, every backend's loop running as long as its slowest ray): it gets δ ≥ 1e-7,
+        # which still puts rays on both sides of the padding (1e-6 of the radius, the band the clip
+        # must neither cut a hit from nor add a miss to: reference/raybounds.py) and hits too
+        # grazing to certify (chord < 1e-3 below δ ≈ 2e-7, `graze` below)
+        o2, d2 = silhouette_rays(ball, delta_min=1e-7 if method == "sphere_trace" else 1e-12)
         o, d = np.concatenate([o, o2]), np.concatenate([d, d2])
     exact = scene.first_hit(o, d, 0.0)
     hit = np.isfinite(exact)
