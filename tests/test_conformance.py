@@ -339,13 +339,18 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     assert np.all(on.status[outside] == Status.MISS)
     assert np.all(on.evals[outside] == 0) and np.all(on.iterations[outside] == 0)
     assert np.all(on.evals[hit] >= 1) and np.all(off.evals >= 1)
-    # hybrid_secant's (and hybrid_chandrupatla's) documented limit: a crossing whose chord is shorter
-    # than min_step (1e-5) may be missed, with or without the clip (where its samples fall decides)
+    # the hybrids certify a crossing approached at a slope of at least PASSING_SLOPE (in units of L;
+    # a sphere's chord c at radius r is crossed at slope c/2r): below it the ray passes nearly tangent
+    # on forced steps that stand uncertified, and its hit may be UNCERTIFIED (2× margin here)
+    from impls.core.rootfind import PASSING_SLOPE
+
     spheres = scene.children or (scene,)
     chord = np.max([[b[1] - b[0] if b.size else 0.0 for b in s.ray_intervals(o, d)] for s in spheres], axis=0)
+    slope = np.max([[(b[1] - b[0]) / (2 * s.radius) if b.size else 0.0 for b in s.ray_intervals(o, d)]
+                    for s in spheres], axis=0)
     # sphere tracing's: a hit whose chord is so short (grazing, ~1e-8 inside) that φ stays within its
     # rounding over a stretch wider than tol cannot be bracketed to tol: it may be UNCERTIFIED
-    sure = hit & (chord >= 1e-5) if method in ("hybrid_secant", "hybrid_chandrupatla") else hit
+    sure = hit & (slope >= 2 * PASSING_SLOPE) if method in ("hybrid_secant", "hybrid_chandrupatla") else hit
     if method == "sphere_trace":
         sure = hit & (chord >= 1e-3)
     # a certified MISS needs certified steps all along: a silhouette ray passing closer to the surface
