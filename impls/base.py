@@ -272,3 +272,15 @@ def timed_compile(compile_thunk: Callable[[], Callable]) -> tuple[Callable, floa
     t0 = time.perf_counter()
     fn = compile_thunk()
     return fn, time.perf_counter() - t0
+
+
+class HostArrayBackend(ArrayBackend):
+    """An :class:`ArrayBackend` whose native arrays are C-contiguous numpy arrays on the host: numpy's
+    own, and the backends whose compiled kernels or engines take numpy arrays (numba, Warp, Mitsuba)."""
+
+    def asarray(self, a: np.ndarray, dtype: str) -> np.ndarray:
+        return np.ascontiguousarray(a, dtype=np.dtype(dtype))
+
+    def to_numpy(self, a: Any) -> np.ndarray:
+        return np.asarray(a)
+

@@ -32,11 +32,11 @@ def test_a_tolerance_sweep_reuses_one_kernel_with_the_results_of_its_own(dtype, 
 
     scene, (o, d) = Sphere(center=(0.0, 0.0, 0.0), radius=1.0), _rays()
     shared = resolve_or_skip("jax:cpu")
-    before = set(shared._kernels)  # (the backend may be shared with the worker's other tests)
     first, _ = _result(shared, scene, o, d, dtype, tol=1e-6)
     second, got = _result(shared, scene, o, d, dtype, tol=1e-3)
     assert first.compile_cache in (None, "compiled", "reused") and second.compile_cache == "reused"
-    assert len(set(shared._kernels) - before) <= 1 and len(shared._kernels) <= len(before) + 1
+    # (the traced knob names and compiled-in knobs of each kernel, should there be more than one)
+    assert len(shared._kernels) == 1, [(k[4], k[5]) for k in shared._kernels]
     # the setting compiled into a kernel of its own (no knob traced): the same rays, bit for bit
     monkeypatch.setattr(jb, "_traced_sets", lambda method, knobs: [()])
     _, want = _result(resolve_or_skip("jax:cpu"), scene, o, d, dtype, tol=1e-3)

@@ -48,7 +48,7 @@ except ImportError as exc:  # the registry turns this into Unavailable(reason=â€
 
 import numpy as np
 
-from ..base import ArrayBackend
+from ..base import HostArrayBackend
 from ..core.driver import _whole_at_least
 from ..core.table import METHOD_TABLE
 from ..protocol import Capabilities, Declined, Status
@@ -86,7 +86,7 @@ class MitsubaSettings:
         return {"driver": self.kind, **dataclasses.asdict(self)}
 
 
-class MitsubaBackend(ArrayBackend):
+class MitsubaBackend(HostArrayBackend):
     """Mitsuba 3 on ``device`` ("llvm" or "cuda"); arrays in and out are numpy's."""
 
     lib = "mitsuba"
@@ -127,12 +127,6 @@ class MitsubaBackend(ArrayBackend):
         """The methods offered here (``_impl``), ``raycast`` included: the catalog leaves it to the
         engines (``MethodSpec.libs = ()``), which name it themselves."""
         return tuple(sorted(self._impl))
-
-    def asarray(self, a, dtype):
-        return np.ascontiguousarray(a, dtype=np.dtype(dtype))
-
-    def to_numpy(self, a):
-        return np.asarray(a)
 
     def synchronize(self, out=None):
         dr.sync_thread()

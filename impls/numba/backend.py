@@ -24,7 +24,7 @@ except ImportError as exc:  # the registry turns this into Unavailable(reason=â€
 
 import numpy as np
 
-from ..base import ArrayBackend
+from ..base import HostArrayBackend
 from ..core.table import METHOD_TABLE
 from ..methods import get_method
 from ..protocol import Capabilities, Declined
@@ -34,7 +34,7 @@ from . import driver, fields
 OFFERED = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton", "render_surface")
 
 
-class NumbaBackend(ArrayBackend):
+class NumbaBackend(HostArrayBackend):
     """Per-ray compiled root finders (:mod:`impls.numba.driver`) on compiled scenes
     (:mod:`impls.numba.fields`); arrays are numpy's (``xp`` = numpy, float64)."""
 
@@ -64,12 +64,6 @@ class NumbaBackend(ArrayBackend):
     def __init__(self, device: str = "cpu", settings: driver.NumbaSettings | None = None):
         super().__init__(device, settings)
         self.id = "numba"
-
-    def asarray(self, a, dtype):
-        return np.ascontiguousarray(a, dtype=np.dtype(dtype))
-
-    def to_numpy(self, a):
-        return np.asarray(a)
 
     def versions(self):
         import llvmlite

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..base import ArrayBackend
+from ..base import HostArrayBackend
 from ..core.driver import CompactingSettings
 from ..protocol import Capabilities
 from . import derivatives, driver
 
 
-class NumpyBackend(ArrayBackend):
+class NumpyBackend(HostArrayBackend):
     lib = "numpy"
     xp = np
     capabilities = Capabilities(
@@ -25,12 +25,6 @@ class NumpyBackend(ArrayBackend):
     )
     settings = CompactingSettings()
     stop_gradient = None  # no autodiff: render_surface shades at the root finder's hit
-
-    def asarray(self, a, dtype):
-        return np.ascontiguousarray(a, dtype=np.dtype(dtype))
-
-    def to_numpy(self, a):
-        return np.asarray(a)
 
     def versions(self):
         return {"numpy": np.__version__}

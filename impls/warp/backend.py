@@ -38,7 +38,7 @@ wp.config.log_level = wp.LOG_WARNING  # before Warp initialises: no banner or pe
 
 import numpy as np
 
-from ..base import ArrayBackend
+from ..base import HostArrayBackend
 from ..core.driver import CompactingSettings
 from ..core.table import METHOD_TABLE
 from ..methods import get_method
@@ -62,7 +62,7 @@ def _mesh_type():
     return MeshSDF
 
 
-class WarpBackend(ArrayBackend):
+class WarpBackend(HostArrayBackend):
     """Warp on ``device`` ("cpu" or "cuda"); arrays in and out are numpy's (``xp`` = numpy)."""
 
     lib = "warp"
@@ -97,12 +97,6 @@ class WarpBackend(ArrayBackend):
         """The methods offered here (``_impl``), ``raycast`` included: the catalog leaves it to the
         engines (``MethodSpec.libs = ()``), which name it themselves."""
         return tuple(sorted(self._impl))
-
-    def asarray(self, a, dtype):
-        return np.ascontiguousarray(a, dtype=np.dtype(dtype))
-
-    def to_numpy(self, a):
-        return np.asarray(a)
 
     def synchronize(self, out=None):
         wp.synchronize_device(self.device)
@@ -149,27 +143,24 @@ class WarpBackend(ArrayBackend):
         self.last_compile_cache = "compiled" if self._built else "reused"
         return fn, took
 
-    def _scene(self, scene):
-        key = id(scene)
-        got = self._scenes.get(key)
-        if got is None or got[0] is not scene:
-            from .fields import warp_scene
-
-            got = (scene, warp_scene(scene, self.device))
-            self._scenes[key] = got
+    def _cached(self, table: dict, obj, build):
+        """``build(obj, device)``, once per object (keyed by identity, the object kept with it so
+        that a recycled id is not taken for it); marks a build for ``last_compile_cache``."""
+        got = table.get(id(obj))
+        if got is None or got[0] is not obj:
+            got = table[id(obj)] = (obj, build(obj, self.device))
             self._built = True
         return got[1]
+
+    def _scene(self, scene):
+        from .fields import warp_scene
+
+        return self._cached(self._scenes, scene, warp_scene)
 
     def _mesh(self, mesh):
-        key = id(mesh)
-        got = self._meshes.get(key)
-        if got is None or got[0] is not mesh:
-            from .mesh import WarpMesh
+        from .mesh import WarpMesh
 
-            got = (mesh, WarpMesh(mesh, self.device))
-            self._meshes[key] = got
-            self._built = True
-        return got[1]
+        return self._cached(self._meshes, mesh, WarpMesh)
 
     def ray_eval(self, scene, theta=None):
         """``ev(o, d, t, deriv) -> (φ, dφ/dt or None, cost)`` with φ the scene's Warp kernel; x and
