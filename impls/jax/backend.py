@@ -54,7 +54,10 @@ from . import derivatives, driver  # noqa: E402
 
 #: compiled kernels a backend object keeps for reuse (:meth:`JaxBackend.compile_configuration`)
 KEEP_KERNELS = 64
-#: (method, traced knob names) whose trace failed: the method's code needs those knobs as constants
+#: kernel keys (:meth:`JaxBackend.compile_configuration`: the method, scene, compiled-in knobs and
+#: traced knob names, shapes) whose trace failed: that code needs those knobs as constants there.
+#: Keyed by the whole configuration, not the method alone, so that one scene's failure (one test's,
+#: in a shared process) does not compile the knobs in for every later scene of the method
 _TRACED_FAILED: set = set()
 
 
@@ -62,15 +65,16 @@ def _traced_sets(method: str, knobs: dict) -> list[tuple[str, ...]]:
     """The knob sets to try as traced arguments of ``method``'s kernel, most first: every number
     knob; the float knobs (tolerances, step sizes; the int knobs are often sizes or switches:
     samples per ray, ladder width, bounds on/off); the first knob (the method's main accuracy
-    dial, which a suite sweeps) if it is a float; none.  Sets that failed to trace before for
-    this method are left out, so each method pays a failed trace at most once per process."""
+    dial, which a suite sweeps) if it is a float; none.  (A set that failed to trace for a
+    configuration is skipped for it and for every configuration that differs only in traced
+    knobs: :data:`_TRACED_FAILED`.)"""
     nums = tuple(sorted(k for k, v in knobs.items() if isinstance(v, (int, float)) and not isinstance(v, bool)))
     floats = tuple(sorted(k for k, v in knobs.items() if isinstance(v, float)))
     first = next(iter(knobs), None)
     sets = [nums, floats, (first,) if isinstance(knobs.get(first), float) else (), ()]
     out = []
     for names in sets:
-        if names not in out and (not names or (method, names) not in _TRACED_FAILED):
+        if names not in out:
             out.append(names)
     return out
 
@@ -175,6 +179,8 @@ class JaxBackend(ArrayBackend):
             key = (method, _identity(scene), t_range, tuple(sorted((k, _identity(v)) for k, v in extra.items())),
                    tuple(sorted(static.items())), names, self.device, self.settings,
                    *((None,) if a is None else (tuple(a.shape), str(a.dtype)) for a in (o, d, th)))
+            if names and key in _TRACED_FAILED:
+                continue
             t0 = time.perf_counter()
             kept = self._kernels.get(key)
             if kept is not None:
@@ -191,8 +197,8 @@ class JaxBackend(ArrayBackend):
                     if not names or not _is_trace_error(exc):
                         raise  # a fault of the scene or the knobs, not of tracing them
                     # the method's code branches on (or sizes arrays by) one of these knobs:
-                    # compile them in, for this method from now on
-                    _TRACED_FAILED.add((method, names))
+                    # compile them in, for this configuration and its sweeps from now on
+                    _TRACED_FAILED.add(key)
                     spent += time.perf_counter() - t0
                     continue
                 # the scene and colour objects are kept alive with the kernel: their ids are in the key
