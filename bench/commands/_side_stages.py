@@ -88,11 +88,25 @@ def _die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
-def _child(conn, target, arguments, parent: int) -> None:
+def serve_main(args: argparse.Namespace, share) -> None:
+    """The second process after its stages: the configurations it claims from the run's plan
+    (:func:`bench.run.sharing.serve`), with the same backends as the first process."""
+    from impls import registry
+
+    from ..run.sharing import serve
+
+    backends, msg = resolve_backends(split(args.backend) or registry.default_ids(), args.threads, specs={})
+    if msg:  # the first process resolved them, so this does not happen; if it does, it runs them itself
+        raise RuntimeError(msg)
+    serve(share, backends)
+
+
+def _child(conn, target, arguments, parent: int, then=None) -> None:
     """The second process's entry: run ``target(*arguments)`` and send back its notes (or the
-    exception that escaped it, as text).  On Linux it asks to be sent SIGTERM when the first
-    process dies (``PR_SET_PDEATHSIG``), so a killed run leaves no stage writing its directory
-    behind (``--resume`` may then take it over)."""
+    exception that escaped it, as text), then ``then[0](*then[1])`` (the configurations it joins,
+    :func:`serve_main`).  On Linux it asks to be sent SIGTERM when the first process dies
+    (``PR_SET_PDEATHSIG``), so a killed run leaves no stage writing its directory behind
+    (``--resume`` may then take it over)."""
     _die_with_parent(parent)
     try:
         got = target(*arguments)
@@ -100,6 +114,9 @@ def _child(conn, target, arguments, parent: int) -> None:
         got = {"error": f"{type(exc).__name__}: {exc}"}
     conn.send(got)
     conn.close()
+    if then is not None:
+        # a failure here loses nothing: the first process runs whatever this one did not report
+        then[0](*then[1])
 
 
 class SideStages:
@@ -107,8 +124,9 @@ class SideStages:
     gives its notes, each stage asked for (``stages``) with a note saying why when the process
     failed to start, raised or died."""
 
-    def __init__(self, stages: tuple[str, ...], arguments: tuple, target=stages_main):
+    def __init__(self, stages: tuple[str, ...], arguments: tuple, target=stages_main, share=None):
         self.stages, self.arguments, self.target = stages, arguments, target
+        self.share = share  # a bench.run.sharing.PlanShare: the process joins the configurations after its stages
         self.process = self.conn = None
         self.start_error = ""
 
@@ -116,7 +134,8 @@ class SideStages:
         ctx = multiprocessing.get_context("spawn")
         receive, send = ctx.Pipe(duplex=False)
         try:
-            self.process = ctx.Process(target=_child, args=(send, self.target, self.arguments, os.getpid()),
+            then = None if self.share is None else (serve_main, (self.arguments[0], self.share))
+            self.process = ctx.Process(target=_child, args=(send, self.target, self.arguments, os.getpid(), then),
                                        name="isobench-side-stages", daemon=True)
             self.process.start()
         except Exception as exc:  # noqa: BLE001 - e.g. no more processes: the notes say so
@@ -129,17 +148,29 @@ class SideStages:
     def wait(self) -> dict[str, str]:
         """Block until the second process ends; its notes, one per stage asked for."""
         got, why = {}, self.start_error and f"the second process did not start: {self.start_error}"
+        if self.share is not None:
+            self.share.offer(None)  # it waits for a plan: a run that offered none ended early
         if self.process is not None:
             try:
                 got = self.conn.recv()  # returns when the child sends, or raises EOFError when it died
             except (EOFError, OSError):
                 got = {}
+            while self.process.is_alive():
+                # its last messages go unread here (the run has its rows): reading them lets it exit
+                if self.share is not None:
+                    self.share.receive(0.1)
+                else:
+                    self.process.join(0.1)
             self.process.join()
             if "error" in got:
                 why = f"the second process raised {got.pop('error')}"
             elif not got:
                 why = f"the second process died (exit code {self.process.exitcode})"
         return {s: str(got[s]) if s in got else f"{s} failed: {why}" for s in self.stages}
+
+    def alive(self) -> bool:
+        """Whether the second process is running."""
+        return self.process is not None and self.process.is_alive()
 
     def close(self) -> None:
         """Terminate the second process if it is still running (the first one leaves early)."""

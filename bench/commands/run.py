@@ -206,19 +206,21 @@ def _run(args, held: list) -> int:
                f"{', '.join(backends)}; budget {'none' if budget is None else f'{budget:g} s'}; out {out}")
     options = _run_options_of(args, suite, backends, policy, budget, run_id, executor,
                               {"threads": str(args.threads), "run_options": run_options(args, list(args.specs.values())),
-                               **cache_record})
+                               **cache_record}, side)
     df = _execute(suite, backends, out, options, console, lines, live)
     return _finish(args, suite, backends, out, df, console, lines, executor, side)
 
 
-def _run_options_of(args, suite, backends, policy, budget, run_id, executor, env_extra):
-    """The runner's :class:`bench.run.runner.RunOptions` of the command's options."""
+def _run_options_of(args, suite, backends, policy, budget, run_id, executor, env_extra, side=None):
+    """The runner's :class:`bench.run.runner.RunOptions` of the command's options; ``side``: the
+    second process, which joins the configurations after its stages where it shares the plan."""
     from ..run.runner import RunOptions
 
     return RunOptions(case_pattern=args.case, methods=split(args.method), dtypes=split(args.dtype), policy=policy,
                       run_id=run_id, resume=args.resume, env_extra=env_extra, budget_s=budget, rounds=args.rounds,
                       reference_cache_dir=_reference_cache(args), reference_timeout_s=args.reference_timeout,
-                      executor=executor, rerun_cases=split(args.rerun_case))
+                      executor=executor, rerun_cases=split(args.rerun_case),
+                      share=None if side is None or side.share is None else (side.share, side.alive))
 
 
 def _execute(suite, backends, out: Path, options, console, lines: ProgressLines, live: bool):
@@ -257,10 +259,14 @@ def _start_side_stages(args, suite, out: Path, executor, lines: ProgressLines):
     stages = _stages(args, suite)
     if not stages or not concurrent_ok(args, executor):
         return None
-    lines.line(f"{' and '.join(stages)}: in a second process, beside the configurations (accuracy only)")
+    from ..run.sharing import PlanShare
+
+    share = PlanShare() if args.rounds == 1 else None  # --rounds re-times every configuration here
+    lines.line(f"{' and '.join(stages)}: in a second process, beside the configurations (accuracy only)"
+               + ("; then it takes configurations too" if share else ""))
     child_args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k != "fn"})
     return SideStages(stages, (child_args, str(out), suite.stability if "stability" in stages else None,
-                               "claims" in stages, suite.name == "quick")).start()
+                               "claims" in stages, suite.name == "quick"), share=share).start()
 
 
 def _finish(args, suite, backends, out: Path, df, console, lines: ProgressLines, executor, side=None) -> int:

@@ -95,7 +95,9 @@ def warmup_policy(backend: Any, policy: TimingPolicy) -> TimingPolicy:
     (numba's dispatch, Warp's module load, XLA's first-run allocations).  A backend that does not
     compile (numpy, torch eager, the engines) pays its one-time costs (allocator growth, lazy
     imports, caches) in the first call, which is timed alone and reported as ``first_call_s``;
-    after it the calibration call is already warm and is the first timing sample.  The samples
+    after it the calibration call is already warm and is the first timing sample (a first call
+    long enough that the repeat count bounds the samples is the first sample itself:
+    :func:`bench.run.timing.measure`).  The samples
     stay honest: at least ``min_repeats`` of them, their median and interquartile range reported,
     so a sample still warming up would show as spread, not hide in the median."""
     try:

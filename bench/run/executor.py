@@ -74,18 +74,24 @@ class InProcessExecutor:
             self._cf[cfg.case.id] = [closed_form_time(cfg.case, policy)]
         return self._cf[cfg.case.id][0]
 
+    def run_config(self, run_id: str, cfg: Config, backends: dict, policy: TimingPolicy, ref_cache: dict,
+                   budget_s: float | None, deadline: float | None) -> tuple[list[dict], bool]:
+        """One configuration here, under what is left of the run's budget: (rows, over budget),
+        each row with this machine's key and the configuration's wall seconds (``task_s``)."""
+        left = None if deadline is None else deadline - time.time()
+        t0 = time.perf_counter()
+        got, over = run_budgeted(run_id, cfg, backends[cfg.backend_id], policy,
+                                 lambda: self._cf_time(cfg, policy), ref_cache, budget_s, left)
+        task_s = time.perf_counter() - t0
+        return [{**r, "machine_key": self.machine_key, "task_s": task_s} for r in got], over
+
     def execute(self, run_id, todo, backends, policy, ref_options, budget_s, deadline, on_start=None):
         self._backends = backends  # the extra rounds time the same backend objects
         ref_cache: dict = {"_options": ref_options}  # reference answers shared by the plan's configurations
         for j, cfg in enumerate(todo):
             if on_start:
                 on_start(j)
-            left = None if deadline is None else deadline - time.time()
-            t0 = time.perf_counter()
-            got, over = run_budgeted(run_id, cfg, backends[cfg.backend_id], policy,
-                                     lambda cfg=cfg: self._cf_time(cfg, policy), ref_cache, budget_s, left)
-            task_s = time.perf_counter() - t0
-            yield j, [{**r, "machine_key": self.machine_key, "task_s": task_s} for r in got], over
+            yield (j, *self.run_config(run_id, cfg, backends, policy, ref_cache, budget_s, deadline))
 
     def retime_rounds(self, rows, todo, rounds, run_id, policy, progress, counts):
         index: dict[tuple, list[int]] = {}

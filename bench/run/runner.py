@@ -30,6 +30,7 @@ from .executor import InProcessExecutor, Interrupted
 from .plan import CONFIG_KEY, Config, new_run_id, plan
 from .references import ReferenceOptions
 from .results import OVER_BUDGET, knob_string, to_frame, write_json, write_results
+from .sharing import SharingExecutor
 from .resume import check_case_versions, kept_rows, load_previous, outcome_counts, outcome_of, record_elapsed
 from .suites import Suite
 from .timing import TimingPolicy
@@ -66,7 +67,10 @@ class RunOptions:
     runs.  ``reference_cache_dir``: where costly reference answers are kept across runs (None:
     not kept); ``reference_timeout_s``: limit on one costly reference computation.
     ``executor`` (None: :class:`bench.run.executor.InProcessExecutor`): where the configurations
-    run.  ``env_extra``: recorded in environment.json as given.  ``flush_s``: the least seconds
+    run.  ``share`` (a :class:`bench.run.sharing.PlanShare` and a callable saying whether
+    the second process still runs; used only without ``executor`` and with ``rounds`` 1): a
+    second process joins the plan once its own stages are done
+    (:class:`bench.run.sharing.SharingExecutor`).  ``env_extra``: recorded in environment.json as given.  ``flush_s``: the least seconds
     between two writes of the rows.
     """
 
@@ -82,6 +86,7 @@ class RunOptions:
     reference_cache_dir: Path | None = None
     reference_timeout_s: float = 30.0
     executor: Any = None
+    share: Any = None
     env_extra: dict | None = None
     flush_s: float = 1.0
 
@@ -197,7 +202,11 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     counts = outcome_counts(rows)
     n_before = sum(counts.values())
     n_total = len(todo) + n_before
-    executor = opts.executor if opts.executor is not None else InProcessExecutor(environment.machine_key(env))
+    executor = opts.executor
+    if executor is None and opts.share is not None and opts.rounds == 1:
+        executor = SharingExecutor(environment.machine_key(env), *opts.share)
+    elif executor is None:
+        executor = InProcessExecutor(environment.machine_key(env))
     ref_options = ReferenceOptions(expensive=suite.expensive_references, timeout_s=opts.reference_timeout_s,
                                    disk=opts.reference_cache_dir)
     writer = _Writer(out_dir, env, rows, opts.flush_s, started)

@@ -1,0 +1,203 @@
+"""A run's configurations shared with the second process once its own stages are done.
+
+``bench run`` starts a second process for its accuracy-only stages (the stability stage, the
+claims: :mod:`bench.commands._side_stages`) where the machine has a core for it.  Those stages
+take about a third of a quick run's configurations' time, so the second process would sit idle
+for the rest; instead it then takes configurations from the same plan as this one.
+
+How the plan is shared (:class:`PlanShare`):
+
+* the configurations are grouped by case × backend (:func:`groups_of`, plan order kept inside
+  a group), so a process computes a case's reference answers and compiles a kernel structure
+  (jax, numba) once for all the knob settings of its sweep, as one process running the whole plan
+  does;
+* this process offers the plan once (:meth:`PlanShare.offer`); each process claims the next
+  unclaimed group from a shared counter under a lock, so neither waits for the other to hand
+  work out, and a group is run by exactly one process;
+* the second process sends each configuration's rows back as it finishes; this process stays
+  the run directory's one writer (the runner writes what :class:`SharingExecutor` yields).
+
+Nothing is lost: a configuration the second process claimed but did not report (it died, or
+its rows never arrived) is run here once it is known dead.  Timing stays honest as with the
+side stages: each process has its own core (``2 × --threads`` cores are required, as for the
+side stages), and every row is timed and divided by the closed-form unit in the process that ran
+it; rows of the second process say so (``worker`` = :data:`SECOND`, ``worker_pid``).
+``--rounds`` > 1 re-times every configuration in this process, so a run with rounds does not
+share (the second process only runs its stages).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing
+import os
+import queue
+import time
+from typing import Callable, Iterator
+
+from .executor import InProcessExecutor
+from .plan import Config
+from .references import ReferenceOptions
+from .timing import TimingPolicy
+
+#: the ``worker`` of the rows the second process measured
+SECOND = "second process"
+
+
+def groups_of(todo: list[Config]) -> list[list[int]]:
+    """Indexes of ``todo`` grouped by (case id, backend id), groups in order of first appearance,
+    plan order inside each."""
+    groups: dict[tuple[str, str], list[int]] = {}
+    for j, cfg in enumerate(todo):
+        groups.setdefault((cfg.case.id, cfg.backend_id), []).append(j)
+    return list(groups.values())
+
+
+@dataclasses.dataclass
+class SharedPlan:
+    """What the second process needs to run its share: the configurations still to run, their
+    groups, and the run's measuring options (as :meth:`bench.run.executor.Executor.execute` gets
+    them)."""
+
+    run_id: str
+    todo: list[Config]
+    groups: list[list[int]]
+    policy: TimingPolicy
+    ref_options: ReferenceOptions
+    budget_s: float | None
+    deadline: float | None
+    machine_key: str
+
+
+class PlanShare:
+    """The channel between the two processes: a counter of claimed groups (shared memory, under
+    its lock), a queue carrying the plan to the second process (one message: a
+    :class:`SharedPlan`, or None when there is nothing to share), and a queue carrying its rows
+    back (``("rows", j, rows, over)`` per configuration, then ``("done", closed-form samples)``).
+    Made before the second process is started and handed to it as an argument."""
+
+    def __init__(self, ctx=None):
+        ctx = ctx or multiprocessing.get_context("spawn")
+        self._next = ctx.Value("q", 0)
+        self._plan = ctx.Queue()
+        self._rows = ctx.Queue()
+        self.offered = False
+
+    def claim(self, n_groups: int) -> int | None:
+        """The next unclaimed group's index, now this process's to run; None when all are claimed."""
+        with self._next.get_lock():
+            g = self._next.value
+            if g >= n_groups:
+                return None
+            self._next.value = g + 1
+            return g
+
+    # -- this process -------------------------------------------------------------------------
+    def offer(self, plan: SharedPlan | None) -> None:
+        """Send the plan (None: nothing to share) to the second process; once only."""
+        if not self.offered:
+            self.offered = True
+            self._plan.put(plan)
+            # a second process that died before reading it must not hold this one at exit
+            # (a queue's feeder thread is joined at exit until its data is written)
+            self._plan.cancel_join_thread()
+
+    def receive(self, timeout: float | None = None):
+        """The second process's next message, or None if none came within ``timeout`` (0: do
+        not wait)."""
+        try:
+            return self._rows.get(timeout=timeout) if timeout else self._rows.get_nowait()
+        except queue.Empty:
+            return None
+
+    # -- the second process -------------------------------------------------------------------
+    def wait_plan(self) -> SharedPlan | None:
+        return self._plan.get()
+
+    def send(self, message) -> None:
+        self._rows.put(message)
+
+
+def serve(share: PlanShare, backends: dict) -> int:
+    """The second process's share: wait for the plan, then run the groups it claims, sending
+    each configuration's rows as it finishes; returns how many configurations it ran."""
+    plan = share.wait_plan()
+    if plan is None:
+        return 0
+    ex = InProcessExecutor(plan.machine_key)
+    ref_cache: dict = {"_options": plan.ref_options}
+    n = 0
+    while (g := share.claim(len(plan.groups))) is not None:
+        for j in plan.groups[g]:
+            rows, over = ex.run_config(plan.run_id, plan.todo[j], backends, plan.policy, ref_cache, plan.budget_s,
+                                       plan.deadline)
+            share.send(("rows", j, [{**r, "worker": SECOND, "worker_pid": os.getpid()} for r in rows], over))
+            n += 1
+    share.send(("done", ex.closed_form_samples()))
+    return n
+
+
+class SharingExecutor(InProcessExecutor):
+    """:class:`bench.run.executor.InProcessExecutor` whose plan the second process joins once its
+    stages are done (:func:`serve`); ``alive()`` says whether the second process is still running."""
+
+    #: seconds between checks that the second process still lives, while waiting for its rows
+    POLL_S = 0.2
+
+    def __init__(self, machine_key: str, share: PlanShare, alive: Callable[[], bool]):
+        super().__init__(machine_key)
+        self.share, self.alive = share, alive
+        self.n_second = 0
+
+    def _take(self, msg, pending: set[int]) -> Iterator[tuple[int, list[dict], bool]]:
+        if msg[0] == "rows" and msg[1] in pending:
+            pending.discard(msg[1])
+            self.n_second += 1
+            yield msg[1], msg[2], msg[3]
+        elif msg[0] == "done":
+            for cid, ts in msg[1].items():
+                self._cf.setdefault(cid, []).extend(ts)
+            self._second_done = True
+
+    def execute(self, run_id, todo, backends, policy, ref_options, budget_s, deadline, on_start=None):
+        self._backends = backends
+        self._second_done = False
+        groups = groups_of(todo)
+        self.share.offer(SharedPlan(run_id, todo, groups, policy, ref_options, budget_s, deadline, self.machine_key))
+        ref_cache: dict = {"_options": ref_options}
+        pending = set(range(len(todo)))  # not yet yielded, whoever runs them
+        while (g := self.share.claim(len(groups))) is not None:
+            for j in groups[g]:
+                while (msg := self.share.receive(0)) is not None:
+                    yield from self._take(msg, pending)
+                if on_start:
+                    on_start(j)
+                rows, over = self.run_config(run_id, todo[j], backends, policy, ref_cache, budget_s, deadline)
+                pending.discard(j)
+                yield j, rows, over
+        # the groups the second process claimed: wait for their rows while it lives
+        while pending and not self._second_done:
+            msg = self.share.receive(self.POLL_S)
+            if msg is not None:
+                yield from self._take(msg, pending)
+            elif not self.alive():
+                while (msg := self.share.receive(0)) is not None:  # what it sent before it died
+                    yield from self._take(msg, pending)
+                break
+        for j in sorted(pending):  # claimed by a second process that died (or lost in transit): run here
+            if on_start:
+                on_start(j)
+            yield (j, *self.run_config(run_id, todo[j], backends, policy, ref_cache, budget_s, deadline))
+
+    def env_record(self, previous: dict | None = None) -> dict[str, str]:
+        return {"configurations_second_process": str(self.n_second)}
+
+
+def offer_nothing(share: PlanShare | None) -> None:
+    """Tell a second process waiting for a plan that there is none (a run that planned nothing
+    to share, or ended early); harmless after an offer."""
+    if share is not None:
+        share.offer(None)
+
+
+__all__ = ["PlanShare", "SECOND", "SharedPlan", "SharingExecutor", "groups_of", "offer_nothing", "serve"]
