@@ -140,10 +140,14 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
         exact = exact_of[name]
         hit = np.isfinite(exact)
         got = r.status == Status.CONVERGED
+        # flagged: neither a hit nor a miss is claimed (UNCERTIFIED, MAX_ITER, …); a false miss is a
+        # MISS where the exact answer hits, as in bench.studies.speed_mesh
+        flagged = ~got & (r.status != Status.MISS)
         err = np.abs(r.t[hit & got] - exact[hit & got])
         rows.append(dict(row, **{
             "err_max": float(err.max()) if err.size else float("nan"), "n_err_gt_1e-6": int((err > 1e-6).sum()),
-            "false_hits": int((got & ~hit).sum()), "false_misses": int((hit & ~got).sum()),
+            "false_hits": int((got & ~hit).sum()), "false_misses": int((hit & ~got & ~flagged).sum()),
+            "flagged": int(flagged.sum()),
             "evals_mean": float(r.evals.mean()), "evals_max": int(r.evals.max()),
             "status_counts": {int(s): int(c) for s, c in zip(*np.unique(r.status, return_counts=True))},
         }))
@@ -157,5 +161,5 @@ def format_rows(rows: list[dict]) -> str:
     df = df.iloc[np.argsort(pd.Categorical(df["scene"], categories=list(dict.fromkeys(df["scene"]))).codes,
                             kind="stable")]  # scene by scene, backends in run order
     cols = ["scene", "backend", "time_s", "x_unit", "x_unit_min", "x_unit_max", "target", "err_max", "n_err_gt_1e-6",
-            "false_hits", "false_misses", "evals_mean", "evals_max", "compile_s"]
+            "false_hits", "false_misses", "flagged", "evals_mean", "evals_max", "compile_s"]
     return df[cols].to_markdown(index=False, floatfmt=".3g")
