@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reference.cases import get_case
+from reference.cases import LARGE_SIZES, get_case
 from reference.mesh_cases import MESH_CASE_IDS
 
 #: cameras up to 256² are checked on every ray; larger ones on every STRIDE-th
@@ -65,7 +65,12 @@ def trimesh_first_hits(mesh, o, d, t_min, t_max):
     return first
 
 
-@pytest.mark.parametrize("cid", MESH_CASE_IDS)
+def _large(cid: str) -> bool:
+    """A camera at scale (256², 1024²): the slow tier checks it (a quarter of a minute each)."""
+    return cid.endswith(tuple(f".{n}x{n}" for n in LARGE_SIZES))
+
+
+@pytest.mark.parametrize("cid", [pytest.param(c, marks=pytest.mark.slow) if _large(c) else c for c in MESH_CASE_IDS])
 def test_mesh_case_agrees_with_trimesh(cid):
     case = get_case(cid)
     idx = np.arange(case.n_rays)

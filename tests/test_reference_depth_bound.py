@@ -187,6 +187,7 @@ def _check(m, t, b, kind):
     return r, flagged
 
 
+@pytest.mark.slow  # the mpmath truth of 1000 rays: ~25 s, checked in the whole gate
 @pytest.mark.parametrize("kind", list(SCENES))
 def test_numerical_reference_bound_covers_the_depth(measured, kind):
     m = measured[kind]
@@ -194,6 +195,7 @@ def test_numerical_reference_bound_covers_the_depth(measured, kind):
     assert np.sum(np.isfinite(m["t_num"]) & ~flagged) > 60
 
 
+@pytest.mark.slow  # the mpmath truth of 1000 rays: ~25 s, checked in the whole gate
 @pytest.mark.parametrize("kind", list(SCENES))
 def test_closed_form_bound_covers_the_depth(measured, kind):
     m = measured[kind]
@@ -206,6 +208,7 @@ def test_closed_form_bound_covers_the_depth(measured, kind):
         assert exact_tangent.sum() > 100 and not flagged[exact_tangent].any()
 
 
+@pytest.mark.slow  # the mpmath truth of 1000 rays: ~25 s, checked in the whole gate
 def test_the_bracket_width_alone_does_not_cover_the_depth(measured):
     """The test can fail: the bisection bracket (adjacent floats of the float64 φ's sign change)
     is exceeded by the true error on grazing rays of every scene."""
