@@ -122,6 +122,35 @@ def resolve(backend_id: str) -> Any:
                        unknown=True)
 
 
+def unknown_reason(backend_id: str) -> str | None:
+    """Why ``backend_id`` names no backend, found without building one or importing its library
+    (a built-in's name, an installed entry point, a plug-in spec whose module can be found), or
+    None; :func:`resolve` says more (a plug-in's missing attribute, a library that fails)."""
+    if not isinstance(backend_id, str) or not backend_id.strip():
+        return "empty backend id; use e.g. 'numpy', 'torch:cpu' or 'package.module:attr'"
+    if is_plugin_spec(backend_id):
+        module = backend_id.split(":", 1)[0]
+        if not all(p.isidentifier() for p in module.split(".")):
+            return None  # resolve() names what is wrong with the spec's form
+        try:
+            missing = None if importlib.util.find_spec(module) is not None else module
+        except ModuleNotFoundError as exc:  # a parent package that does not exist
+            missing = exc.name or module
+        except (ImportError, ValueError):  # something else: resolve() says it
+            return None
+        if missing:
+            return (f"could not load {backend_id}: no module named {missing!r} (from backend spec {backend_id!r}); "
+                    "is it installed or on PYTHONPATH?")
+        return None
+    lib = backend_id.partition(":")[0]
+    if lib in _BUILTIN:
+        return None
+    eps = _entry_points()
+    if lib in eps:
+        return None
+    return f"unknown backend {backend_id!r}; known: {sorted(set(_BUILTIN) | set(eps))} or 'package.module:attr'"
+
+
 def default_ids() -> list[str]:
     """The ids a run uses when none are given: every built-in on CPU, accelerators when present,
     and every installed entry point."""

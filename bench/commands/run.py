@@ -119,15 +119,41 @@ def _reference_cache(args) -> Path | None:
     return None if args.no_reference_cache else subdir("reference")
 
 
-def _select(args):
-    """(suite, cases) of the options, checked before any backend is imported."""
-    from ..run import plan
+def _suite(args):
+    """The suite of ``--suite`` (UsageError naming the known ones)."""
     from ..run.suites import get_suite
 
     try:
-        suite = get_suite(args.suite)
+        return get_suite(args.suite)
     except ValueError as exc:
         raise UsageError(f"--suite: {exc}") from None
+
+
+def _precheck(args) -> None:
+    """The options' errors that need neither the case catalog nor a backend object, raised
+    before either is built (a suite's tag selection builds the whole catalog, several seconds;
+    the backends import their libraries): ``--out`` not empty (without creating anything:
+    :func:`bench.run.rundir.claim_out` checks again under its lock) and backend ids that name
+    nothing (:func:`impls.registry.unknown_reason`)."""
+    from impls import registry
+
+    from ..run.rundir import OutError, require_empty
+
+    if args.out and not args.resume and Path(args.out).is_dir():
+        try:
+            require_empty(Path(args.out))
+        except OutError as exc:
+            raise UsageError(str(exc)) from None
+    for spec in split(args.backend) or ():
+        why = registry.unknown_reason(spec)
+        if why:
+            raise UsageError(f"--backend: {why}; `python -m bench backends` lists the backends")
+
+
+def _select(args, suite):
+    """The cases of the options, checked before any backend is imported."""
+    from ..run import plan
+
     err = load_user_cases(args)
     if err:
         raise UsageError(err)
@@ -140,7 +166,7 @@ def _select(args):
     if not cases:  # fail fast, before importing any backend
         raise UsageError(f"--case: nothing to run: no case matches {args.case or suite.case_pattern!r}; "
                          "`python -m bench cases` lists the cases")
-    return suite, cases
+    return cases
 
 
 def _backends(args) -> dict:
@@ -184,7 +210,10 @@ def _run(args, held: list) -> int:
     _check_options(args)
     cache_record = configure_process(args)
     console = make_console()
-    suite, cases = _select(args)
+    suite = _suite(args)
+    policy = _policy(args, suite)
+    _precheck(args)
+    cases = _select(args, suite)
     run_id = plan.new_run_id()
     out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
     try:  # this process is the run directory's one writer from here on (bench.run.rundir)
@@ -192,7 +221,6 @@ def _run(args, held: list) -> int:
     except ValueError as exc:  # OutError, LockHeld
         raise UsageError(str(exc)) from None
     backends = _backends(args)
-    policy = _policy(args, suite)
     budget = suite.budget_s if args.budget is None else (args.budget or None)
     live = console.is_terminal and not args.no_progress
     lines = ProgressLines(periodic=not live and not args.no_progress)

@@ -128,7 +128,7 @@ def claim_out(out: Path, *, resume: bool = False) -> RunLock:
                        "start a new run")
     out = make_dir(out)
     if not resume:
-        _require_empty(out)  # before the lock file is made: a foreign directory is left untouched
+        require_empty(out)  # before the lock file is made: a foreign directory is left untouched
     try:
         lock = RunLock(out).acquire()
     except OSError as exc:
@@ -136,14 +136,14 @@ def claim_out(out: Path, *, resume: bool = False) -> RunLock:
                        "write") from None
     if not resume:
         try:
-            _require_empty(out)  # again under the lock: another process may have won the race
+            require_empty(out)  # again under the lock: another process may have won the race
         except OutError:
             lock.release()
             raise
     return lock
 
 
-def _require_empty(out: Path) -> None:
+def require_empty(out: Path) -> None:
     """:class:`OutError` naming what ``out`` holds besides its lock file, if anything."""
     found = foreign_files(out)
     if found:
