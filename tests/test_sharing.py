@@ -11,7 +11,7 @@ import pandas as pd
 
 from bench.run import runner
 from bench.run.plan import plan
-from bench.run.sharing import SECOND, PlanShare, SharingExecutor, groups_of, serve
+from bench.run.sharing import SECOND, PlanShare, groups_of, serve
 from bench.run.suites import Suite
 from bench.run.timing import TimingPolicy
 from impls import registry

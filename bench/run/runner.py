@@ -30,8 +30,8 @@ from .executor import InProcessExecutor, Interrupted
 from .plan import CONFIG_KEY, Config, new_run_id, plan
 from .references import ReferenceOptions
 from .results import OVER_BUDGET, knob_string, to_frame, write_json, write_results
-from .sharing import SharingExecutor
 from .resume import check_case_versions, kept_rows, load_previous, outcome_counts, outcome_of, record_elapsed
+from .sharing import SharingExecutor
 from .suites import Suite
 from .timing import TimingPolicy
 
@@ -70,8 +70,8 @@ class RunOptions:
     run.  ``share`` (a :class:`bench.run.sharing.PlanShare` and a callable saying whether
     the second process still runs; used only without ``executor`` and with ``rounds`` 1): a
     second process joins the plan once its own stages are done
-    (:class:`bench.run.sharing.SharingExecutor`).  ``env_extra``: recorded in environment.json as given.  ``flush_s``: the least seconds
-    between two writes of the rows.
+    (:class:`bench.run.sharing.SharingExecutor`).  ``env_extra``: recorded in environment.json
+    as given.  ``flush_s``: the least seconds between two writes of the rows.
     """
 
     case_pattern: str | None = None

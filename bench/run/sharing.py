@@ -32,7 +32,6 @@ import dataclasses
 import multiprocessing
 import os
 import queue
-import time
 from typing import Callable, Iterator
 
 from .executor import InProcessExecutor
@@ -200,4 +199,4 @@ def offer_nothing(share: PlanShare | None) -> None:
         share.offer(None)
 
 
-__all__ = ["PlanShare", "SECOND", "SharedPlan", "SharingExecutor", "groups_of", "offer_nothing", "serve"]
+__all__ = ["SECOND", "PlanShare", "SharedPlan", "SharingExecutor", "groups_of", "offer_nothing", "serve"]
