@@ -83,3 +83,13 @@ def test_rounds_do_not_share(tmp_path):
     runner.run(SUITE, {"numpy": registry.resolve("numpy")}, tmp_path,
                policy=TimingPolicy(min_repeats=1, min_time_s=0.0, warmup=0), rounds=2, share=(share, lambda: True))
     assert not share.offered
+
+
+def test_a_plan_that_cannot_be_pickled_is_not_shared_and_the_second_process_is_told():
+    """A user's scene holding a lambda cannot cross to the second process: the plan is not
+    offered (this process runs it all) and the second process, waiting for a plan, gets None
+    instead of waiting for ever."""
+    share = PlanShare()
+    assert share.offer(lambda: 0) is False  # pickled here, not in the queue's feeder thread
+    assert share.wait_plan() is None
+    assert share.offer(None) is False  # once only

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import os
+import pickle
 import queue
 from typing import Callable, Iterator
 
@@ -92,14 +93,23 @@ class PlanShare:
             return g
 
     # -- this process -------------------------------------------------------------------------
-    def offer(self, plan: SharedPlan | None) -> None:
-        """Send the plan (None: nothing to share) to the second process; once only."""
-        if not self.offered:
-            self.offered = True
-            self._plan.put(plan)
-            # a second process that died before reading it must not hold this one at exit
-            # (a queue's feeder thread is joined at exit until its data is written)
-            self._plan.cancel_join_thread()
+    def offer(self, plan: SharedPlan | None) -> bool:
+        """Send the plan (None: nothing to share) to the second process, once; returns whether a
+        plan went.  The plan is pickled here, not in the queue's feeder thread: a plan that
+        cannot be pickled (a user's scene holding a lambda) is not shared, and the second process
+        is told so instead of waiting for it."""
+        if self.offered:
+            return False
+        self.offered = True
+        try:
+            data = None if plan is None else pickle.dumps(plan)
+        except Exception:  # noqa: BLE001 - whatever cannot be pickled is run here, not shared
+            data = None
+        self._plan.put(data)
+        # a second process that died before reading it must not hold this one at exit
+        # (a queue's feeder thread is joined at exit until its data is written)
+        self._plan.cancel_join_thread()
+        return data is not None
 
     def receive(self, timeout: float | None = None):
         """The second process's next message, or None if none came within ``timeout`` (0: do
@@ -111,7 +121,8 @@ class PlanShare:
 
     # -- the second process -------------------------------------------------------------------
     def wait_plan(self) -> SharedPlan | None:
-        return self._plan.get()
+        data = self._plan.get()
+        return None if data is None else pickle.loads(data)
 
     def send(self, message) -> None:
         self._rows.put(message)
@@ -162,7 +173,9 @@ class SharingExecutor(InProcessExecutor):
         self._backends = backends
         self._second_done = False
         groups = groups_of(todo)
-        self.share.offer(SharedPlan(run_id, todo, groups, policy, ref_options, budget_s, deadline, self.machine_key))
+        if not self.share.offer(SharedPlan(run_id, todo, groups, policy, ref_options, budget_s, deadline,
+                                           self.machine_key)):
+            self._second_done = True  # nothing shared: every group is run here
         ref_cache: dict = {"_options": ref_options}
         pending = set(range(len(todo)))  # not yet yielded, whoever runs them
         while (g := self.share.claim(len(groups))) is not None:
