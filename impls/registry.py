@@ -48,6 +48,14 @@ class _NotFound(LookupError):
     """A plug-in spec names a module or attribute that does not exist."""
 
 
+def _no_module(name: str, spec: str) -> str:
+    return f"no module named {name!r} (from backend spec {spec!r}); is it installed or on PYTHONPATH?"
+
+
+def _unknown(backend_id: str, eps) -> str:
+    return f"unknown backend {backend_id!r}; known: {sorted(set(_BUILTIN) | set(eps))} or 'package.module:attr'"
+
+
 def _load_attr(spec: str) -> Any:
     """The object ``module:attr`` names; :class:`_NotFound` when the module or an attribute on the
     way does not exist (errors raised *inside* an existing module propagate as they are)."""
@@ -58,8 +66,7 @@ def _load_attr(spec: str) -> Any:
         obj = importlib.import_module(mod)
     except ModuleNotFoundError as exc:
         if exc.name and (mod == exc.name or mod.startswith(exc.name + ".")):
-            raise _NotFound(f"no module named {exc.name!r} (from backend spec {spec!r}); is it installed or on "
-                            "PYTHONPATH?") from None
+            raise _NotFound(_no_module(exc.name, spec)) from None
         raise
     for part in attr.split("."):
         if not hasattr(obj, part):
@@ -117,9 +124,7 @@ def resolve(backend_id: str) -> Any:
             return _instantiate(eps[lib].load(), device or None)
         except (Exception, SystemExit) as exc:
             return Unavailable(backend_id, f"entry point {lib!r} failed: {type(exc).__name__}: {exc}")
-    known = sorted(set(_BUILTIN) | set(eps))
-    return Unavailable(backend_id, f"unknown backend {backend_id!r}; known: {known} or 'package.module:attr'",
-                       unknown=True)
+    return Unavailable(backend_id, _unknown(backend_id, eps), unknown=True)
 
 
 def unknown_reason(backend_id: str) -> str | None:
@@ -138,17 +143,12 @@ def unknown_reason(backend_id: str) -> str | None:
             missing = exc.name or module
         except (ImportError, ValueError):  # something else: resolve() says it
             return None
-        if missing:
-            return (f"could not load {backend_id}: no module named {missing!r} (from backend spec {backend_id!r}); "
-                    "is it installed or on PYTHONPATH?")
-        return None
+        return f"could not load {backend_id}: {_no_module(missing, backend_id)}" if missing else None
     lib = backend_id.partition(":")[0]
     if lib in _BUILTIN:
         return None
     eps = _entry_points()
-    if lib in eps:
-        return None
-    return f"unknown backend {backend_id!r}; known: {sorted(set(_BUILTIN) | set(eps))} or 'package.module:attr'"
+    return None if lib in eps else _unknown(backend_id, eps)
 
 
 def default_ids() -> list[str]:

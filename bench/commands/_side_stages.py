@@ -28,18 +28,11 @@ import os
 from pathlib import Path
 
 from ._common import configure_process, make_console, resolve_backends, run_claims_into, split
+from ..run.environment import usable_cores
 from ._run_stages import run_stability_into
 
 #: environment.json's ``side_stages`` values
 CONCURRENT, SEQUENTIAL = "second process, beside the configurations", "after the configurations"
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity, else the machine's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def concurrent_ok(args, executor, cores: int | None = None) -> bool:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import concurrent.futures
 import json
 import multiprocessing
-import os
 import re
 from pathlib import Path
 
@@ -244,10 +243,9 @@ def _render_all(jobs: list[tuple]) -> list[bytes]:
     jobs; else, or if the pool cannot start or breaks, here.  Why: the figures are independent,
     and a quick run's ~30 of them took 20 s of its report's 25 s on one core (tight layout and
     tick-label text extents are most of it)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
+    from ..run.environment import usable_cores
+
+    cores = usable_cores()
     if cores >= 2 and len(jobs) >= POOL_FROM:
         try:
             ctx = multiprocessing.get_context("spawn")

@@ -181,6 +181,14 @@ def collect() -> dict[str, str]:
     return env
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def machine_key(env: dict[str, str]) -> str:
     """What must match for timings to be comparable: CPU model, logical CPUs, threads per library,
     allocator (runs recorded before it was, ran with the default one)."""

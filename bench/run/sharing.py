@@ -158,6 +158,7 @@ class SharingExecutor(InProcessExecutor):
         super().__init__(machine_key)
         self.share, self.alive = share, alive
         self.n_second = 0
+        self._second_done = False  # its "done" arrived, or it was offered nothing
 
     def _take(self, msg, pending: set[int]) -> Iterator[tuple[int, list[dict], bool]]:
         if msg[0] == "rows" and msg[1] in pending:
@@ -205,11 +206,4 @@ class SharingExecutor(InProcessExecutor):
         return {"configurations_second_process": str(self.n_second)}
 
 
-def offer_nothing(share: PlanShare | None) -> None:
-    """Tell a second process waiting for a plan that there is none (a run that planned nothing
-    to share, or ended early); harmless after an offer."""
-    if share is not None:
-        share.offer(None)
-
-
-__all__ = ["SECOND", "PlanShare", "SharedPlan", "SharingExecutor", "groups_of", "offer_nothing", "serve"]
+__all__ = ["SECOND", "PlanShare", "SharedPlan", "SharingExecutor", "groups_of", "serve"]
