@@ -247,6 +247,8 @@ class Case:
 
 
 _FACTORIES: dict[str, Callable[[], Case]] = {}
+#: tags declared at registration (:func:`register_cases`), read by :func:`catalog` without building
+_DECLARED_TAGS: dict[str, frozenset[str]] = {}
 
 
 def make_case(case_id: str, scene: Field, origins, directions, *, tags: tuple[str, ...] = (), description: str = "",
@@ -256,22 +258,39 @@ def make_case(case_id: str, scene: Field, origins, directions, *, tags: tuple[st
     ``tags``, without repeats."""
     return Case(id=case_id, scene=scene, origins=np.ascontiguousarray(origins, np.float64),
                 directions=np.ascontiguousarray(directions, np.float64), t_min=t_min, t_max=t_max,
-                tags=tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags))), description=description,
-                color_frequency=color_frequency)
+                tags=case_tags(scene, tags), description=description, color_frequency=color_frequency)
 
 
-def register_cases(ids, build: Callable[[], list[Case]]) -> None:
+def case_tags(scene: Field, tags: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The tags :func:`make_case` gives a case of ``scene``: the scene's structural tags, then
+    ``tags``, without repeats (what a builder declares to :func:`register_cases`)."""
+    return tuple(dict.fromkeys(_scene_tags(scene) + tuple(tags)))
+
+
+def register_cases(ids, build: Callable[[], list[Case]], tags: dict[str, tuple[str, ...]] | None = None) -> None:
     """The one way cases enter the catalog: ``ids`` are registered at once, without building
     anything; ``build()`` returns the cases (exactly ``ids``) and runs at most once, when the first
-    of them is asked for (a stored mesh or network is loaded once for all of its cases)."""
+    of them is asked for (a stored mesh or network is loaded once for all of its cases).
+
+    ``tags`` (optional) declares the tags of some or all of ``ids`` (id → tags, the scene's
+    structural tags included): :func:`catalog` then selects those cases by tag without building
+    them (a suite chosen by tag builds only what it runs).  A built case must carry exactly its
+    declared tags, in any order; an AssertionError names the case and its builder otherwise."""
     ids = tuple(ids)
+    declared = {cid: frozenset(t) for cid, t in (tags or {}).items()}
+    if set(declared) - set(ids):
+        raise ValueError(f"tags declared for ids not registered here: {sorted(set(declared) - set(ids))}")
 
     @functools.cache
     def built() -> dict[str, Case]:
         cases = {c.id: c for c in build()}
+        name = getattr(build, "__qualname__", build)
         if set(cases) != set(ids):
-            raise AssertionError(f"case builder {getattr(build, '__qualname__', build)!r} built {sorted(cases)}, "
-                                 f"registered as {sorted(ids)}")
+            raise AssertionError(f"case builder {name!r} built {sorted(cases)}, registered as {sorted(ids)}")
+        for cid, want in declared.items():
+            if set(cases[cid].tags) != want:
+                raise AssertionError(f"case builder {name!r} built {cid!r} with tags {sorted(cases[cid].tags)}, "
+                                     f"declared as {sorted(want)}")
         return cases
 
     for cid in ids:
@@ -279,6 +298,7 @@ def register_cases(ids, build: Callable[[], list[Case]]) -> None:
             raise ValueError(f"duplicate case id {cid!r}")
     for cid in ids:
         _FACTORIES[cid] = lambda cid=cid: built()[cid]
+    _DECLARED_TAGS.update(declared)
 
 
 def register(case_id: str):
@@ -329,16 +349,18 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
     :func:`case_ids` and :func:`get_case` know every case."""
     out = []
     want_large = bool(tags) and bool({LARGE, FULL_ONLY} & set(tags))
+    pats = pattern.split(",") if pattern else []
     for cid in case_ids():
-        pats = pattern.split(",") if pattern else []
         if pattern and not any(fnmatch.fnmatchcase(cid, p) for p in pats):
             continue
-        case = get_case(cid)
-        if tags and not set(tags) <= set(case.tags):
+        case_tags = _DECLARED_TAGS.get(cid)
+        if case_tags is None:
+            case_tags = get_case(cid).tags
+        if tags and not set(tags) <= set(case_tags):
             continue
-        if LARGE in case.tags and not (want_large or cid in pats):
+        if LARGE in case_tags and not (want_large or cid in pats):
             continue
-        out.append(case)
+        out.append(get_case(cid))
     return out
 
 
@@ -437,10 +459,13 @@ def _scene_tags(scene: Field) -> tuple[str, ...]:
 
 
 def _add(case_id: str, build: Callable[[], tuple], tags: tuple[str, ...] = (), description: str = "",
-         t_min: float = 0.0, t_max: float = 10.0, color_frequency: float = 2.0) -> None:
-    """Register ``case_id`` built lazily from ``build() -> (scene, origins, directions)``."""
+         t_min: float = 0.0, t_max: float = 10.0, color_frequency: float = 2.0, scene: Field | None = None) -> None:
+    """Register ``case_id`` built lazily from ``build() -> (scene, origins, directions)``.  With
+    ``scene`` (a cheap copy of the scene ``build`` makes) its tags are declared, so that the
+    catalog skips the case without building its rays (the cameras at scale)."""
     register_cases((case_id,), lambda: [make_case(case_id, *build(), tags=tags, description=description, t_min=t_min,
-                                                  t_max=t_max, color_frequency=color_frequency)])
+                                                  t_max=t_max, color_frequency=color_frequency)],
+                   None if scene is None else {case_id: case_tags(scene, tags)})
 
 
 def _cam(n: int, eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov: float = 40.0, up=(0.0, 1.0, 0.0)):
@@ -528,7 +553,7 @@ def _register_all() -> None:
          "torus R = 1, r = 0.25 seen obliquely by a 32×32 camera")
     for n in LARGE_SIZES:
         _add(f"torus.camera.{n}x{n}", lambda n=n: (Torus(1.0, 0.25), *_cam(n, eye=(0.0, -2.5, 1.8))), large_tags(n),
-             f"torus R = 1, r = 0.25 seen obliquely by a {n}×{n} camera (the 32×32 view at scale)")
+             f"torus R = 1, r = 0.25 seen obliquely by a {n}×{n} camera (the 32×32 view at scale)", scene=Torus(1.0, 0.25))
 
     def _torus_grazing(k):
         rng = np.random.default_rng(20 + k)
@@ -618,7 +643,8 @@ def _register_all() -> None:
     for n in LARGE_SIZES:
         _add(f"csg.union.camera.{n}x{n}",
              lambda n=n: (Union(Torus(1.0, 0.25), Box((0.4, 0.4, 0.4))), *_cam(n, eye=(0.0, -2.5, 1.8))),
-             large_tags(n), f"torus ∪ box, {n}×{n} camera (the 32×32 view at scale)")
+             large_tags(n), f"torus ∪ box, {n}×{n} camera (the 32×32 view at scale)",
+             scene=Union(Torus(1.0, 0.25), Box((0.4, 0.4, 0.4))))
     _add("csg.difference.camera.32x32",
          lambda: (Difference(Box((0.7, 0.7, 0.7)), Sphere(radius=0.9)), *_cam(32, eye=(1.5, 1.2, 2.2))),
          ("camera",), "box minus a sphere (bites at the corners), 32×32 camera")

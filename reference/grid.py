@@ -71,6 +71,7 @@ By default θ is empty.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 
@@ -528,50 +529,74 @@ def _tangent_offsets(grid: GridSDF, centre_dirs, lateral, s_hit: float, s_miss: 
     return lo
 
 
-#: the ids :func:`grid_cases` builds, registered in the catalog at import
-GRID_CASE_IDS = ("grid.torus32.camera.32x32", "grid.torus64.camera.32x32", "grid.torus64.grazing.1e-6",
-                 "grid.torus64.camera.256x256", "grid.torus64.camera.1024x1024")
+#: the structural tags of a grid case's scene (:func:`reference.cases.case_tags` of a :class:`GridSDF`)
+GRID_SCENE_TAGS = ("grid", "lipschitz")
+
+
+def _grid_specs() -> dict[str, tuple[tuple[str, ...], str]]:
+    """id → (the case's own tags, description) of every grid case, in catalog order."""
+    from .cases import LARGE_SIZES, large_tags
+
+    specs = {f"grid.torus{k}.camera.32x32": (("camera",), f"torus R = 1, r = 0.25 sampled on a {k}³ grid over "
+                                             "[−1.4, 1.4]³ (trilinear), seen obliquely by a 32×32 camera")
+             for k in (32, 64)}
+    specs["grid.torus64.grazing.1e-6"] = (
+        ("grazing",), "rays in the equatorial plane at (1 ± 1e-6) × the offset where they stop hitting the 64³ grid "
+        "torus (found by bisection on its exact hits): grazing the grid's own outer equator")
+    for n in LARGE_SIZES:
+        specs[f"grid.torus64.camera.{n}x{n}"] = (large_tags(n), f"the 64³ grid torus seen obliquely by a {n}×{n} "
+                                                 "camera (the 32×32 view at scale)")
+    return specs
+
+
+_GRID_SPECS = _grid_specs()
+#: the ids :func:`grid_case` builds, registered in the catalog at import (tags declared: a suite
+#: chosen by tag builds none it does not run)
+GRID_CASE_IDS = tuple(_GRID_SPECS)
+
+
+@functools.cache
+def stored_torus_grid(k: int) -> GridSDF:
+    """The torus (R = 1, r = 0.25) sampled on a k³ grid over [−1.4, 1.4]³ (every boundary sample
+    ≥ 0.15 > 0: closed), one instance per process."""
+    from .primitives import Torus
+
+    return grid_from_field(Torus(1.0, 0.25), (-1.4,) * 3, (1.4,) * 3, k)
+
+
+def _grid_rays(case_id: str):
+    from . import rays as _rays
+
+    if case_id == "grid.torus64.grazing.1e-6":
+        rng = np.random.default_rng(90)
+        m = 256
+        phase = rng.uniform(0, 2 * np.pi, m)
+        dirs = np.stack([-np.sin(phase), np.cos(phase), np.zeros(m)], axis=1)
+        lateral = np.stack([np.cos(phase), np.sin(phase), np.zeros(m)], axis=1)
+        s_star = _tangent_offsets(stored_torus_grid(64), dirs, lateral, 1.0, 1.5)
+        sgn = np.where(np.arange(m) % 2 == 0, 1.0, -1.0)
+        s = s_star * (1 + sgn * 1e-6)
+        return s[:, None] * lateral - 3.0 * dirs, dirs
+    n = int(case_id.rsplit(".", 1)[1].split("x")[0])
+    return _rays.pinhole(eye=(0.0, -2.5, 1.8), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=n, height=n)
+
+
+def grid_case(case_id: str):
+    """The grid case ``case_id`` (one of :data:`GRID_CASE_IDS`): the torus grid of its id (32³
+    or 64³) seen by a camera, or rays grazing the 64³ grid's own surface in the equatorial plane."""
+    from .cases import make_case
+
+    tags, description = _GRID_SPECS[case_id]
+    grid = stored_torus_grid(32 if case_id.startswith("grid.torus32.") else 64)
+    return make_case(case_id, grid, *_grid_rays(case_id), tags=tags, description=description)
 
 
 def grid_cases():
-    """Grid-SDF cases: a torus (R = 1, r = 0.25)
-    sampled on 32³ and 64³ grids over [−1.4, 1.4]³ (every boundary sample ≥ 0.15 > 0: closed),
-    seen by a camera, and rays grazing the 64³ grid's own surface in the equatorial plane."""
-    from . import rays as _rays
-    from .cases import make_case
-    from .primitives import Torus
+    """Every grid case of the catalog (:data:`GRID_CASE_IDS`)."""
+    from .cases import get_case
 
-    def make(cid, scene, o, d, tags, description):
-        return make_case(cid, scene, o, d, tags=tags, description=description)
-
-    out = []
-    grids = {k: grid_from_field(Torus(1.0, 0.25), (-1.4,) * 3, (1.4,) * 3, k) for k in (32, 64)}
-    o, d = _rays.pinhole(eye=(0.0, -2.5, 1.8), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=32, height=32)
-    for k, g in grids.items():
-        out.append(make(f"grid.torus{k}.camera.32x32", g, o, d, ("camera",),
-                        f"torus R = 1, r = 0.25 sampled on a {k}³ grid over [−1.4, 1.4]³ (trilinear), "
-                        "seen obliquely by a 32×32 camera"))
-    from .cases import LARGE_SIZES, large_tags
-
-    for n in LARGE_SIZES:
-        o_n, d_n = _rays.pinhole(eye=(0.0, -2.5, 1.8), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=n, height=n)
-        out.append(make(f"grid.torus64.camera.{n}x{n}", grids[64], o_n, d_n, large_tags(n),
-                        f"the 64³ grid torus seen obliquely by a {n}×{n} camera (the 32×32 view at scale)"))
-    rng = np.random.default_rng(90)
-    m = 256
-    phase = rng.uniform(0, 2 * np.pi, m)
-    dirs = np.stack([-np.sin(phase), np.cos(phase), np.zeros(m)], axis=1)
-    lateral = np.stack([np.cos(phase), np.sin(phase), np.zeros(m)], axis=1)
-    s_star = _tangent_offsets(grids[64], dirs, lateral, 1.0, 1.5)
-    sgn = np.where(np.arange(m) % 2 == 0, 1.0, -1.0)
-    s = s_star * (1 + sgn * 1e-6)
-    out.append(make("grid.torus64.grazing.1e-6", grids[64], s[:, None] * lateral - 3.0 * dirs, dirs,
-                    ("grazing",),
-                    "rays in the equatorial plane at (1 ± 1e-6) × the offset where they stop hitting the 64³ grid "
-                    "torus (found by bisection on its exact hits): grazing the grid's own outer equator"))
-    return out
+    return [get_case(cid) for cid in GRID_CASE_IDS]
 
 
-register_cases(GRID_CASE_IDS, grid_cases)
-
-__all__ = ["GRID_CASE_IDS", "GridSDF", "grid_cases", "grid_from_field"]
+for _cid, (_tags, _) in _GRID_SPECS.items():
+    register_cases((_cid,), lambda cid=_cid: [grid_case(cid)], {_cid: GRID_SCENE_TAGS + _tags})

@@ -81,46 +81,66 @@ def _blob_inside():
     return o, d
 
 
-#: the ids :func:`mesh_cases` builds, registered in the catalog without building them
-MESH_CASE_IDS = ("mesh.torus.camera.32x32", "mesh.torus.camera.16x16", "mesh.fin.camera.32x32", "mesh.fin.thin", "mesh.fin.parallel",
-                 "mesh.blob.camera.32x32", "mesh.blob.inside",
-                 *(f"mesh.{name}.grazing.1e-{k}" for k in (3, 6, 9) for name in ("torus", "fin", "blob")),
-                 *(f"mesh.torus.camera.{n}x{n}" for n in LARGE_SIZES))
+#: the structural tags of a mesh case's scene (:func:`reference.cases.case_tags` of a :class:`MeshSDF`)
+MESH_SCENE_TAGS = ("mesh", "sdf", "lipschitz")
+
+
+def _mesh_specs() -> dict:
+    """id → (mesh name, rays(mesh) → (origins, directions), the case's own tags, description)
+    of every mesh case, in catalog order."""
+    specs = {
+        "mesh.torus.camera.32x32": ("torus", lambda m: _cam(32, eye=(0.0, -2.5, 1.8)), ("camera",),
+                                    "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 32×32 camera"),
+        # the quick suite's mesh: the same view at 16×16 (each φ call is a host call into libigl,
+        # the costliest φ per point of the catalog)
+        "mesh.torus.camera.16x16": ("torus", lambda m: _cam(16, eye=(0.0, -2.5, 1.8)), ("camera", "quick"),
+                                    "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 16×16 camera"),
+        "mesh.fin.camera.32x32": ("fin", lambda m: _cam(32, eye=(1.6, -1.9, 1.5)), ("camera", "thin"),
+                                  "a block with a 0.008-thick wall (sharp edges), 32×32 camera"),
+        "mesh.fin.thin": ("fin", lambda m: _fin_thin(), ("thin", "wall", "stability"),
+                          "rays through the 0.008-thick wall, a quarter along its normal, the rest oblique"),
+        "mesh.fin.parallel": ("fin", lambda m: _fin_parallel(), ("parallel", "grazing"),
+                              "rays parallel to the wall's faces, 1e-9 outside (miss the wall) or inside (hit its end "
+                              "or top)"),
+        "mesh.blob.camera.32x32": ("blob", lambda m: _cam(32, fov=50.0), ("camera",),
+                                   "a seeded wavy sphere (5120 faces), 32×32 camera"),
+        "mesh.blob.inside": ("blob", lambda m: _blob_inside(), ("inside",),
+                             "origins inside the blob (|o| ≤ 0.5), random directions: the first hit is the exit"),
+    }
+    for k in (3, 6, 9):
+        for name in ("torus", "fin", "blob"):
+            # the fin's (68 faces) 1e-6 edge rays stand for the family in the stability matrix
+            stab = ("stability",) if (name, k) == ("fin", 6) else ()
+            specs[f"mesh.{name}.grazing.1e-{k}"] = (
+                name, lambda m, k=k: edge_grazing_rays(m, 256, 10.0**-k, seed=110 + k), ("grazing", "edge") + stab,
+                f"rays perpendicular to random convex edges passing 1e-{k} × size outside (even rays) or inside "
+                "(odd rays) the edge")
+    for n in LARGE_SIZES:
+        specs[f"mesh.torus.camera.{n}x{n}"] = ("torus", lambda m, n=n: _cam(n, eye=(0.0, -2.5, 1.8)), large_tags(n),
+                                               f"torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a {n}×{n} "
+                                               "camera")
+    return specs
+
+
+_MESH_SPECS = _mesh_specs()
+#: the ids :func:`mesh_case` builds, registered in the catalog without building them (tags
+#: declared: a suite chosen by tag loads no mesh it does not run)
+MESH_CASE_IDS = tuple(_MESH_SPECS)
+
+
+def mesh_case(case_id: str) -> Case:
+    """The mesh case ``case_id`` (one of :data:`MESH_CASE_IDS`), on its stored mesh."""
+    name, rays, tags, description = _MESH_SPECS[case_id]
+    mesh = stored_mesh(name)
+    return _case(case_id, mesh, *rays(mesh), tags, description)
 
 
 def mesh_cases() -> list[Case]:
-    """The mesh cases, registered in the catalog (:data:`MESH_CASE_IDS`)."""
-    torus, fin, blob = (stored_mesh(k) for k in ("torus", "fin", "blob"))
-    out = [
-        _case("mesh.torus.camera.32x32", torus, *_cam(32, eye=(0.0, -2.5, 1.8)), ("camera",),
-              "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 32×32 camera"),
-        # the quick suite's mesh: the same view at 16×16 (each φ call is a host call into libigl,
-        # the costliest φ per point of the catalog)
-        _case("mesh.torus.camera.16x16", torus, *_cam(16, eye=(0.0, -2.5, 1.8)), ("camera", "quick"),
-              "torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a 16×16 camera"),
-        _case("mesh.fin.camera.32x32", fin, *_cam(32, eye=(1.6, -1.9, 1.5)), ("camera", "thin"),
-              "a block with a 0.008-thick wall (sharp edges), 32×32 camera"),
-        _case("mesh.fin.thin", fin, *_fin_thin(), ("thin", "wall", "stability"),
-              "rays through the 0.008-thick wall, a quarter along its normal, the rest oblique"),
-        _case("mesh.fin.parallel", fin, *_fin_parallel(), ("parallel", "grazing"),
-              "rays parallel to the wall's faces, 1e-9 outside (miss the wall) or inside (hit its end or top)"),
-        _case("mesh.blob.camera.32x32", blob, *_cam(32, fov=50.0), ("camera",),
-              "a seeded wavy sphere (5120 faces), 32×32 camera"),
-        _case("mesh.blob.inside", blob, *_blob_inside(), ("inside",),
-              "origins inside the blob (|o| ≤ 0.5), random directions: the first hit is the exit"),
-    ]
-    for n in LARGE_SIZES:
-        out.append(_case(f"mesh.torus.camera.{n}x{n}", torus, *_cam(n, eye=(0.0, -2.5, 1.8)), large_tags(n),
-                         f"torus mesh (R = 1, r = 0.25, 4096 faces) seen obliquely by a {n}×{n} camera"))
-    for k in (3, 6, 9):
-        for name, mesh in (("torus", torus), ("fin", fin), ("blob", blob)):
-            # the fin's (68 faces) 1e-6 edge rays stand for the family in the stability matrix
-            stab = ("stability",) if (name, k) == ("fin", 6) else ()
-            out.append(_case(f"mesh.{name}.grazing.1e-{k}", mesh,
-                             *edge_grazing_rays(mesh, 256, 10.0**-k, seed=110 + k), ("grazing", "edge") + stab,
-                             f"rays perpendicular to random convex edges passing 1e-{k} × size outside (even rays) "
-                             "or inside (odd rays) the edge"))
-    return out
+    """Every mesh case (:data:`MESH_CASE_IDS`): the catalog's, where the mesh extra registered them."""
+    from .cases import case_ids, get_case
+
+    known = set(case_ids())
+    return [get_case(cid) if cid in known else mesh_case(cid) for cid in MESH_CASE_IDS]
 
 
 def _register() -> None:
@@ -128,7 +148,8 @@ def _register() -> None:
     import importlib.util
 
     if all(importlib.util.find_spec(m) is not None for m in ("igl", "trimesh")):
-        register_cases(MESH_CASE_IDS, mesh_cases)
+        for cid, (_, _, tags, _) in _MESH_SPECS.items():
+            register_cases((cid,), lambda cid=cid: [mesh_case(cid)], {cid: MESH_SCENE_TAGS + tags})
 
 
 _register()

@@ -75,45 +75,80 @@ def _case(case_id, scene, o, d, tags, description) -> Case:
     return make_case(case_id, scene, o, d, tags=tags, description=description, t_max=6.0)
 
 
-#: the ids :func:`neural_cases` builds, registered in the catalog without building them
-NEURAL_CASE_IDS = ("neural.blob.camera.16x16", "neural.blob.camera.16x16.Llocal", "neural.blob.grazing.1e-3.Llocal",
-                   "neural.blob.grazing.1e-6.Llocal", "neural.blob.understated",
-                   "neural.blob.camera.256x256.Llocal", "neural.blob.camera.1024x1024.Llocal")
+#: the structural tags of a neural case's scene (:func:`reference.cases.case_tags` of a :class:`NeuralSDF`)
+NEURAL_SCENE_TAGS = ("neural", "lipschitz", "numerical")
 
 
-def neural_cases() -> list[Case]:
-    """The neural SDF cases (:data:`NEURAL_CASE_IDS`)."""
-    spectral, local = stored_network("spectral"), stored_network("local")
-    cam = _cam(16, fov=50.0)
-    out = [
-        _case("neural.blob.camera.16x16", spectral, *cam, ("camera", "quick"),
-              f"the stored 3→64→64→1 softplus (β = 100) network fitted to the blob mesh, 16×16 camera; spectral "
-              f"Lipschitz bound ∏‖Wₖ‖₂ = {spectral.spectral_bound:.3g} (certified everywhere)"),
-        _case("neural.blob.camera.16x16.Llocal", local, *cam, ("camera",),
-              f"the same network and rays with the local bound {local.local_bound:.3g}, certified on its surface box "
-              f"by interval bounds (largest measured slope {local.measured_slope:.4g})"),
-    ]
-    for n in LARGE_SIZES:
-        out.append(_case(f"neural.blob.camera.{n}x{n}.Llocal", local, *_cam(n, fov=50.0), large_tags(n),
-                         f"the network with its local bound {local.local_bound:.3g}, {n}×{n} camera (the 16×16 view "
-                         "at scale); hits from the certified numerical reference (its cost grows with the rays: "
-                         "minutes at 256², hours at 1024²)"))
+def _neural_specs() -> dict:
+    """id → (build() → (scene, origins, directions, description), the case's own tags) of every
+    neural case, in catalog order."""
+    def spectral_cam():
+        spectral = stored_network("spectral")
+        return (spectral, *_cam(16, fov=50.0),
+                f"the stored 3→64→64→1 softplus (β = 100) network fitted to the blob mesh, 16×16 camera; spectral "
+                f"Lipschitz bound ∏‖Wₖ‖₂ = {spectral.spectral_bound:.3g} (certified everywhere)")
+
+    def local_cam():
+        local = stored_network("local")
+        return (local, *_cam(16, fov=50.0),
+                f"the same network and rays with the local bound {local.local_bound:.3g}, certified on its surface box "
+                f"by interval bounds (largest measured slope {local.measured_slope:.4g})")
+
+    def large_cam(n):
+        local = stored_network("local")
+        return (local, *_cam(n, fov=50.0),
+                f"the network with its local bound {local.local_bound:.3g}, {n}×{n} camera (the 16×16 view "
+                "at scale); hits from the certified numerical reference (its cost grows with the rays: "
+                "minutes at 256², hours at 1024²)")
+
+    def grazing(k, n):
+        local = stored_network("local")
+        return (local, *grazing_rays(local, n, 10.0**-k, seed=120 + k),
+                f"rays tangent to the network's surface along its direction of largest curvature, 1e-{k} "
+                "outside (even rays) or inside (odd rays) it; local bound")
+
+    def understated():
+        lie = DeclaredLipschitz(stored_network("local"), UNDERSTATED_FACTOR * stored_network("local").measured_slope)
+        o, d = _rays.in_ball(256, 0.5, seed=130)
+        return (lie, o, d,
+                f"the network declared with L = {UNDERSTATED_FACTOR} × its largest measured slope "
+                f"({lie.declared:.3g}, below the true slope of ≈ 1 almost everywhere); origins inside "
+                "(|o| ≤ 0.5), random directions: a step of |φ|/L crosses the surface, which the check must flag; "
+                "exact hits from the network's own certified (local) bound")
+
+    specs = {"neural.blob.camera.16x16": (spectral_cam, ("camera", "quick")),
+             "neural.blob.camera.16x16.Llocal": (local_cam, ("camera",))}
     # grazing rays with the local bound: certifying a near miss at distance δ costs ~L/√δ
     # evaluations per ray (the reference halves intervals until |φ(a)| + |φ(b)| > L(b − a)),
     # 5× fewer than with the spectral bound
     for k, n in ((3, 128), (6, 64)):
-        out.append(_case(f"neural.blob.grazing.1e-{k}.Llocal", local, *grazing_rays(local, n, 10.0**-k, seed=120 + k),
-                         ("grazing",),
-                         f"rays tangent to the network's surface along its direction of largest curvature, 1e-{k} "
-                         "outside (even rays) or inside (odd rays) it; local bound"))
-    o, d = _rays.in_ball(256, 0.5, seed=130)
-    lie = DeclaredLipschitz(local, UNDERSTATED_FACTOR * local.measured_slope)
-    out.append(_case("neural.blob.understated", lie, o, d, ("understated", "inside"),
-                     f"the network declared with L = {UNDERSTATED_FACTOR} × its largest measured slope "
-                     f"({lie.declared:.3g}, below the true slope of ≈ 1 almost everywhere); origins inside "
-                     "(|o| ≤ 0.5), random directions: a step of |φ|/L crosses the surface, which the check must flag; "
-                     "exact hits from the network's own certified (local) bound"))
-    return out
+        specs[f"neural.blob.grazing.1e-{k}.Llocal"] = (lambda k=k, n=n: grazing(k, n), ("grazing",))
+    specs["neural.blob.understated"] = (understated, ("understated", "inside"))
+    for n in LARGE_SIZES:
+        specs[f"neural.blob.camera.{n}x{n}.Llocal"] = (lambda n=n: large_cam(n), large_tags(n))
+    return specs
 
 
-register_cases(NEURAL_CASE_IDS, neural_cases)
+_NEURAL_SPECS = _neural_specs()
+#: the ids :func:`neural_case` builds, registered in the catalog without building them (tags
+#: declared: a suite chosen by tag loads no network it does not run)
+NEURAL_CASE_IDS = tuple(_NEURAL_SPECS)
+
+
+def neural_case(case_id: str) -> Case:
+    """The neural case ``case_id`` (one of :data:`NEURAL_CASE_IDS`)."""
+    build, tags = _NEURAL_SPECS[case_id]
+    scene, o, d, description = build()
+    return _case(case_id, scene, o, d, tags, description)
+
+
+def neural_cases() -> list[Case]:
+    """Every neural case of the catalog (:data:`NEURAL_CASE_IDS`)."""
+    from .cases import get_case
+
+    return [get_case(cid) for cid in NEURAL_CASE_IDS]
+
+
+for _cid, (_, _tags) in _NEURAL_SPECS.items():
+    register_cases((_cid,), lambda cid=_cid: [neural_case(cid)],
+                   {_cid: ("understated",) * (_cid == "neural.blob.understated") + NEURAL_SCENE_TAGS + _tags})

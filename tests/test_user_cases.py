@@ -135,3 +135,52 @@ def test_register_cases_builds_once_and_checks_the_ids(monkeypatch):
     register_cases(("test.rc.c",), build)  # builds a and b, not c
     with pytest.raises(AssertionError, match="registered as"):
         get_case("test.rc.c")
+
+
+def test_declared_tags_select_without_building_and_are_checked(monkeypatch):
+    """Tags declared at registration: the catalog selects by them without building the case (a
+    case of the wrong tag, or one at scale, is never built), and a built case whose tags differ
+    from its declaration is an error naming the case."""
+    from reference import Sphere
+    from reference import cases as cases_mod
+    from reference.cases import case_tags, catalog, get_case, make_case, register_cases
+    from reference.rays import pinhole
+
+    monkeypatch.setattr(cases_mod, "_FACTORIES", dict(cases_mod._FACTORIES))
+    monkeypatch.setattr(cases_mod, "_DECLARED_TAGS", dict(cases_mod._DECLARED_TAGS))
+    get_case.cache_clear()
+    built = []
+
+    def factory(cid, tags):
+        def build():
+            built.append(cid)
+            return [make_case(cid, Sphere(), *pinhole((0, 0, 3), (0, 0, 0), width=2, height=2), tags=tags)]
+        return build
+
+    ok, scale, liar = (("mine", "camera"), ("mine", "camera", "large"), ("mine",))
+    register_cases(("test.dt.ok",), factory("test.dt.ok", ok), {"test.dt.ok": case_tags(Sphere(), ok)})
+    register_cases(("test.dt.big",), factory("test.dt.big", scale), {"test.dt.big": case_tags(Sphere(), scale)})
+    # declared "camera", built without it
+    register_cases(("test.dt.liar",), factory("test.dt.liar", liar), {"test.dt.liar": case_tags(Sphere(), ok)})
+    with pytest.raises(ValueError, match="not registered here"):
+        register_cases(("test.dt.x",), factory("test.dt.x", ok), {"test.dt.y": ok})
+
+    assert [c.id for c in catalog("test.dt.*", {"nosuchtag"})] == [] and built == []
+    assert [c.id for c in catalog("test.dt.[bo]*")] == ["test.dt.ok"] and built == ["test.dt.ok"]
+    assert [c.id for c in catalog("test.dt.big", {"large"})] == ["test.dt.big"]
+    with pytest.raises(AssertionError, match=r"'test.dt.liar' with tags .* declared as"):
+        catalog("test.dt.liar", {"camera"})
+    get_case.cache_clear()
+
+
+def test_every_declared_tag_set_is_the_built_cases():
+    """The built-in cases that declare their tags (meshes, grids, the neural SDF, the cameras at
+    scale) are built with exactly those tags: building each one checks it."""
+    from reference import cases as cases_mod
+    from reference.cases import get_case
+
+    declared = dict(cases_mod._DECLARED_TAGS)
+    assert len(declared) >= 20
+    for cid, tags in declared.items():
+        if "full" not in tags:  # the 1024² cameras are checked by the slow tier's builds
+            assert set(get_case(cid).tags) == tags, cid

@@ -24,7 +24,7 @@ def make_ray_eval(phi):
     from .fields import helpers
 
     _max = helpers()["_max"]
-    jit = njit(inline="always", error_model="numpy")
+    jit = njit(error_model="numpy")
 
     @jit
     def ev(p, o0, o1, o2, d0, d1, d2, t):

@@ -204,7 +204,7 @@ def kernels_source(key: str) -> str:
         f"from impls.numba.driver import {consts}",
         "from impls.numba.fields import helpers as _helpers",
         "globals().update({k: v for k, v in _helpers().items() if k not in globals()})",
-        "_scene_jit = njit(inline='always', error_model='numpy')",
+        "_scene_jit = njit(error_model='numpy')",
         "",
         key,
         "phi, bounds = _scene_jit(phi), _scene_jit(bounds)",
@@ -262,7 +262,12 @@ def _make_kernels(phi, bounds):
     h = helpers()
     _max, _min = h["_max"], h["_min"]
     ev, ev_d = make_ray_eval(phi)
-    jit = njit(inline="always", error_model="numpy")
+    # the helpers, φ and the steps are plain njit functions, left to LLVM to inline into the
+    # kernels (it does: the kernels' run time is within 2 % of numba's own IR inlining, median of
+    # the quick suite's numba rows).  numba's inline="always" inlines at its IR level before type
+    # inference, once per call site, and compiled the CSG marchers cold in 26 s instead of 4 s
+    # (docs/performance.md, "numba compile time").
+    jit = njit(error_model="numpy")
     inf, nan = math.inf, math.nan
 
     @jit

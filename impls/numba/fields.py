@@ -310,7 +310,7 @@ _HELPERS = None
 def _make_helpers():
     from numba import njit
 
-    jit = njit(inline="always", error_model="numpy")
+    jit = njit(error_model="numpy")
 
     @jit
     def _max(a, b):
@@ -391,10 +391,10 @@ def _make_helpers():
 
 
 def scene_functions(compiled: CompiledScene):
-    """``(phi, bounds)``: the generated source compiled by numba (inlined into the root finders)."""
+    """``(phi, bounds)``: the generated source compiled by numba (LLVM inlines them into the root finders)."""
     from numba import njit
 
     ns = dict(helpers())
     exec(compile(compiled.key, "<isobench numba scene>", "exec"), ns)  # noqa: S102 - our own generated source
-    jit = njit(inline="always", error_model="numpy")
+    jit = njit(error_model="numpy")
     return jit(ns["phi"]), jit(ns["bounds"])

@@ -26,7 +26,7 @@ generated from these templates by renaming the ray's variables (the suffix ``_K`
   (φ's square roots, the secant's divisions), so a loop over one ray waits on their latency; rays
   are independent, so stepping several in turn gives the processor independent work to overlap.
   Each lane's state is its own local variables, which numba keeps in registers (a state passed
-  through function calls or arrays is slower), and each lane inlines φ once.
+  through function calls or arrays is slower), and each lane calls φ once (LLVM inlines it).
 
 The variants differ only in what is not arithmetic: the evaluation (``@EVAL``: φ, or φ and dφ/dt
 where ``deriv``), the flags ``deriv``, ``use_ladder`` and ``cost`` (constants in the lanes kernel,
