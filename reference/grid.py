@@ -600,3 +600,6 @@ def grid_cases():
 
 for _cid, (_tags, _) in _GRID_SPECS.items():
     register_cases((_cid,), lambda cid=_cid: [grid_case(cid)], {_cid: GRID_SCENE_TAGS + _tags})
+del _cid, _tags
+
+__all__ = ["GRID_CASE_IDS", "GridSDF", "grid_case", "grid_cases", "grid_from_field", "stored_torus_grid"]

@@ -150,5 +150,5 @@ def neural_cases() -> list[Case]:
 
 
 for _cid, (_, _tags) in _NEURAL_SPECS.items():
-    register_cases((_cid,), lambda cid=_cid: [neural_case(cid)],
-                   {_cid: ("understated",) * (_cid == "neural.blob.understated") + NEURAL_SCENE_TAGS + _tags})
+    register_cases((_cid,), lambda cid=_cid: [neural_case(cid)], {_cid: NEURAL_SCENE_TAGS + _tags})
+del _cid, _tags
