@@ -346,19 +346,20 @@ def catalog(pattern: str | None = None, tags: set[str] | None = None) -> list[Ca
     Cases tagged :data:`LARGE` (cameras of 256² and 1024² rays: their references and a method's
     run take seconds to minutes each, on the host-call scenes far more) are listed only when asked
     for: ``tags`` containing ``large`` (or ``full``), or a pattern naming the id without a wildcard.
-    :func:`case_ids` and :func:`get_case` know every case."""
+    :func:`case_ids` and :func:`get_case` know every case.  A case whose tags were declared at
+    registration (:func:`register_cases`) is built only if it is selected."""
     out = []
     want_large = bool(tags) and bool({LARGE, FULL_ONLY} & set(tags))
     pats = pattern.split(",") if pattern else []
     for cid in case_ids():
         if pattern and not any(fnmatch.fnmatchcase(cid, p) for p in pats):
             continue
-        case_tags = _DECLARED_TAGS.get(cid)
-        if case_tags is None:
-            case_tags = get_case(cid).tags
-        if tags and not set(tags) <= set(case_tags):
+        known = _DECLARED_TAGS.get(cid)  # declared: no need to build the case to read them
+        if known is None:
+            known = get_case(cid).tags
+        if tags and not set(tags) <= set(known):
             continue
-        if LARGE in case_tags and not (want_large or cid in pats):
+        if LARGE in known and not (want_large or cid in pats):
             continue
         out.append(get_case(cid))
     return out
