@@ -14,7 +14,7 @@ grid cases included (:mod:`reference.mesh_cases`, :mod:`reference.grid`), and th
 (:mod:`reference.neural_cases`).
 """
 
-from .cases import Case, NoExactAnswer, case_ids, catalog, get_case, make_case, register, register_cases
+from .cases import Case, NoExactAnswer, case_ids, catalog, get_case, make_case, register, register_cases, register_each
 from .csg import Complement, Difference, Intersection, Union
 from .grid import GridSDF
 from .implicits import AlgebraicSphere, Ellipsoid, Scaled
@@ -33,4 +33,5 @@ __all__ = [
     "Ellipsoid", "Field", "GridSDF", "MeshSDF", "Intersection", "MLPField", "NeuralSDF", "NoExactAnswer", "Plane", "Scaled", "SceneInfo", "Sphere", "Torus",
     "Transform", "Union", "case_ids", "catalog", "crossings_numeric", "first_hit_numeric", "get_case", "make_case", "register",
     "register_cases",
+    "register_each",
 ]

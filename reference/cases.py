@@ -301,6 +301,15 @@ def register_cases(ids, build: Callable[[], list[Case]], tags: dict[str, tuple[s
     _DECLARED_TAGS.update(declared)
 
 
+def register_each(declared: dict[str, tuple[str, ...]], build: Callable[[str], Case]) -> None:
+    """Register each id of ``declared`` (id → the case's tags) on its own: ``build(id)`` makes that
+    case when it is first asked for, so a run builds only the cases it selects (the case modules
+    that share a costly resource, a stored mesh or network, cache it themselves).  The tags are
+    declared as in :func:`register_cases`."""
+    for cid, tags in declared.items():
+        register_cases((cid,), lambda cid=cid: [build(cid)], {cid: tags})
+
+
 def register(case_id: str):
     """Decorator form of :func:`register_cases` for one zero-argument case factory."""
 

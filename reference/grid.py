@@ -78,7 +78,7 @@ import math
 import numpy as np
 
 from . import raybounds
-from .cases import register_cases
+from .cases import register_each
 from .scene import Field, SceneInfo, _points, const, safe_norm
 
 EPS = np.finfo(np.float64).eps
@@ -533,26 +533,41 @@ def _tangent_offsets(grid: GridSDF, centre_dirs, lateral, s_hit: float, s_miss: 
 GRID_SCENE_TAGS = ("grid", "lipschitz")
 
 
-def _grid_specs() -> dict[str, tuple[tuple[str, ...], str]]:
-    """id → (the case's own tags, description) of every grid case, in catalog order."""
+def _grazing_rays():
+    """Rays in the equatorial plane at (1 ± 1e-6) × the lateral offset where they stop hitting the
+    64³ grid torus (:func:`_tangent_offsets`)."""
+    rng = np.random.default_rng(90)
+    m = 256
+    phase = rng.uniform(0, 2 * np.pi, m)
+    dirs = np.stack([-np.sin(phase), np.cos(phase), np.zeros(m)], axis=1)
+    lateral = np.stack([np.cos(phase), np.sin(phase), np.zeros(m)], axis=1)
+    s_star = _tangent_offsets(stored_torus_grid(64), dirs, lateral, 1.0, 1.5)
+    sgn = np.where(np.arange(m) % 2 == 0, 1.0, -1.0)
+    s = s_star * (1 + sgn * 1e-6)
+    return s[:, None] * lateral - 3.0 * dirs, dirs
+
+
+def _grid_specs() -> dict:
+    """id → (grid vertices per axis, rays() → (origins, directions), the case's own tags,
+    description) of every grid case, in catalog order."""
+    from . import rays as _rays
     from .cases import LARGE_SIZES, large_tags
 
-    specs = {f"grid.torus{k}.camera.32x32": (("camera",), f"torus R = 1, r = 0.25 sampled on a {k}³ grid over "
-                                             "[−1.4, 1.4]³ (trilinear), seen obliquely by a 32×32 camera")
+    def cam(n):
+        return lambda: _rays.pinhole(eye=(0.0, -2.5, 1.8), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=n, height=n)
+
+    specs = {f"grid.torus{k}.camera.32x32": (k, cam(32), ("camera",),
+                                             f"torus R = 1, r = 0.25 sampled on a {k}³ grid over [−1.4, 1.4]³ "
+                                             "(trilinear), seen obliquely by a 32×32 camera")
              for k in (32, 64)}
     specs["grid.torus64.grazing.1e-6"] = (
-        ("grazing",), "rays in the equatorial plane at (1 ± 1e-6) × the offset where they stop hitting the 64³ grid "
+        64, _grazing_rays, ("grazing",),
+        "rays in the equatorial plane at (1 ± 1e-6) × the offset where they stop hitting the 64³ grid "
         "torus (found by bisection on its exact hits): grazing the grid's own outer equator")
     for n in LARGE_SIZES:
-        specs[f"grid.torus64.camera.{n}x{n}"] = (large_tags(n), f"the 64³ grid torus seen obliquely by a {n}×{n} "
-                                                 "camera (the 32×32 view at scale)")
+        specs[f"grid.torus64.camera.{n}x{n}"] = (64, cam(n), large_tags(n), f"the 64³ grid torus seen obliquely by "
+                                                 f"a {n}×{n} camera (the 32×32 view at scale)")
     return specs
-
-
-_GRID_SPECS = _grid_specs()
-#: the ids :func:`grid_case` builds, registered in the catalog at import (tags declared: a suite
-#: chosen by tag builds none it does not run)
-GRID_CASE_IDS = tuple(_GRID_SPECS)
 
 
 @functools.cache
@@ -564,21 +579,10 @@ def stored_torus_grid(k: int) -> GridSDF:
     return grid_from_field(Torus(1.0, 0.25), (-1.4,) * 3, (1.4,) * 3, k)
 
 
-def _grid_rays(case_id: str):
-    from . import rays as _rays
-
-    if case_id == "grid.torus64.grazing.1e-6":
-        rng = np.random.default_rng(90)
-        m = 256
-        phase = rng.uniform(0, 2 * np.pi, m)
-        dirs = np.stack([-np.sin(phase), np.cos(phase), np.zeros(m)], axis=1)
-        lateral = np.stack([np.cos(phase), np.sin(phase), np.zeros(m)], axis=1)
-        s_star = _tangent_offsets(stored_torus_grid(64), dirs, lateral, 1.0, 1.5)
-        sgn = np.where(np.arange(m) % 2 == 0, 1.0, -1.0)
-        s = s_star * (1 + sgn * 1e-6)
-        return s[:, None] * lateral - 3.0 * dirs, dirs
-    n = int(case_id.rsplit(".", 1)[1].split("x")[0])
-    return _rays.pinhole(eye=(0.0, -2.5, 1.8), look_at=(0.0, 0.0, 0.0), fov_deg=40.0, width=n, height=n)
+_GRID_SPECS = _grid_specs()
+#: the ids :func:`grid_case` builds, registered in the catalog at import (tags declared: a suite
+#: chosen by tag builds none it does not run)
+GRID_CASE_IDS = tuple(_GRID_SPECS)
 
 
 def grid_case(case_id: str):
@@ -586,9 +590,8 @@ def grid_case(case_id: str):
     or 64³) seen by a camera, or rays grazing the 64³ grid's own surface in the equatorial plane."""
     from .cases import make_case
 
-    tags, description = _GRID_SPECS[case_id]
-    grid = stored_torus_grid(32 if case_id.startswith("grid.torus32.") else 64)
-    return make_case(case_id, grid, *_grid_rays(case_id), tags=tags, description=description)
+    k, rays, tags, description = _GRID_SPECS[case_id]
+    return make_case(case_id, stored_torus_grid(k), *rays(), tags=tags, description=description)
 
 
 def grid_cases():
@@ -598,8 +601,6 @@ def grid_cases():
     return [get_case(cid) for cid in GRID_CASE_IDS]
 
 
-for _cid, (_tags, _) in _GRID_SPECS.items():
-    register_cases((_cid,), lambda cid=_cid: [grid_case(cid)], {_cid: GRID_SCENE_TAGS + _tags})
-del _cid, _tags
+register_each({cid: GRID_SCENE_TAGS + spec[2] for cid, spec in _GRID_SPECS.items()}, grid_case)
 
 __all__ = ["GRID_CASE_IDS", "GridSDF", "grid_case", "grid_cases", "grid_from_field", "stored_torus_grid"]

@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from . import rays as _rays
-from .cases import LARGE_SIZES, Case, _cam, large_tags, make_case, register_cases
+from .cases import LARGE_SIZES, Case, _cam, large_tags, make_case, register_each
 from .mesh import MeshSDF
 
 
@@ -148,8 +148,7 @@ def _register() -> None:
     import importlib.util
 
     if all(importlib.util.find_spec(m) is not None for m in ("igl", "trimesh")):
-        for cid, (_, _, tags, _) in _MESH_SPECS.items():
-            register_cases((cid,), lambda cid=cid: [mesh_case(cid)], {cid: MESH_SCENE_TAGS + tags})
+        register_each({cid: MESH_SCENE_TAGS + spec[2] for cid, spec in _MESH_SPECS.items()}, mesh_case)
 
 
 _register()

@@ -3,8 +3,9 @@
 Ids ``neural.blob.<family>``; the scene is :class:`reference.neural.NeuralSDF` (the softplus MLP
 fitted to the ``blob`` mesh) with its spectral Lipschitz bound, or, where the id ends in
 ``.Llocal``, the tighter bound certified on its box (:mod:`reference.neural`).  Exact first hits come from the certified
-numerical reference (:func:`reference.numerical.first_hit_numeric`).  The network is loaded once
-for all of its cases (:func:`reference.cases.register_cases`).
+numerical reference (:func:`reference.numerical.first_hit_numeric`).  Each case is built only
+when a run selects it (:func:`reference.cases.register_each`); the network is loaded once per
+process (:func:`stored_network`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import functools
 import numpy as np
 
 from . import rays as _rays
-from .cases import LARGE_SIZES, Case, DeclaredLipschitz, _cam, large_tags, make_case, register_cases
+from .cases import LARGE_SIZES, Case, DeclaredLipschitz, _cam, large_tags, make_case, register_each
 from .neural import NeuralSDF
 
 #: the factor of the measured slope that the ``understated`` case declares as its Lipschitz bound
@@ -149,6 +150,4 @@ def neural_cases() -> list[Case]:
     return [get_case(cid) for cid in NEURAL_CASE_IDS]
 
 
-for _cid, (_, _tags) in _NEURAL_SPECS.items():
-    register_cases((_cid,), lambda cid=_cid: [neural_case(cid)], {_cid: NEURAL_SCENE_TAGS + _tags})
-del _cid, _tags
+register_each({cid: NEURAL_SCENE_TAGS + tags for cid, (_, tags) in _NEURAL_SPECS.items()}, neural_case)
