@@ -92,8 +92,9 @@ def _is_trace_error(exc: BaseException) -> bool:
 
 def _identity(obj):
     """A kernel-table key for an object compiled into a kernel: the object itself where it is
-    hashable (frozen dataclass scenes and colour fields compare by value, so equal scenes built
-    twice share a kernel), else its id (the table keeps the object alive with the kernel)."""
+    hashable, else its id (the table keeps the object alive with the kernel).  Colour fields
+    compare by value; scene nodes compare by identity (``eq=False``), so a scene built twice is
+    traced twice, and its second compilation comes from jax's persistent cache (the same program)."""
     try:
         hash(obj)
     except TypeError:
@@ -109,6 +110,20 @@ def _devices() -> tuple[str, ...]:
     except RuntimeError:
         pass
     return tuple(devs)
+
+
+def _padded_call(compiled, traced, n: int, rows: int, given: tuple, padded: tuple):
+    """``run(o, d, th)`` for a kernel compiled for ``rows`` ≥ n rays: the prepared call's own
+    arrays (``given``, the same objects) run as their copies ``padded`` (made once, outside the
+    timed call); other arrays are padded per call.  Outputs with ``rows`` leading rows are cut
+    back to the first n."""
+    def run(o, d, th):
+        args = tuple(p if a is g else (None if a is None else driver.pad_rows(a, rows))
+                     for a, g, p in zip((o, d, th), given, padded))
+        out = compiled(*args, traced)
+        return {k: v[:n] if getattr(v, "ndim", 0) and v.shape[0] == rows else v for k, v in out.items()}
+
+    return run
 
 
 class JaxBackend(ArrayBackend):
@@ -130,8 +145,9 @@ class JaxBackend(ArrayBackend):
             jit=True,
             notes=("methods run under jax.jit; fixed-shape masked loops: lax.map over chunks of rays, each "
                    "compacted level by level into smaller batches, one lax.while_loop per stage and level; the "
-                   "chunks' stragglers after a capped number of steps of the last level finished together "
-                   "(sizes: backend.settings, recorded with every result)",),
+                   "chunks' stragglers after a capped number of steps of the last level finished together; n rays "
+                   "run as the next power of two ≥ max(n, settings.pad) rows, copies of the first ray, whose "
+                   "outputs are dropped (sizes: backend.settings, recorded with every result)",),
             expected_failures=(
                 ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
                  "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
@@ -172,7 +188,13 @@ class JaxBackend(ArrayBackend):
         the driver settings and the rays' shapes and dtype.  ``last_compile_cache``: "reused" when
         the kernel came from this table or from the persistent cache, "compiled" otherwise (None
         without a cache directory and nothing to reuse).  A traced knob is a weakly typed scalar,
-        so it enters float32 arithmetic as the Python constant it replaces does."""
+        so it enters float32 arithmetic as the Python constant it replaces does.  The rays run as
+        ``driver.padded_size(n, settings.pad)`` rows (copies of the first ray appended, padded once
+        here, their outputs dropped), so that ray sets of nearby sizes share a kernel."""
+        n = o.shape[0]
+        rows = driver.padded_size(n, self.settings.pad)
+        given = (o, d, th)
+        o, d, th = (None if a is None else driver.pad_rows(a, rows) for a in given)
         spent = 0.0
         for names in _traced_sets(method, knobs):
             static = {k: v for k, v in knobs.items() if k not in names}
@@ -207,7 +229,9 @@ class JaxBackend(ArrayBackend):
                     self._kernels.popitem(last=False)
             compiled = kept[0]
             traced = {k: knobs[k] for k in names}
-            return (lambda o, d, th: compiled(o, d, th, traced)), spent + time.perf_counter() - t0
+            if rows == n:
+                return (lambda o, d, th: compiled(o, d, th, traced)), spent + time.perf_counter() - t0
+            return _padded_call(compiled, traced, n, rows, given, (o, d, th)), spent + time.perf_counter() - t0
         raise AssertionError("unreachable: the last set of traced knobs is empty")  # pragma: no cover
 
     def versions(self):

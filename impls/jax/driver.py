@@ -40,6 +40,13 @@ TAIL_CAP = 128
 # 2^20 rays, 0.23 s without, 0.27–0.28 s with 16-sample ladders after 64 steps (0.25 s with
 # the stage present and never entered).
 LADDER = 0
+# Ray counts padded to a power of two of at least PAD rows (MaskedSettings.pad): every distinct
+# array shape is a compilation of its own (~1-2 s per level on 2 cores), and the tests alone run
+# each method on ray sets of 1 to 4,000 rays.  Measured on the jax tests' calls (478, tests -k jax):
+# exact shapes 389 distinct kernel keys, powers of two ≥ 64 344; on tests/test_conformance.py and
+# tests/test_rootfind_certified.py (-k jax, empty cache) XLA compiled 265 → 235 s.  A power of
+# two pads at most 2× (a padding row costs what ray 0 costs).
+PAD = 64
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,24 +58,43 @@ class MaskedSettings:
     chunk:    rays per ``lax.map`` chunk;  ratio: batch shrink factor from level to level;
     last:     the smallest level's batch;  tail_cap: steps of a chunk's last level before its
               stragglers join those of every chunk;
-    ladder:   samples per ladder step where the knob ``ladder`` is -1 (the driver's choice)."""
+    ladder:   samples per ladder step where the knob ``ladder`` is -1 (the driver's choice);
+    pad:      a batch of n rays runs as :func:`padded_size` ``(n, pad)`` rows, the next power of two
+              of at least ``pad`` (copies of the first ray, their results dropped), so that ray sets
+              of nearby sizes share one compiled kernel; 0: run n rows as they are.  The catalog's
+              ray counts are powers of two ≥ 64, so its rows run no padding row."""
 
     chunk: int = CHUNK
     ratio: int = RATIO
     last: int = LAST
     tail_cap: int = TAIL_CAP
     ladder: int = LADDER
+    pad: int = PAD
 
     kind = "masked"
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
             _whole_at_least(type(self).__name__, f.name, getattr(self, f.name),
-                            0 if f.name == "ladder" else (2 if f.name == "ratio" else 1))
+                            0 if f.name in ("ladder", "pad") else (2 if f.name == "ratio" else 1))
 
     def record(self) -> dict:
         """The settings as recorded with a result: ``{"driver": kind, field: value, …}``."""
         return {"driver": self.kind, **dataclasses.asdict(self)}
+
+
+def padded_size(n: int, pad: int = PAD) -> int:
+    """Rows a batch of ``n`` rays runs as: the next power of two ≥ max(n, pad); ``n`` itself
+    when ``pad`` is 0 or there is no ray."""
+    if pad == 0 or n == 0:
+        return n
+    return 1 << (max(n, pad) - 1).bit_length()
+
+
+def pad_rows(a, size: int):
+    """``a`` (rows first) with copies of its first row appended up to ``size`` rows."""
+    extra = size - a.shape[0]
+    return a if extra == 0 else jnp.concatenate([a, jnp.broadcast_to(a[:1], (extra,) + a.shape[1:])])
 
 
 def level_sizes(m: int, ratio: int = RATIO, last: int = LAST) -> list[int]:
