@@ -62,7 +62,9 @@ def test_a_different_structure_compiles_its_own_kernel():
     o2, d2 = _rays(100)  # another padded size (128 rows)
     _result(b, half, o2, d2, "float64")
     assert len(b._kernels) == 3
-    _result(b, half, o, d, "float64", max_steps=64)  # an int knob
+    _result(b, half, o, d, "float64", max_steps=64)  # a budget: a runtime argument (TRACEABLE_KNOBS)
+    assert len(b._kernels) == 3
+    _result(b, half, o, d, "float64", bounds=0)  # a switch between code paths, compiled in
     assert len(b._kernels) == 4
 
 
@@ -111,3 +113,38 @@ def test_padding_rows_change_no_result(method):
     for k, v in got[0].outputs.items():
         assert np.shape(got[64].outputs[k]) == np.shape(v), k
         np.testing.assert_allclose(got[64].outputs[k], v, rtol=rtol, atol=rtol, err_msg=k)
+
+
+@pytest.mark.slow  # traces every jax method once per number knob
+def test_the_declared_traceable_knobs_are_exactly_those_that_trace(monkeypatch):
+    """``TRACEABLE_KNOBS`` (the knobs a method's kernel takes at run time, so that a sweep over
+    them reuses one kernel) lists every method of the jax backend, with exactly the number knobs
+    that trace on their own; and they trace together."""
+    import jax
+
+    from impls.jax import backend as jb
+    from impls.methods import METHODS
+    from reference.cases import get_case
+
+    b = resolve_or_skip("jax:cpu")
+    monkeypatch.setattr(jb.JaxBackend, "compile", lambda self, fn, *args: (jax.eval_shape(fn, *args), 0.0))
+    case = get_case("sphere.camera.64x64")
+    o, d = case.origins[:8], case.directions[:8]
+
+    def traces(method, names, kw):
+        monkeypatch.setattr(jb, "_traced_sets", lambda m, knobs: [names])
+        b._kernels.clear()
+        jb._TRACED_FAILED.clear()
+        try:
+            b.prepare(method, case.scene, o, d, t_min=case.t_min, t_max=case.t_max, **kw)
+        except AssertionError:  # the only set offered failed to trace
+            return False
+        return True
+
+    for method in b.methods():
+        spec = METHODS[method]
+        kw = {"t_hit": np.full(len(o), 2.0)} if spec.needs_t_hit else {}
+        nums = [k.name for k in spec.knobs if isinstance(k.default, (int, float)) and not isinstance(k.default, bool)]
+        alone = tuple(sorted(k for k in nums if traces(method, (k,), kw)))
+        assert alone == tuple(sorted(jb.TRACEABLE_KNOBS[method])), method
+        assert traces(method, alone, kw), method

@@ -61,17 +61,36 @@ KEEP_KERNELS = 64
 _TRACED_FAILED: set = set()
 
 
+#: the number knobs of the catalog's methods that their code takes as traced values (a loop
+#: bound, a tolerance, a step), found by tracing each on its own, and checked jointly and one by
+#: one by tests/test_jax_kernel_reuse.py; the others size arrays (samples per ray), switch code
+#: paths (bounds, ladder) or enter Python arithmetic (the volume renderers' sharpness).  Tried
+#: second, after every number knob: a sweep over a listed knob runs one kernel, and a method with
+#: none listed skips the sets that would fail.  A method not listed (a user's) gets the generic sets.
+TRACEABLE_KNOBS = {
+    **{m: ("ladder_after", "max_steps", "reach", "xtol") for m in ("hybrid_secant", "render_surface")},
+    **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") for m in ("bisect", "newton", "secant")},
+    "sphere_trace": ("max_steps", "omega", "tol"),
+    "curvature": (), "normal": (),
+    **{m: ("min_cos",) for m in ("dt_finite_diff", "dt_idr", "dt_implicit")},
+    "dt_unrolled": ("min_cos", "steps"),
+    **{f"volume_{m}_{s}": ("delta",) if s == "band" else ()
+       for m in ("nerf", "neus", "unisurf", "volsdf") for s in ("band", "importance", "stratified", "uniform")},
+}
+
+
 def _traced_sets(method: str, knobs: dict) -> list[tuple[str, ...]]:
     """The knob sets to try as traced arguments of ``method``'s kernel, most first: every number
-    knob; the float knobs (tolerances, step sizes; the int knobs are often sizes or switches:
-    samples per ray, ladder width, bounds on/off); the first knob (the method's main accuracy
-    dial, which a suite sweeps) if it is a float; none.  (A set that failed to trace for a
-    configuration is skipped for it and for every configuration that differs only in traced
-    knobs: :data:`_TRACED_FAILED`.)"""
+    knob; the method's :data:`TRACEABLE_KNOBS`; the float knobs (tolerances, step sizes; the int
+    knobs are often sizes or switches: samples per ray, ladder width, bounds on/off); the first
+    knob (the method's main accuracy dial, which a suite sweeps) if it is a float; none.  (A set
+    that failed to trace for a configuration is skipped for it and for every configuration that
+    differs only in traced knobs: :data:`_TRACED_FAILED`.)"""
     nums = tuple(sorted(k for k, v in knobs.items() if isinstance(v, (int, float)) and not isinstance(v, bool)))
+    declared = tuple(k for k in nums if k in TRACEABLE_KNOBS.get(method, ()))
     floats = tuple(sorted(k for k, v in knobs.items() if isinstance(v, float)))
     first = next(iter(knobs), None)
-    sets = [nums, floats, (first,) if isinstance(knobs.get(first), float) else (), ()]
+    sets = [nums, declared, floats, (first,) if isinstance(knobs.get(first), float) else (), ()]
     out = []
     for names in sets:
         if names not in out:
