@@ -188,10 +188,8 @@ def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = 
     if n == 0:
         return rootfind.outputs(jnp, alg.init(jnp, o, d, ev))
     chunk = min(chunk, n)
-    pad = (-n) % chunk
-    if pad:  # pad with copies of the first ray; their results are dropped
-        o = jnp.concatenate([o, jnp.broadcast_to(o[:1], (pad, 3))])
-        d = jnp.concatenate([d, jnp.broadcast_to(d[:1], (pad, 3))])
+    rows = -(-n // chunk) * chunk  # whole chunks: copies of the first ray, their results dropped
+    o, d = pad_rows(o, rows), pad_rows(d, rows)
     sizes = level_sizes(chunk, ratio, last)
     n_chunks = o.shape[0] // chunk
     cap = tail_cap if n_chunks > 1 else None
