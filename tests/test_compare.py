@@ -63,7 +63,10 @@ def test_planted_accuracy_regression_is_caught():
     assert list(res.loc[res["accuracy"] == "worse", "case_id"]) == ["c2"]
     new2 = rows(seed=1)
     new2.loc[4, "n_false_miss"] = 1
-    assert list(compare(base, new2).query("accuracy == 'worse'")["case_id"]) == ["c4"]
+    res2 = compare(base, new2)
+    assert list(res2.query("accuracy == 'worse'")["case_id"]) == ["c4"]
+    # the count the verdict rests on is named (the maximum error alone need not show it)
+    assert res2.loc[res2["case_id"] == "c4", "note"].item() == "false misses 0 → 1"
     new3 = rows(seed=1)
     new3.loc[0, ["outcome", "reason", "error_max"]] = ["failed", "RuntimeError: boom", np.nan]
     res3 = compare(base, new3)

@@ -66,3 +66,112 @@ def test_a_second_run_reuses_every_kernel_and_no_cache_compiles_afresh(tmp_path)
         assert a.equals(b), (name, a.compare(b))
     assert (cache / "jax").is_dir() or "jax:cpu" not in backends
     assert any((cache / "numba").glob("*.py")) or "numba" not in backends
+
+
+#: a numba function kept on disk through impls.cache.lock_numba_cache, in its own module file
+_CACHED_MODULE = """
+from numba import njit
+from impls.cache import lock_numba_cache
+
+def total(x):
+    s = x[0] * 0
+    for i in range(x.shape[0]):
+        s += x[i] * 2
+    return s
+
+total_jit = njit(total)
+lock_numba_cache(total_jit)
+"""
+
+#: a process that calls the cached function on one dtype; PAUSE_READ / PAUSE_WRITE put pauses into
+#: numba's index update (IndexDataCacheFile.save, numba 0.68) between its index read and its index
+#: write, and between its index write and its data write: the windows where another process's
+#: update interleaves on a loaded machine
+_CALLER = """
+import itertools, json, os, sys, time
+import numpy as np
+from numba.core import caching
+
+def paused_save(self, key, data):
+    overloads = self._load_index()
+    time.sleep(float(os.environ.get("PAUSE_READ", "0")))
+    try:
+        data_name = overloads[key]
+    except KeyError:
+        existing = set(overloads.values())
+        data_name = next(self._data_name(i) for i in itertools.count(1) if self._data_name(i) not in existing)
+        overloads[key] = data_name
+        self._save_index(overloads)
+    time.sleep(float(os.environ.get("PAUSE_WRITE", "0")))
+    self._save_data(data_name, data)
+
+caching.IndexDataCacheFile.save = paused_save
+sys.path.insert(0, sys.argv[1])
+import cached_total
+x = np.arange(10, dtype=sys.argv[2])
+print(json.dumps({"total": float(cached_total.total_jit(x)),
+                  "hits": sum(cached_total.total_jit.stats.cache_hits.values())}))
+"""
+
+
+def _call_cached(where, dtype, **pauses):
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **{k: str(v) for k, v in pauses.items()}}
+    return subprocess.Popen([sys.executable, str(where / "caller.py"), str(where), dtype], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _result(proc) -> dict:
+    out, err = proc.communicate()
+    assert proc.returncode == 0, err[-3000:]
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _cached_module(tmp_path):
+    pytest.importorskip("numba")
+    (tmp_path / "cached_total.py").write_text(_CACHED_MODULE)
+    (tmp_path / "caller.py").write_text(_CALLER)
+    return tmp_path
+
+
+def test_numba_kernels_compiled_at_once_by_two_processes_load_their_own_code(tmp_path):
+    """Two processes compile two signatures of one cached function at once, with numba's index
+    update paused where a loaded machine interleaves it (without the lock, the int64 entry ends up
+    holding the float64 machine code, and a later int64 call returns 4.45e-322, not 90); then each
+    signature, loaded from disk in a fresh process, gives its own answer."""
+    where = _cached_module(tmp_path)
+    first = _call_cached(where, "float64", PAUSE_READ=2, PAUSE_WRITE=2)
+    second = _call_cached(where, "int64", PAUSE_READ=2.5)
+    assert _result(first)["total"] == 90 and _result(second)["total"] == 90
+    for dtype in ("float64", "int64"):
+        again = _result(_call_cached(where, dtype))
+        assert again == {"total": 90, "hits": 1}, (dtype, again)
+
+
+def test_a_numba_cache_entry_of_another_signature_is_compiled_afresh(tmp_path):
+    """An index that maps one signature to another's code (what an unlocked concurrent update
+    leaves, or a cache written by an older isobench) is not run: the entry's own signature is
+    checked on load, and the function compiles afresh."""
+    import pickle
+
+    where = _cached_module(tmp_path)
+    for dtype in ("float64", "int64"):
+        assert _result(_call_cached(where, dtype))["total"] == 90
+    (index,) = (where / "__pycache__").glob("cached_total.total-*.nbi")
+    with open(index, "rb") as f:
+        version = pickle.load(f)
+        stamp, overloads = pickle.loads(f.read())
+    by_dtype = {str(k[0][0].dtype): name for k, name in overloads.items()}
+    assert set(by_dtype) == {"float64", "int64"}, overloads
+    swapped = {k: by_dtype["float64"] if str(k[0][0].dtype) == "int64" else name for k, name in overloads.items()}
+    with open(index, "wb") as f:
+        pickle.dump(version, f, protocol=-1)
+        f.write(pickle.dumps((stamp, swapped), protocol=-1))
+    assert _result(_call_cached(where, "int64")) == {"total": 90, "hits": 0}
+    assert _result(_call_cached(where, "float64")) == {"total": 90, "hits": 1}
+    assert _result(_call_cached(where, "int64")) == {"total": 90, "hits": 1}

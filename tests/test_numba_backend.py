@@ -45,10 +45,11 @@ def test_pyproject_declares_the_entry_point_and_the_extra():
 
     meta = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
     assert meta["entry-points"][registry.ENTRY_POINT_GROUP]["numba"] == "impls.numba.backend:NumbaBackend"
-    assert meta["optional-dependencies"]["numba"] == ["numba>=0.60"]
+    # filelock: the on-disk kernel cache's lock (impls.cache.lock_numba_cache)
+    assert meta["optional-dependencies"]["numba"] == ["numba>=0.60", "filelock>=3.12"]
     assert any("numba" in extra for extra in meta["optional-dependencies"]["all"])  # CI installs [all]
     pins = (Path(__file__).parents[1] / "constraints.txt").read_text().split()
-    assert "numba==0.68.1" in pins and "llvmlite==0.50.0" in pins
+    assert "numba==0.68.1" in pins and "llvmlite==0.50.0" in pins and "filelock==4.3.1" in pins
 
 
 @needs_numba

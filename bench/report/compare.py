@@ -128,6 +128,21 @@ def accuracy_verdict(b: pd.Series, n: pd.Series, rtol: float = 0.1, atol_eps: fl
     return "same"
 
 
+def what_changed(b: pd.Series, n: pd.Series) -> str:
+    """The counts that differ between two rows that both ran (false hits, false misses, the
+    statuses), ``"false misses 2 → 3; status {…} → {…}"``: what a ``worse`` verdict rests on
+    where the maximum error alone does not show it (``inf`` on both sides)."""
+    parts = []
+    for col, what in (("n_false_hit", "false hits"), ("n_false_miss", "false misses")):
+        vb, vn = _num(b.get(col), np.nan), _num(n.get(col), np.nan)
+        if not (vb == vn or (np.isnan(vb) and np.isnan(vn))):
+            parts.append(f"{what} {vb:g} → {vn:g}")
+    sb, sn = (str(x.get("status_counts") or "") for x in (b, n))
+    if sb != sn:
+        parts.append(f"status {sb} → {sn}")
+    return "; ".join(parts)
+
+
 def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha: float = 0.01, rtol: float = 0.1,
             atol_eps: float = ATOL_EPS, same_machine: bool = True) -> pd.DataFrame:
     """One row per key of either side with ``accuracy`` and ``timing`` verdicts (module docstring)."""
@@ -174,7 +189,12 @@ def compare(base: pd.DataFrame, new: pd.DataFrame, *, factor: float = 1.1, alpha
                                           factor, alpha)
         else:
             tv, ratio, p = "not comparable", float("nan"), float("nan")
-        note = "" if acc != "worse" or n["outcome"] == "ok" else f"now {n['outcome']}: {n.get('reason', '')}"
+        if acc != "worse":
+            note = ""
+        elif n["outcome"] == "ok":
+            note = what_changed(b, n)
+        else:
+            note = f"now {n['outcome']}: {n.get('reason', '')}"
         if not machines and not note:
             note = "timing measured on different machines"
         rows.append({**key, "accuracy": acc, "error_base": b.get("error_max"), "error_new": n.get("error_max"),

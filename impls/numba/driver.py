@@ -181,7 +181,8 @@ def kernels_source(key: str) -> str:
     and ``bounds`` (``key``), the body of :func:`_make_kernels` (its imports made absolute) and
     the kernels generated from the step templates (:func:`impls.numba.template.source`); the same
     algorithm text, compiled the same way, with the top-level kernels' caching turned on
-    (``Dispatcher.enable_caching``)."""
+    (:func:`impls.cache.lock_numba_cache`: numba's on-disk cache, safe for processes that compile
+    at once)."""
     import inspect
     import textwrap
 
@@ -202,6 +203,7 @@ def kernels_source(key: str) -> str:
         "from numba import njit, prange",
         "from impls.numba.driver import BAD, CONV, IN, LIPV, MAXI, MISS, NONF",
         f"from impls.numba.driver import {consts}",
+        "from impls.cache import lock_numba_cache",
         "from impls.numba.fields import helpers as _helpers",
         "globals().update({k: v for k, v in _helpers().items() if k not in globals()})",
         "_scene_jit = njit(error_model='numpy')",
@@ -215,7 +217,7 @@ def kernels_source(key: str) -> str:
         template.source(),
         "",
         "for _k in (run_march, run_lanes, phi_rays):",
-        "    _k.enable_caching()",
+        "    lock_numba_cache(_k)",
         "",
     ])
 
