@@ -46,3 +46,20 @@ def test_take_along_axis_and_delegation():
     _same(xp_fast.take_along_axis(x, idx, axis=1), xp_compat.take_along_axis(x, idx, axis=1))
     assert xp_fast.float64 is torch.float64 and xp_fast.concat is xp_compat.concat
     assert TorchBackend.xp is xp_fast
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_maximum_minimum_match_array_api_compat_to_the_sign_of_zero(dtype):
+    """With a Python scalar on either side (the cached 0-d tensor), two tensors, or what falls back
+    (another dtype, NaN, an integer tensor): array_api_compat's dtype, values, NaN and signed zeros."""
+    a = torch.tensor(SPECIAL, dtype=dtype)
+    i64 = torch.tensor([0, -3, 7])
+    other = a.double() if dtype == torch.float32 else a.float()
+    scalars = [0.0, -0.0, 1.0, -2.5, 3, 0, float("inf"), float("-inf"), float("nan"), True]
+    cases = [(a, s) for s in scalars] + [(s, a) for s in scalars] + [(a, a.flip(0)), (a, other), (i64, 2), (2.5, i64)]
+    for x1, x2 in cases:
+        for fast, compat in ((xp_fast.maximum, xp_compat.maximum), (xp_fast.minimum, xp_compat.minimum)):
+            got, want = fast(x1, x2), compat(x1, x2)
+            _same(got, want)
+            if got.is_floating_point():
+                assert torch.equal(torch.signbit(got), torch.signbit(want)), (x1, x2, got, want)

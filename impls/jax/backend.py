@@ -81,16 +81,20 @@ TRACEABLE_KNOBS = {
 
 def _traced_sets(method: str, knobs: dict) -> list[tuple[str, ...]]:
     """The knob sets to try as traced arguments of ``method``'s kernel, most first: every number
-    knob; the method's :data:`TRACEABLE_KNOBS`; the float knobs (tolerances, step sizes; the int
-    knobs are often sizes or switches: samples per ray, ladder width, bounds on/off); the first
-    knob (the method's main accuracy dial, which a suite sweeps) if it is a float; none.  (A set
-    that failed to trace for a configuration is skipped for it and for every configuration that
+    knob (only for a method without a :data:`TRACEABLE_KNOBS` entry: for a declared one the
+    other number knobs are known not to trace, and the failed attempt is a partial trace of the
+    whole kernel, up to a second of every cold or warm compile); the method's
+    :data:`TRACEABLE_KNOBS`; the float knobs (tolerances, step sizes; the int knobs are often
+    sizes or switches: samples per ray, ladder width, bounds on/off); the first knob (the
+    method's main accuracy dial, which a suite sweeps) if it is a float; none.  (A set that
+    failed to trace for a configuration is skipped for it and for every configuration that
     differs only in traced knobs: :data:`_TRACED_FAILED`.)"""
     nums = tuple(sorted(k for k, v in knobs.items() if isinstance(v, (int, float)) and not isinstance(v, bool)))
     declared = tuple(k for k in nums if k in TRACEABLE_KNOBS.get(method, ()))
     floats = tuple(sorted(k for k, v in knobs.items() if isinstance(v, float)))
     first = next(iter(knobs), None)
-    sets = [nums, declared, floats, (first,) if isinstance(knobs.get(first), float) else (), ()]
+    sets = [nums if method not in TRACEABLE_KNOBS else declared, declared, floats,
+            (first,) if isinstance(knobs.get(first), float) else (), ()]
     out = []
     for names in sets:
         if names not in out:

@@ -12,7 +12,9 @@ def ray_eval(scene, theta=None):
     """``ev(o, d, t, deriv) -> (φ, dφ/dt, cost)`` for numpy.
 
     dφ/dt = ⟨∇φ, d⟩ is the central difference (φ(t + h) − φ(t − h))/2h with h = ε^{1/3}·max(1, |t|)
-    (error O(h²|φ‴|) + O(ε|φ|/h), about 1e-10 relative in float64); it costs 3 evaluations per ray.
+    (error h²|φ‴|/6 + O(ε|φ|/h): about 1e-10 relative where |t| ≈ 1 and φ‴ is of order 1, up to
+    ~1e-8 relative on a torus of minor radius 0.25 seen from t ≈ 4, where h ≈ 2.4e-5 and
+    |φ‴| ~ 1/r²); it costs 3 evaluations per ray.
     """
 
     def ev(o, d, t, deriv):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import array_api_compat.torch as xp_torch
 import numpy as np
 import torch
@@ -30,7 +32,9 @@ class _FastTorchNamespace:
     root finders pass matching dtypes); ``clip`` with scalar bounds as ``clamp``; ``isfinite``
     as x − x == 0 (finite x gives +0, ±inf and NaN give NaN; one fused elementwise kernel
     instead of torch's two-pass one); ``take_along_axis`` without array_api_compat's
-    negative-index fix-up (the root finders' indices are never negative)."""
+    negative-index fix-up (the root finders' indices are never negative); ``maximum`` and
+    ``minimum`` with a Python scalar as a cached 0-d tensor (:func:`_scalar_as_tensor`), the
+    operands array_api_compat would pass, so the results are the same to the sign of zero."""
 
     def __getattr__(self, name):
         return getattr(xp_torch, name)
@@ -58,6 +62,44 @@ class _FastTorchNamespace:
     def take_along_axis(x, indices, /, *, axis=-1):
         return torch.take_along_dim(x, indices, dim=axis)
 
+    @staticmethod
+    def maximum(x1, x2, /):
+        a, b = _scalar_as_tensor(x1, x2), _scalar_as_tensor(x2, x1)
+        if a is not None and b is not None:
+            return torch.maximum(a, b)
+        return xp_torch.maximum(x1, x2)
+
+    @staticmethod
+    def minimum(x1, x2, /):
+        a, b = _scalar_as_tensor(x1, x2), _scalar_as_tensor(x2, x1)
+        if a is not None and b is not None:
+            return torch.minimum(a, b)
+        return xp_torch.minimum(x1, x2)
+
+
+#: 0-d tensors of the Python scalars the root finders pass to maximum/minimum, by (value, sign,
+#: dtype, device): array_api_compat makes a fresh one on every call (torch.asarray and its dtype
+#: rules cost several times the operation itself on a few hundred rays); never written to
+_SCALARS: dict = {}
+
+
+def _scalar_as_tensor(v, other):
+    """``v`` where it is a tensor of ``other``'s dtype (or ``other`` is not a tensor: checked on the
+    other side); a Python float or int as the 0-d tensor of floating ``other``'s dtype and device,
+    as array_api_compat converts it (the tensor's dtype, by the array API's rules); None where
+    array_api_compat's general path is needed (other dtypes, NaN, a full cache)."""
+    if isinstance(v, torch.Tensor):
+        return v if not isinstance(other, torch.Tensor) or v.dtype == other.dtype else None
+    if not (isinstance(other, torch.Tensor) and _weak_scalar_of(v, other) and other.is_floating_point()) or v != v:
+        return None
+    key = (float(v), math.copysign(1.0, v), other.dtype, other.device)
+    t = _SCALARS.get(key)
+    if t is None:
+        if len(_SCALARS) >= 1024:
+            return None
+        t = _SCALARS[key] = torch.asarray(v, dtype=other.dtype, device=other.device)
+    return t
+
 
 def _weak_scalar_of(v, t) -> bool:
     """A Python scalar that keeps tensor ``t``'s dtype in a binary operation: a float with a
@@ -82,7 +124,7 @@ class TorchBackend(ArrayBackend):
             autodiff="both",
             jit=False,
             notes=("eager; torch.compile is not used for timing",
-                   "active-set loops (one host sync per iteration); dφ/dt by torch.func.jvp, ∇φ and the Hessian by "
+                   "active-set loops (one host sync per iteration); dφ/dt and ∇φ by one backward pass, the Hessian by "
                    "double backward, θ-Jacobians by torch.func.jacfwd",
                    "namespace: array_api_compat.torch with torch's own where, clip, isfinite and take_along_axis "
                    "(impls.torch.backend.xp_fast; per-call overhead)",

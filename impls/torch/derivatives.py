@@ -1,6 +1,6 @@
-"""Derivatives on torch by autodiff: dφ/dt along rays by forward mode (``torch.func.jvp``, one
-evaluation), ∇φ and the Hessian at points by reverse mode (double backward), Jacobians in θ by
-``torch.func.jacfwd``.  No autograd graph is recorded outside ``grad_hess``."""
+"""Derivatives on torch by autodiff: dφ/dt along rays and ∇φ at points by reverse mode (one
+backward pass over the sum: points are independent), the Hessian by double backward, Jacobians
+in θ by ``torch.func.jacfwd``.  No autograd graph is kept unless the caller records one."""
 
 from __future__ import annotations
 
@@ -8,12 +8,29 @@ import torch
 
 
 def ray_eval(xp, scene, theta=None):
-    """``ev(o, d, t, deriv) -> (φ, dφ/dt, cost)``; dφ/dt = ⟨∇φ, d⟩ by ``torch.func.jvp`` in t."""
+    """``ev(o, d, t, deriv) -> (φ, dφ/dt, cost)``; dφ/dt = ⟨∇φ, d⟩ = ∂/∂t_i Σ_k φ(o_k + t_k d_k), one
+    backward pass (rays are independent, as in :func:`grad_hess`).
+
+    Reverse mode, not forward: torch's forward-mode formulas for ``maximum``, ``minimum`` and
+    other ops the scenes use run through Python decompositions (``torch._refs``) on every call,
+    which made ``torch.func.jvp`` (and ``torch.autograd.forward_ad``) several times slower than
+    this backward pass on every scene kind (measured in the CHANGELOG; the same φ, dφ/dt to
+    rounding).  Where the caller records a graph (grad enabled) φ and dφ/dt keep theirs, so they
+    stay differentiable in θ."""
 
     def ev(o, d, t, deriv):
         if not deriv:
             return scene.value(o + t[:, None] * d, xp, theta), None, 1
-        f, df = torch.func.jvp(lambda tt: scene.value(o + tt[:, None] * d, xp, theta), (t,), (torch.ones_like(t),))
+        outer = torch.is_grad_enabled()
+        with torch.enable_grad():
+            tt = t if t.requires_grad else t.detach().requires_grad_(True)
+            f = scene.value(o + tt[:, None] * d, xp, theta)
+            if f.requires_grad:
+                (df,) = torch.autograd.grad(f.sum(), tt, create_graph=outer, materialize_grads=True)
+            else:  # φ constant along the rays (outside the graph): dφ/dt is exactly zero
+                df = torch.zeros_like(t)
+        if not outer:
+            f, df = f.detach(), df.detach()
         return f, df, 1
 
     return ev
