@@ -22,6 +22,20 @@ def _devices() -> tuple[str, ...]:
     return tuple(devs)
 
 
+def _scalars_cached(kernel, general):
+    """``kernel(x1, x2)`` with a Python scalar operand as :func:`_scalar_as_tensor` gives it;
+    ``general(x1, x2)`` (array_api_compat's) where that does not apply."""
+
+    def binary(x1, x2, /):
+        a, b = _scalar_as_tensor(x1, x2), _scalar_as_tensor(x2, x1)
+        if a is not None and b is not None:
+            return kernel(a, b)
+        return general(x1, x2)
+
+    binary.__name__ = general.__name__
+    return binary
+
+
 class _FastTorchNamespace:
     """array_api_compat's torch namespace with torch's own kernels for the few functions that the
     root finders call on every step: in the straggler steps, on few rays, per-call overhead is
@@ -62,19 +76,8 @@ class _FastTorchNamespace:
     def take_along_axis(x, indices, /, *, axis=-1):
         return torch.take_along_dim(x, indices, dim=axis)
 
-    @staticmethod
-    def maximum(x1, x2, /):
-        a, b = _scalar_as_tensor(x1, x2), _scalar_as_tensor(x2, x1)
-        if a is not None and b is not None:
-            return torch.maximum(a, b)
-        return xp_torch.maximum(x1, x2)
-
-    @staticmethod
-    def minimum(x1, x2, /):
-        a, b = _scalar_as_tensor(x1, x2), _scalar_as_tensor(x2, x1)
-        if a is not None and b is not None:
-            return torch.minimum(a, b)
-        return xp_torch.minimum(x1, x2)
+    maximum = staticmethod(_scalars_cached(torch.maximum, xp_torch.maximum))
+    minimum = staticmethod(_scalars_cached(torch.minimum, xp_torch.minimum))
 
 
 #: 0-d tensors of the Python scalars the root finders pass to maximum/minimum, by (value, sign,
