@@ -26,11 +26,9 @@ def make_ray_eval(phi):
     _max = helpers()["_max"]
     jit = njit(error_model="numpy")
 
-    @jit
     def ev(p, o0, o1, o2, d0, d1, d2, t):
         return phi(p, o0 + t * d0, o1 + t * d1, o2 + t * d2)
 
-    @jit
     def ev_d(p, o0, o1, o2, d0, d1, d2, t):
         x0, x1, x2 = o0 + t * d0, o1 + t * d1, o2 + t * d2
         h = CBRT_EPS64 * _max(1.0, abs(t))
@@ -42,7 +40,16 @@ def make_ray_eval(phi):
         fm = phi(p, x0 - h * d0, x1 - h * d1, x2 - h * d2)
         return f, (fp - fm) / (2 * h)
 
-    return ev, ev_d
+    # Named after φ's module, not this one.  numba names compiled code by module, qualified name
+    # and a counter that is per process, and links the code it loads from its disk cache by those
+    # names: two scenes' ev_d, compiled by two processes with the same counter value, had one
+    # name, and a process that loaded both kernels ran the first scene's φ in the second's
+    # (tests/test_compile_cache.py).  φ's module is the scene structure's own
+    # (:func:`impls.numba.driver.kernels_source`), so the names now differ wherever φ does.
+    module = getattr(getattr(phi, "py_func", phi), "__module__", None) or __name__
+    for f in (ev, ev_d):
+        f.__module__ = module
+    return jit(ev), jit(ev_d)
 
 
 

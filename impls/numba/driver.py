@@ -227,12 +227,18 @@ def _cached_module(key: str, where):
     named by the hash of its text and numba's version) and imported from there."""
     import hashlib
     import importlib.util
+    import inspect
     import os
 
     import numba
 
     src = kernels_source(key)
-    name = "isobench_numba_" + hashlib.sha256((numba.__version__ + "\n" + src).encode()).hexdigest()[:24]
+    # the name covers what the module's text does not: the code it imports and compiles into the
+    # kernels (φ's derivative, the helpers), so that a change there is not answered from the cache
+    from . import derivatives, fields
+
+    deps = "".join(inspect.getsource(m) for m in (derivatives, fields))
+    name = "isobench_numba_" + hashlib.sha256((numba.__version__ + "\n" + deps + src).encode()).hexdigest()[:24]
     path = where / f"{name}.py"
     if not path.exists() or path.read_text() != src:
         tmp = where / f".{name}.{os.getpid()}.tmp"
