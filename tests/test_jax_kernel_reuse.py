@@ -148,3 +148,17 @@ def test_the_declared_traceable_knobs_are_exactly_those_that_trace(monkeypatch):
         alone = tuple(sorted(k for k in nums if traces(method, (k,), kw)))
         assert alone == tuple(sorted(jb.TRACEABLE_KNOBS[method])), method
         assert traces(method, alone, kw), method
+
+
+def test_knob_sets_start_from_the_declaration_and_fall_back_to_floats():
+    """A catalog method tries its declared traceable knobs first; a method without a declaration
+    (a user's) tries every number knob, then the floats, then its first knob if a float, then none."""
+    pytest.importorskip("jax")
+    from impls.jax import backend as jb
+
+    knobs = {"xtol": 1e-8, "bounds": 1, "max_steps": 64, "reach": 0.1, "ladder": -1, "ladder_after": 64}
+    sets = jb._traced_sets("hybrid_secant", knobs)
+    assert sets[0] == ("ladder_after", "max_steps", "reach", "xtol") and sets[-1] == ()
+    assert all(k not in s for s in sets for k in ("bounds", "ladder"))
+    user = {"tol": 1e-6, "n": 8, "gain": 0.5}
+    assert jb._traced_sets("users_method", user) == [("gain", "n", "tol"), ("gain", "tol"), ("tol",), ()]

@@ -65,8 +65,8 @@ _TRACED_FAILED: set = set()
 #: bound, a tolerance, a step), found by tracing each on its own, and checked jointly and one by
 #: one by tests/test_jax_kernel_reuse.py; the others size arrays (samples per ray), switch code
 #: paths (bounds, ladder) or enter Python arithmetic (the volume renderers' sharpness).  Tried
-#: second, after every number knob: a sweep over a listed knob runs one kernel, and a method with
-#: none listed skips the sets that would fail.  A method not listed (a user's) gets the generic sets.
+#: first for a listed method (:func:`_traced_sets`): a sweep over a listed knob runs one kernel, and
+#: no kernel is first traced with knobs that fail.  A method not listed (a user's) gets the generic sets.
 TRACEABLE_KNOBS = {
     **{m: ("ladder_after", "max_steps", "reach", "xtol") for m in ("hybrid_secant", "render_surface")},
     **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") for m in ("bisect", "newton", "secant")},
@@ -80,21 +80,20 @@ TRACEABLE_KNOBS = {
 
 
 def _traced_sets(method: str, knobs: dict) -> list[tuple[str, ...]]:
-    """The knob sets to try as traced arguments of ``method``'s kernel, most first: every number
-    knob (only for a method without a :data:`TRACEABLE_KNOBS` entry: for a declared one the
-    other number knobs are known not to trace, and the failed attempt is a partial trace of the
-    whole kernel, up to a second of every cold or warm compile); the method's
-    :data:`TRACEABLE_KNOBS`; the float knobs (tolerances, step sizes; the int knobs are often
-    sizes or switches: samples per ray, ladder width, bounds on/off); the first knob (the
-    method's main accuracy dial, which a suite sweeps) if it is a float; none.  (A set that
-    failed to trace for a configuration is skipped for it and for every configuration that
-    differs only in traced knobs: :data:`_TRACED_FAILED`.)"""
+    """The knob sets to try as traced arguments of ``method``'s kernel, most first: the method's
+    :data:`TRACEABLE_KNOBS` where it has an entry (its other number knobs are known not to trace,
+    and trying them would trace the whole kernel once in vain on every compile), else every
+    number knob; then the float knobs (tolerances, step sizes; the int knobs are often sizes or
+    switches: samples per ray, ladder width, bounds on/off); the first knob (the method's main
+    accuracy dial, which a suite sweeps) if it is a float; none.  (A set that failed to trace
+    for a configuration is skipped for it and for every configuration that differs only in
+    traced knobs: :data:`_TRACED_FAILED`.)"""
     nums = tuple(sorted(k for k, v in knobs.items() if isinstance(v, (int, float)) and not isinstance(v, bool)))
     declared = tuple(k for k in nums if k in TRACEABLE_KNOBS.get(method, ()))
     floats = tuple(sorted(k for k, v in knobs.items() if isinstance(v, float)))
     first = next(iter(knobs), None)
-    sets = [nums if method not in TRACEABLE_KNOBS else declared, declared, floats,
-            (first,) if isinstance(knobs.get(first), float) else (), ()]
+    sets = [declared] if method in TRACEABLE_KNOBS else [nums]
+    sets += [floats, (first,) if isinstance(knobs.get(first), float) else (), ()]
     out = []
     for names in sets:
         if names not in out:
