@@ -9,7 +9,7 @@ import pytest
 from impls.methods import METHODS
 
 from impls.core import param_grad
-from tests.test_conformance import SPHERE, AlgebraicSphere, camera
+from tests.conformance.common import SPHERE, AlgebraicSphere, camera
 
 SCENES = [SPHERE, AlgebraicSphere()]
 

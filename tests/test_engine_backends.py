@@ -1,7 +1,7 @@
 """The engine backends (impls/engine.py: ``embree``, ``open3d``) as plug-ins: declared in pyproject.toml
 and installed by CI, registered by entry point, Unavailable with the install command when their
 package is missing, and a run on a mesh case puts their float32 rows into "which to pick" and the
-stability matrix.  Their answers are checked by the conformance suite (tests/test_conformance.py,
+stability matrix.  Their answers are checked by the conformance suite (tests/conformance/,
 ``raycast``)."""
 
 from __future__ import annotations

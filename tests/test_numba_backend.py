@@ -4,7 +4,7 @@ where numpy's φ does not call BLAS, to rounding where it does), statuses on fla
 Lipschitz check, declined scenes (skipped rows in a run) and compile-once caching.
 
 The conformance suite runs it too: ``ISOBENCH_EXTRA_BACKENDS=impls.numba.backend:NumbaBackend
-python -m pytest tests/test_conformance.py``."""
+python -m pytest tests/conformance/``."""
 
 from __future__ import annotations
 

@@ -45,10 +45,10 @@ def test_broken_plugin_is_reported_not_fatal():
 
 @pytest.mark.slow  # a second pytest session
 def test_plugin_passes_the_conformance_suite():
-    """Run tests/test_conformance.py for the plug-in only, in a fresh interpreter."""
+    """Run tests/conformance/ for the plug-in only, in a fresh interpreter."""
     env = dict(os.environ, ISOBENCH_EXTRA_BACKENDS=SPEC)
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_conformance.py",
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/conformance/",
          "-k", "PluginBackend", "-W", "ignore::RuntimeWarning"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=HANG_GUARD_S,
     )

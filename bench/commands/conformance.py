@@ -1,6 +1,6 @@
 """``python -m bench conformance --backend SPEC``: the conformance suite on one backend.
 
-The suite is ``tests/test_conformance.py`` (every method × applicable scene against exact
+The suite is ``tests/conformance/`` (every method × applicable scene against exact
 answers, the evaluation counts, the statuses, float32, agreement with numpy; docs/backends.md).
 It runs here through pytest, in this process, with ``SPEC`` added to the suite's backends the
 way ``ISOBENCH_EXTRA_BACKENDS`` adds it (tests/conftest.py), and only the checks of that backend
@@ -22,8 +22,8 @@ from ..run.environment import ROOT
 from ._common import error
 
 ORDER = 11
-HELP = "run the conformance suite (tests/test_conformance.py) on a backend, e.g. a plug-in"
-SUITE = ROOT / "tests" / "test_conformance.py"
+HELP = "run the conformance suite (tests/conformance/) on a backend, e.g. a plug-in"
+SUITE = ROOT / "tests" / "conformance"
 #: how tests/conftest.py learns of backends beyond the registered ones
 EXTRA_ENV = "ISOBENCH_EXTRA_BACKENDS"
 
@@ -90,7 +90,7 @@ def run(args) -> int:
         import pytest
     except ImportError:
         return error("conformance needs pytest: pip install -c constraints.txt -e '.[test]'")
-    if not SUITE.is_file():
+    if not SUITE.is_dir():
         return error(f"--backend: the conformance suite {SUITE} is not here (an install without tests/); run it from "
                      "a checkout of isobench")
     from impls import registry

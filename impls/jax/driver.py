@@ -43,9 +43,9 @@ LADDER = 0
 # Ray counts padded to a power of two of at least PAD rows (MaskedSettings.pad): every distinct
 # array shape is a compilation of its own (~1-2 s per level on 2 cores), and the tests alone run
 # each method on ray sets of 1 to 4,000 rays.  Measured on the jax tests' calls (478, tests -k jax):
-# exact shapes 389 distinct kernel keys, powers of two ≥ 64 344; on tests/test_conformance.py and
-# tests/test_rootfind_certified.py (-k jax, empty cache) XLA compiled 265 → 235 s.  A power of
-# two pads at most 2× (a padding row costs what ray 0 costs).
+# exact shapes 389 distinct kernel keys, powers of two ≥ 64 344; on the conformance suite (then one
+# file, tests/test_conformance.py) and tests/test_rootfind_certified.py (-k jax, empty cache) XLA
+# compiled 265 → 235 s.  A power of two pads at most 2× (a padding row costs what ray 0 costs).
 PAD = 64
 
 

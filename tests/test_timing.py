@@ -1,0 +1,99 @@
+"""The timing protocol (bench/run/timing.py: :func:`measure`) on a clock the test drives: the
+first call apart, warm-up, calibration of calls per sample, the sample count between its bounds,
+``sync`` after every call, accuracy-only.  No test here reads the machine's clock, so none depends
+on its speed or load."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.run import timing
+from bench.run.timing import TimingPolicy, measure
+
+
+class FakeClock:
+    """``perf_counter`` for bench.run.timing: time moves only when the timed function runs, by its
+    ``cost`` (seconds; the first call may cost more: ``first``)."""
+
+    def __init__(self, cost: float, first: float | None = None):
+        self.now, self.cost, self.first = 0.0, cost, first
+        self.calls = self.syncs = 0
+        self.events: list[str] = []
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    def run(self):
+        self.now += self.first if (self.calls == 0 and self.first is not None) else self.cost
+        self.calls += 1
+        self.events.append("run")
+        return self.calls
+
+    def sync(self, out):
+        self.syncs += 1
+        self.events.append("sync")
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    def make(cost, first=None):
+        c = FakeClock(cost, first)
+        monkeypatch.setattr(timing.time, "perf_counter", c.perf_counter)
+        return c
+
+    return make
+
+
+def test_a_fast_kernel_is_calibrated_to_the_minimum_sample_time(clock):
+    """1e-4 s a call, samples of ≥ 1 ms: 16 calls a sample (8 make 0.8 ms); then samples until
+    both ``min_repeats`` and ``min_time_s`` are met."""
+    c = clock(1e-4)
+    pol = TimingPolicy(min_repeats=3, min_time_s=0.01, min_sample_s=1e-3, warmup=1)
+    t, out = measure(c.run, c.sync, pol)
+    assert t.loops == 16 and t.first_call_s == pytest.approx(1e-4)
+    assert out == 1  # the first call's output is the one whose accuracy is measured
+    assert all(s == pytest.approx(1e-4) for s in t.samples_s)
+    # 0.01 s of samples at 1.6 ms each: 7 samples (6 make 9.6 ms)
+    assert len(t.samples_s) == 7
+    # first + warm-up + calibration (1, 2, 4, 8, 16 calls) + 6 more samples of 16
+    assert c.calls == 1 + 1 + (1 + 2 + 4 + 8 + 16) + 6 * 16
+    assert c.events == ["run", "sync"] * c.calls  # every call synchronised before the clock stops
+
+
+def test_a_long_first_call_without_warm_up_is_the_first_sample(clock):
+    """A backend warm after its first call (warmup=0) whose call takes ≥ min_time/min_repeats: the
+    first call is a sample, and the repeat count, not the time, bounds the samples."""
+    c = clock(0.1)
+    t, _ = measure(c.run, c.sync, TimingPolicy(min_repeats=3, min_time_s=0.05, warmup=0))
+    assert t.loops == 1 and len(t.samples_s) == 3 and c.calls == 3
+    assert t.median_s == pytest.approx(0.1) and t.iqr_s == pytest.approx(0.0)
+
+
+def test_a_slow_first_call_shows_as_spread_not_in_the_median(clock):
+    c = clock(0.1, first=0.5)
+    t, _ = measure(c.run, c.sync, TimingPolicy(min_repeats=3, min_time_s=0.05, warmup=0))
+    assert t.first_call_s == pytest.approx(0.5) and t.samples_s[0] == pytest.approx(0.5)
+    assert t.median_s == pytest.approx(0.1) and t.iqr_s > 0
+
+
+def test_samples_stop_at_max_time_and_max_repeats(clock):
+    c = clock(1.0)
+    t, _ = measure(c.run, c.sync, TimingPolicy(min_repeats=50, min_time_s=0.0, max_time_s=3.5, warmup=0))
+    assert len(t.samples_s) == 4  # 4 s of samples pass max_time_s = 3.5 s
+    c = clock(0.01)
+    t, _ = measure(c.run, c.sync, TimingPolicy(min_repeats=1, min_time_s=100.0, max_repeats=7, warmup=0,
+                                               min_sample_s=0.0))
+    assert len(t.samples_s) == 7
+
+
+def test_accuracy_only_is_one_call(clock):
+    c = clock(0.3)
+    t, out = measure(c.run, c.sync, TimingPolicy(accuracy_only=True))
+    assert c.calls == 1 and c.syncs == 1 and t.samples_s == [pytest.approx(0.3)] and out == 1
+
+
+@pytest.mark.parametrize("field,value", [("min_repeats", 0), ("warmup", -1), ("min_time_s", float("nan")),
+                                         ("max_time_s", -1.0)])
+def test_bad_policies_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        TimingPolicy(**{field: value})
