@@ -202,3 +202,24 @@ def test_compile_table_splits_cold_and_warm_per_backend():
     assert t.loc[("jax:cpu", "reused (warm)"), "compile total [s]"] == 0.75
     assert t.loc[("jax:cpu", "reused (warm)"), "max [s]"] == 0.5
     assert t.loc[("numpy", "not stated"), "configurations"] == 1
+
+
+def test_log_axis_labels_are_plain_unicode_not_mathtext():
+    """matplotlib's log-axis labels, rewritten without mathtext (bench/report/plots.py:
+    PlainLogFormatter), on the ticks matplotlib chose: decades, minor ticks on a short axis, base 2."""
+    assert plots.plain_tick_label(r"$\mathdefault{10^{-8}}$") == "10⁻⁸"
+    assert plots.plain_tick_label(r"$\mathdefault{2\times10^{-3}}$") == "2×10⁻³"
+    assert plots.plain_tick_label(r"$\mathdefault{2^{5}}$") == "2⁵"
+    fractional = r"$\mathdefault{10^{2.50}}$"
+    assert plots.plain_tick_label(fractional) == fractional  # not rewritten where it could not be exact
+    fig, ax = plt.subplots()
+    ax.plot([1.5e-3, 4e-3], [1e-12, 1e-3])  # x: less than a decade, so minor ticks get labels
+    ax.set_xscale("log")
+    plots._finish(fig, ax, "time", "error", "", "t")
+    fig.canvas.draw()
+    x = [t.get_text() for t in ax.get_xticklabels(minor=True) + ax.get_xticklabels() if t.get_text()]
+    y = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+    plt.close(fig)
+    assert any("×10⁻³" in s for s in x), x
+    assert "10⁻⁶" in y, y
+    assert not any("$" in s for s in x + y)

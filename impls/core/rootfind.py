@@ -153,7 +153,7 @@ def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag, gain: float = 1.0):
     still seen on any step longer than that.  A NaN anywhere compares false (left to
     NON_FINITE).  ``gain`` (≥ 1) multiplies the slack for fields whose φ rounds worse than
     that (:func:`impls.core.methods_root.rounding_gain`: a mesh with skinny faces)."""
-    eps = 16.0 * gain * float(np.finfo(np.dtype(str(t0.dtype).rpartition(".")[2])).eps)
+    eps = 16.0 * gain * _eps(t0)
     a0, a1 = xp.abs(f0), xp.abs(f1)
     at = xp.abs(t0) + xp.abs(t1) + mag
     if inv_lip != 1.0:
@@ -167,9 +167,24 @@ def _magnitude(xp, o, scale: float):
     return xp.abs(o[:, 0]) + xp.abs(o[:, 1]) + xp.abs(o[:, 2]) + scale
 
 
+#: (ε, smallest normal) of each floating dtype asked for, by the backend's dtype object: the steps
+#: ask on every iteration, and np.finfo by name costs microseconds a call (a few hundred rays'
+#: torch step is ~100 µs all told)
+_FINFO: dict = {}
+
+
+def _finfo(a) -> tuple[float, float]:
+    """(ε, smallest normal) of array ``a``'s floating dtype (any backend's: numpy's, torch's, …)."""
+    got = _FINFO.get(a.dtype)
+    if got is None:
+        fi = np.finfo(np.dtype(str(a.dtype).rpartition(".")[2]))
+        got = _FINFO[a.dtype] = (float(fi.eps), float(fi.tiny))
+    return got
+
+
 def _eps(a) -> float:
     """Machine epsilon of array ``a``'s floating dtype (any backend's)."""
-    return float(np.finfo(np.dtype(str(a.dtype).rpartition(".")[2])).eps)
+    return _finfo(a)[0]
 
 
 def resolution(xp, t, mag, gain: float = 1.0):
@@ -199,6 +214,13 @@ def certified_radius(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
     return xp.maximum(xp.abs(f) * inv_lip - resolution(xp, t, mag, gain), 0.0)
 
 
+def radius_and_unresolved(xp, f, t, inv_lip: float, mag, gain: float = 1.0):
+    """(:func:`certified_radius`, :func:`unresolved`) of the same points, φ's rounding computed once
+    (the same operations, so the same values as the two calls)."""
+    q, res = xp.abs(f) * inv_lip, resolution(xp, t, mag, gain)
+    return xp.maximum(q - res, 0.0), q <= res
+
+
 def final_t(xp, t, status):
     """Depth as reported: ``inf`` for MISS, NaN for NON_FINITE, BAD_INPUT and
     LIPSCHITZ_VIOLATED (no depth was found), ``t`` otherwise (UNCERTIFIED: the step set it to
@@ -218,7 +240,7 @@ def _outside_start(xp, alg, f, t, mag, inv_lip):
     if alg.bounds is None:
         return f, unres
     clipped = t > alg.t_min
-    tiny = float(np.finfo(np.dtype(str(f.dtype).rpartition(".")[2])).tiny)  # (φ = 0 there: the outside's sign)
+    tiny = _finfo(f)[1]  # (φ = 0 there: the outside's sign)
     return xp.where(clipped & unres, xp.maximum(xp.abs(f), tiny), f), unres & ~clipped
 
 
@@ -343,8 +365,7 @@ class SphereTrace(_Search):
         # is empty space; the ray has left every finite depth (a MISS, not NON_FINITE)
         beyond = (f_new == math.inf) & (hi == math.inf)
         out = out | beyond
-        unres = unresolved(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
-        r_new = certified_radius(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
+        r_new, unres = radius_and_unresolved(xp, f_new, t_eval, self.inv_lip, mag, self.rg)
         # a resolved sign change within the range, against the side the ray is on (a crossing past
         # hi, where the ray bound says there is no surface, is not one)
         cross = fin & ~unres & (t_eval <= hi) & ((f_new > 0) != s["pos"])
@@ -1044,10 +1065,9 @@ class MarchRefine(_Search):
         answer's depth."""
         rule = self.rule
         cm, u, cp = s["cm"], s["u"], s["cp"]
-        rc = certified_radius(xp, f_c, c, rule.inv_lip, mag, self.rg)
         # a sample within φ's rounding of 0 shows no side: no earlier crossing is taken from it, and
         # it extends the frontier only as far as the min_step allowance reaches (its sphere is empty)
-        unres = unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
+        rc, unres = radius_and_unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
         side = (same_a & (f_c != 0)) | (cm & unres)
         earlier = cm & ~side
         # (to the rounding of the positions: a plain step from cp must stand)
