@@ -223,3 +223,55 @@ def test_log_axis_labels_are_plain_unicode_not_mathtext():
     assert any("×10⁻³" in s for s in x), x
     assert "10⁻⁶" in y, y
     assert not any("$" in s for s in x + y)
+
+
+def _fig_jobs(tmp_path, n):
+    series = [{"method": "m", "backend": "numpy", "knob": "n", "fixed": "{}", "x": [1.0, 2.0, 4.0],
+               "error": [1e-2, 1e-3, 1e-4], "rate": 3.3}]
+    return [("conv", f"t{i}", (series, "depth", "scene units", "error_max"), tmp_path / f"plots/c{i}.png")
+            for i in range(n)]
+
+
+def test_figures_are_drawn_even_where_the_worker_pool_cannot_start_or_breaks(tmp_path, monkeypatch):
+    """start_rendering draws in a worker pool where it can (spawned processes: the real one runs
+    here too); a pool that cannot start (OSError) or breaks (a worker dies) costs no figure:
+    collect() draws the rest here."""
+    import concurrent.futures
+
+    monkeypatch.setattr(plots, "POOL_FROM", 1)
+    monkeypatch.setattr("bench.run.environment.usable_cores", lambda: 2)
+
+    def no_pool(*a, **k):
+        raise OSError("no processes here")
+
+    class BrokenPool:
+        def __init__(self, *a, **k):
+            pass
+
+        def submit(self, fn, job):
+            f = concurrent.futures.Future()
+            f.set_exception(concurrent.futures.process.BrokenProcessPool("a worker died"))
+            return f
+
+        def shutdown(self, **k):
+            pass
+
+    for pool in (concurrent.futures.ProcessPoolExecutor, no_pool, BrokenPool):  # the real pool first
+        monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", pool)
+        jobs = _fig_jobs(tmp_path / pool.__name__, 2)
+        pngs = plots.start_rendering(jobs)()
+        assert len(pngs) == 2 and all(p.startswith(b"\x89PNG") for p in pngs)
+        assert all(path.read_bytes() == p for (_, _, _, path), p in zip(jobs, pngs))
+
+
+def test_report_figures_are_filled_in_after_the_tables(tmp_path):
+    """build() makes the document with placeholders while the figures draw, then fills them in:
+    every figure block of the written report holds its PNG."""
+    from bench.report import document as doc_mod
+
+    jobs = _fig_jobs(tmp_path, 3)
+    rels = [str(p.relative_to(tmp_path)) for *_, p in jobs]
+    doc = doc_mod.Document("t", [doc_mod.Figures(tuple(doc_mod.Figure(f"t{i}", None, r) for i, r in enumerate(rels)))])
+    doc_mod.fill_figures(doc, dict(zip(rels, plots.start_rendering(jobs)())))
+    (block,) = doc.blocks
+    assert [f.path for f in block.items] == rels and all(f.png.startswith(b"\x89PNG") for f in block.items)

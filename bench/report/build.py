@@ -28,7 +28,8 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
     df = df.copy()
     for col, default in (("quantity", "depth"), ("family", "")):
         df[col] = df[col].fillna("").astype(str) if col in df else default
-    figs, series_all = plots.figures(df, out_dir)
+    jobs, series_all = plots.figure_jobs(df, out_dir)
+    collect = plots.start_rendering(jobs)  # the figures draw in worker processes while the tables are built
     stab_cells, stab_note = stability_section(df, out_dir)
     claims = read_claims(out_dir)
     if scoreboard is None and len(stab_cells):
@@ -36,8 +37,11 @@ def build(df: pd.DataFrame, env: dict, out_dir: Path, *, scoreboard: list[str] |
 
         scoreboard = stability.scoreboard_lines(stability.scoreboard(stab_cells))
     fs = summary.first_screen(df, env, claims=claims, scoreboard=scoreboard, regressions=regressions)
+    rels = [str(path.relative_to(out_dir)) for _, _, _, path in jobs]
+    figs = [(kind, title, None, rel) for (kind, title, _, _), rel in zip(jobs, rels)]  # PNGs filled in below
     doc = sections.document(df, env, out_dir, figs=figs, series_all=series_all, stab_cells=stab_cells,
                             stab_note=stab_note, claims=claims, fs=fs)
+    document.fill_figures(doc, dict(zip(rels, collect())))
     document.write(doc, out_dir)
     return fs
 

@@ -82,6 +82,14 @@ class Figures:
     items: tuple[Figure, ...]
 
 
+def fill_figures(doc, pngs: dict[str, bytes]) -> None:
+    """Put the PNG bytes of ``pngs`` (by path relative to the report) into the figures of
+    ``doc``'s top-level :class:`Figures` blocks (built before their figures were drawn:
+    :func:`bench.report.build.build`)."""
+    doc.blocks = [Figures(tuple(dataclasses.replace(f, png=pngs.get(f.path, f.png)) for f in b.items))
+                  if isinstance(b, Figures) else b for b in doc.blocks]
+
+
 @dataclasses.dataclass(frozen=True)
 class Preformatted:
     text: str

@@ -5,10 +5,12 @@ files under ``plots/`` (:func:`figures`)."""
 from __future__ import annotations
 
 import concurrent.futures
+import itertools
 import json
 import multiprocessing
 import re
 from pathlib import Path
+from typing import Callable
 
 import matplotlib
 
@@ -279,41 +281,68 @@ def _render(job: tuple) -> bytes:
 POOL_FROM = 12
 
 
-def _render_all(jobs: list[tuple]) -> list[bytes]:
-    """:func:`_render` of every job, in worker processes (one per usable core, ``spawn``: no
-    forked copy of the caller's thread pools) where there are ≥ 2 cores and ≥ :data:`POOL_FROM`
-    jobs; else, or if the pool cannot start or breaks, here.  Why: the figures are independent,
-    and a quick run's ~30 of them took 20 s of its report's 25 s on one core (tight layout and
-    tick-label text extents are most of it)."""
+def start_rendering(jobs: list[tuple]) -> Callable[[], list[bytes]]:
+    """Start :func:`_render` of every job and return ``collect()``, which waits for them and gives
+    their PNGs in job order.  The figures are drawn in worker processes (one per usable core,
+    ``spawn``: no forked copy of the caller's thread pools) where there are ≥ 2 cores and ≥
+    :data:`POOL_FROM` jobs, so that the caller can build the report's tables while they draw;
+    else, or for the jobs a pool that could not start or broke left undone, by ``collect()``
+    here.  Why: the figures are independent, and a quick run's ~30 of them took 20 s of its
+    report's 25 s on one core (tight layout and tick-label text extents are most of it)."""
     from ..run.environment import usable_cores
 
     cores = usable_cores()
+    ex, futures = None, []
     if cores >= 2 and len(jobs) >= POOL_FROM:
         try:
-            ctx = multiprocessing.get_context("spawn")
-            with concurrent.futures.ProcessPoolExecutor(max_workers=min(cores, 4), mp_context=ctx) as ex:
-                return list(ex.map(_render, jobs))
+            ex = concurrent.futures.ProcessPoolExecutor(max_workers=min(cores, 4),
+                                                        mp_context=multiprocessing.get_context("spawn"))
+            futures = [ex.submit(_render, job) for job in jobs]
         except (OSError, concurrent.futures.process.BrokenProcessPool):
-            pass  # drawn here instead: the report is never lost to a pool that could not run
-    return [_render(job) for job in jobs]
+            futures = []  # drawn by collect() instead: the report is never lost to a pool that could not run
+
+    def collect() -> list[bytes]:
+        out = []
+        try:
+            for job, fut in itertools.zip_longest(jobs, futures):
+                png = None
+                if fut is not None:
+                    try:
+                        png = fut.result()
+                    except (OSError, concurrent.futures.process.BrokenProcessPool):
+                        pass
+                out.append(_render(job) if png is None else png)
+        finally:
+            if ex is not None:
+                ex.shutdown(cancel_futures=True)
+        return out
+
+    return collect
 
 
-def figures(df: pd.DataFrame, out_dir: Path) -> tuple[list[tuple[str, str, bytes, str]], list[tuple[str, list[dict]]]]:
-    """The plots of a run's measured rows, one per method family × case × quantity × dtype,
-    written under ``out_dir/plots``: ([(kind "time"/"conv", title, png, path relative to
-    ``out_dir``)], [(title, convergence series)])."""
+def figure_jobs(df: pd.DataFrame, out_dir: Path) -> tuple[list[tuple], list[tuple[str, list[dict]]]]:
+    """The plots of a run's measured rows, one per method family × case × quantity × dtype, as
+    jobs for :func:`start_rendering` (each written to ``out_dir/plots``): ([(kind "time"/"conv",
+    title, data, path)], [(title, convergence series)])."""
     jobs, series_all = [], []
     for (fam, cid, q, dtype), g in _ok(df).groupby(["family", "case_id", "quantity", "dtype"]):
         title = f"{fam or 'method'} · {cid} · {q} · {dtype}"
         timed = g[np.isfinite(g["time_median_s"].to_numpy(float)) & (g["time_median_s"].to_numpy(float) > 0)]
         if len(timed):  # accuracy-only runs have no timing
-            rel = f"plots/time_{_slug(title)}.png"
-            jobs.append(("time", title, timed, rel))
+            jobs.append(("time", title, timed, out_dir / f"plots/time_{_slug(title)}.png"))
         series = convergence_series(g)
         if series:
             qn, unit = _label_unit(g)
-            rel = f"plots/conv_{_slug(title)}.png"
-            jobs.append(("conv", title, (series, qn, unit, convergence_column(g)), rel))
+            jobs.append(("conv", title, (series, qn, unit, convergence_column(g)),
+                         out_dir / f"plots/conv_{_slug(title)}.png"))
             series_all.append((title, series))
-    pngs = _render_all([(kind, title, data, out_dir / rel) for kind, title, data, rel in jobs])
-    return [(kind, title, png, rel) for (kind, title, _, rel), png in zip(jobs, pngs)], series_all
+    return jobs, series_all
+
+
+def figures(df: pd.DataFrame, out_dir: Path) -> tuple[list[tuple[str, str, bytes, str]], list[tuple[str, list[dict]]]]:
+    """The plots of a run's measured rows drawn (:func:`figure_jobs`, :func:`start_rendering`):
+    ([(kind "time"/"conv", title, png, path relative to ``out_dir``)], [(title, convergence series)])."""
+    jobs, series_all = figure_jobs(df, out_dir)
+    pngs = start_rendering(jobs)()
+    return [(kind, title, png, str(path.relative_to(out_dir))) for (kind, title, _, path), png in zip(jobs, pngs)], \
+        series_all
