@@ -322,8 +322,12 @@ class SphereTrace(_Search):
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
         f, _, cost = ev(o, d, t, False)
-        f, unres = _outside_start(xp, self, f, t, _magnitude(xp, o, self.scale), self.inv_lip)
+        mag = _magnitude(xp, o, self.scale)
+        f, unres = _outside_start(xp, self, f, t, mag, self.inv_lip)
+        # (mag and the previous point's certified radius r_prev ride in the state: each step would
+        # otherwise recompute them, ~15 of its ~100 array operations, the same values)
         s = {"t": t, "f": f, "pos": f > 0, "unc": xp.zeros_like(f, dtype=xp.bool), "t_prev": t, "f_prev": f,
+             "r_prev": certified_radius(xp, f, t, self.inv_lip, mag, self.rg), "mag": mag,
              "pm": xp.ones_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
              "evals": xp.astype(status == IN, xp.int32) * cost, "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
@@ -331,10 +335,9 @@ class SphereTrace(_Search):
         return s
 
     def step(self, xp, s, o, d, ev):
-        t, f, om, hi = s["t"], s["f"], s["omega"], s["hi"]
-        mag = _magnitude(xp, o, self.scale)
+        t, f, om, hi, mag = s["t"], s["f"], s["omega"], s["hi"], s["mag"]
         r = certified_radius(xp, f, t, self.inv_lip, mag, self.rg)
-        r_prev = certified_radius(xp, s["f_prev"], s["t_prev"], self.inv_lip, mag, self.rg)
+        r_prev = s["r_prev"]  # certified_radius of (f_prev, t_prev): the last step's base radius rb
         # Keinert's fallback: the last relaxed step's spheres did not overlap, so the tracer steps
         # again from the point before it, with ω = 1
         fail = (om > 1) & (r + r_prev < t - s["t_prev"])
@@ -403,7 +406,7 @@ class SphereTrace(_Search):
             z = tb + (t_eval - tb) * (fb / (fb - f_new))
         z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
         t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(stay, t, xp.where(give_up, t_eval, t_new))))
-        return _typed(xp, dict(s, t=t_out, f=xp.where(stay, f, f_new), t_prev=tb, f_prev=fb, omega=om,
+        return _typed(xp, dict(s, t=t_out, f=xp.where(stay, f, f_new), t_prev=tb, f_prev=fb, r_prev=rb, omega=om,
                                pm=xp.where(retry, 2.0 * s["pm"], s["pm"]), status=status, unc=unc,
                                iterations=iters, evals=s["evals"] + cost), s)
 
