@@ -106,8 +106,9 @@ def shared_run(tmp_path_factory, worker_id: str, name: str, *args) -> tuple[Path
 #: its stability stage, the report, no claims; accuracy only (one call per configuration).  What the
 #: tests check of it is the plan's coverage, the files, the report's sections and the accuracy gate
 #: against reports/baseline, none of which reads a timing sample; the timing protocol has tests of
-#: its own (tests/test_bench_runner.py, tests/test_summary.py).  Measured back to back on 2 cores,
-#: warm cache: 145 s wall, 269 CPU-s timed (--min-time 0.02 --min-repeats 3) → 115 s, 170 CPU-s.
+#: its own (tests/test_timing.py; timed runs in tests/test_bench_runner.py).  Measured back to back
+#: on 2 cores, warm cache: 145 s wall, 269 CPU-s timed (--min-time 0.02 --min-repeats 3) → 115 s,
+#: 170 CPU-s.
 QUICK_ARGS = ("--suite", "quick", "--accuracy-only", "--no-claims")
 
 
