@@ -163,7 +163,8 @@ def _reads(alg, k: int):
     the only ones carried into and through it; None (all) for an algorithm that does not say.
     Arrays moved per leaving ray (with the 7 rows of ray index, origin and direction): marching
     17 → 15, refinement 21 → 16 (a refining ray no longer carries its marching step size, bound,
-    phase, status and φ at the bracket's second end)."""
+    phase, status and φ at the bracket's second end); one more each since the state carries
+    |o|₁ + scale (``mag``), which the steps read instead of recomputing it."""
     reads = getattr(alg, "reads", None)
     return None if reads is None else reads(alg.stages[k])
 

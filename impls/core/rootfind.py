@@ -778,7 +778,7 @@ class MarchRefine(_Search):
         for it (:mod:`impls.core.driver`): the iterate, its counters and, for marching, the ray's
         end, for refinement the bracket, plus what the step rule and the refiner hold.
         ``status`` and ``phase`` are not among them: every step writes them afresh."""
-        keys = frozenset({"t", "f", "iterations", "evals"}) | self.refiner.holds(
+        keys = frozenset({"t", "f", "iterations", "evals", "mag"}) | self.refiner.holds(
             "step_refine" if stage == "step_certify" else stage)
         if stage in ("step_refine", "step_certify"):
             return keys | {"a", "b", "fa"} | (CERTIFY_STATE if self.rule.certifies else frozenset())
@@ -787,7 +787,8 @@ class MarchRefine(_Search):
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
         f, df, cost = ev(o, d, t, self.deriv)
-        s = {"t": t, "f": f, "p": t, "fp": f, "a": t, "fa": f, "b": t, "hi": hi,
+        # (|o|₁ + scale rides in the state, as in SphereTrace: the steps read it on every iteration)
+        s = {"t": t, "f": f, "p": t, "fp": f, "a": t, "fa": f, "b": t, "hi": hi, "mag": _magnitude(xp, o, self.scale),
              "phase": xp.zeros_like(o[:, 0], dtype=xp.int32), "status": status,
              "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32), "evals": xp.astype(status == IN, xp.int32) * cost}
         if self.deriv:
@@ -797,7 +798,7 @@ class MarchRefine(_Search):
             s["wq"] = xp.full_like(t, math.inf)  # bracket width at the last check (set on a crossing)
         unres = None
         if self.rule.certifies:
-            f, unres = _outside_start(xp, self, f, t, _magnitude(xp, o, self.scale), self.rule.inv_lip)
+            f, unres = _outside_start(xp, self, f, t, s["mag"], self.rule.inv_lip)
             s.update(f=f, fp=f, fa=f)
             # the certification of a bracket's crossing as the first (step_refine): set on a crossing
             s.update(u=t, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(f, dtype=xp.bool))
@@ -821,7 +822,7 @@ class MarchRefine(_Search):
         zero = f_n == 0
         fin = xp.isfinite(f_n)
         beyond = (f_n == math.inf) & (hi == math.inf)  # (as in SphereTrace.step: past every finite depth)
-        mag = _magnitude(xp, o, self.scale)
+        mag = s["mag"]
         cross = fin & (zero | ((f_n > 0) != (f > 0)))
         rc = rc_n = unres = None
         if rule.certifies:
@@ -915,7 +916,7 @@ class MarchRefine(_Search):
         Fp = xp.concat([f[:, None], F[:, :-1]], axis=1)
         cross = (F == 0) | ((F > 0) != (Fp > 0))
         finite = xp.isfinite(F)
-        mag = _magnitude(xp, o, self.scale)
+        mag = s["mag"]
         if rule.certifies:
             R = certified_radius(xp, F, T, rule.inv_lip, mag[:, None], self.rg)
             Rp = xp.concat([certified_radius(xp, f, t, rule.inv_lip, mag, self.rg)[:, None], R[:, :-1]], axis=1)
@@ -1024,7 +1025,7 @@ class MarchRefine(_Search):
         """The certification stage (:meth:`_certify`): a row in certification mode (``cm``)
         evaluates a certification sample instead of the refiner's iterate; a row whose sample
         found an earlier crossing refines that bracket here, and is certified in turn."""
-        mag = _magnitude(xp, o, self.scale)
+        mag = s["mag"]
         cm = s["cm"]
         new, c, f_c, same_a, closed = self._refine_step(
             xp, s, o, d, ev, c=lambda prop: xp.where(cm, self._certify_sample(xp, s, s["a"], mag), prop))
