@@ -1,6 +1,6 @@
 """The report's plots: time versus error (one curve per method and backend, the Pareto front
 over all of them) and convergence (error against an integer knob, with its fitted rate), as PNG
-files under ``plots/`` (:func:`figures`)."""
+files under ``plots/`` (:func:`figure_jobs`, drawn by :func:`start_rendering`)."""
 
 from __future__ import annotations
 
@@ -269,14 +269,14 @@ def _slug(s: str) -> str:
 
 
 def _render(job: tuple) -> bytes:
-    """One figure of :func:`figures` drawn and written: ``("time", title, rows, path)`` or
+    """One figure of :func:`figure_jobs` drawn and written: ``("time", title, rows, path)`` or
     ``("conv", title, (series, quantity, unit, column), path)``; returns the PNG's bytes."""
     kind, title, data, path = job
     fig = plot_time_vs_error(data, title) if kind == "time" else plot_convergence(data[0], title, *data[1:])
     return _save(fig, path)
 
 
-#: figures from which :func:`figures` draws in worker processes (below it, a pool's start costs
+#: figures from which :func:`start_rendering` draws in worker processes (below it, a pool's start costs
 #: more than it saves: about 1 s to import matplotlib and pandas in each worker, 0.3–0.7 s a figure)
 POOL_FROM = 12
 
@@ -337,12 +337,3 @@ def figure_jobs(df: pd.DataFrame, out_dir: Path) -> tuple[list[tuple], list[tupl
                          out_dir / f"plots/conv_{_slug(title)}.png"))
             series_all.append((title, series))
     return jobs, series_all
-
-
-def figures(df: pd.DataFrame, out_dir: Path) -> tuple[list[tuple[str, str, bytes, str]], list[tuple[str, list[dict]]]]:
-    """The plots of a run's measured rows drawn (:func:`figure_jobs`, :func:`start_rendering`):
-    ([(kind "time"/"conv", title, png, path relative to ``out_dir``)], [(title, convergence series)])."""
-    jobs, series_all = figure_jobs(df, out_dir)
-    pngs = start_rendering(jobs)()
-    return [(kind, title, png, str(path.relative_to(out_dir))) for (kind, title, _, path), png in zip(jobs, pngs)], \
-        series_all

@@ -177,3 +177,17 @@ def tol_for(backend, autodiff_tol, fd_tol):
     """Autodiff backends are held to rounding level; finite-difference ones to their stated error."""
     return autodiff_tol if backend.capabilities.autodiff else fd_tol
 
+
+
+def plant_bad_rays(o, d):
+    """Copies of 9 rays ``o``, ``d`` with a NaN origin (ray 1), an infinite origin (4), a zero
+    direction (6) and a NaN direction (7): ``(o, d, flagged)``, the rays every method must
+    answer BAD_INPUT."""
+    o, d = o.copy(), d.copy()
+    o[1, 0] = np.nan
+    o[4, 2] = np.inf
+    d[6] = 0.0
+    d[7, 1] = np.nan
+    flagged = np.zeros(len(o), bool)
+    flagged[[1, 4, 6, 7]] = True
+    return o, d, flagged

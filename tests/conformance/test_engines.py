@@ -7,7 +7,7 @@ import pytest
 
 from impls import METHODS, Declined, Status
 from reference.rays import normalize, pinhole
-from tests.conformance.common import SCENES, camera
+from tests.conformance.common import SCENES, camera, plant_bad_rays
 
 # -- engines: raycast on triangle meshes (impls/engine.py) --------------------------------------------
 
@@ -105,14 +105,7 @@ def test_raycast_range_and_inside_origins(any_backend):
 @pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
 def test_raycast_flags_bad_rays(any_backend):
     b, scene = _engine(any_backend), _mesh_scene()
-    o, d = _mesh_camera(3)
-    o, d = o.copy(), d.copy()
-    o[1, 0] = np.nan
-    o[4, 2] = np.inf
-    d[6] = 0.0
-    d[7, 1] = np.nan
-    bad = np.zeros(len(o), bool)
-    bad[[1, 4, 6, 7]] = True
+    o, d, bad = plant_bad_rays(*_mesh_camera(3))
     r = _raycast(b, scene, o, d)
     assert np.all(r.status[bad] == Status.BAD_INPUT) and np.all(np.isnan(r.t[bad]))
     assert np.all(np.isnan(r.outputs["normal"][bad]))

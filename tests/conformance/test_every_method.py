@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from impls import METHODS, Status, registry
-from tests.conformance.common import SPHERE, hits, run, skip_unless_offered
+from tests.conformance.common import SPHERE, hits, plant_bad_rays, run, skip_unless_offered
 
 # -- every method, every backend: agreement with numpy (the catalog drives the list) -----------
 
@@ -83,13 +83,7 @@ def test_flagged_rays_are_nan_and_agree_with_numpy(any_backend, method):
     every backend (the same statuses as numpy on every ray), every float output NaN on them
     (``t`` included), the good rays untouched."""
     o, d, t, hit, x = hits(SPHERE, 3)  # 9 rays: hits and corner misses
-    o, d = o.copy(), d.copy()
-    o[1, 0] = np.nan
-    o[4, 2] = np.inf
-    d[6] = 0.0
-    d[7, 1] = np.nan
-    flagged = np.zeros(len(o), bool)
-    flagged[[1, 4, 6, 7]] = True
+    o, d, flagged = plant_bad_rays(o, d)
     kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
