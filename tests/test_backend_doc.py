@@ -117,3 +117,18 @@ def test_a_plugin_is_named_by_its_id():
 def test_the_conformance_command_is_documented(where):
     text = (ROOT / where).read_text(encoding="utf-8")
     assert "python -m bench conformance --backend" in text and "ISOBENCH_EXTRA_BACKENDS" in text
+
+
+def test_fast_keeps_a_compiling_backends_quick_checks():
+    """``--fast`` leaves out the checks marked slow themselves, not every check of jax or numba.
+
+    tests/conftest.py marks all of a compiling backend's checks slow (for ``pytest -m "not
+    slow"``); read as ``-m "not slow"``, ``--fast`` on ``jax:gpu`` once selected nothing at all."""
+    pytest.importorskip("jax")
+    env = {k: v for k, v in os.environ.items() if k != "ISOBENCH_EXTRA_BACKENDS"}
+    p = subprocess.run([sys.executable, "-m", "bench", "conformance", "--backend", "jax:cpu", "--fast", "--select",
+                        "raycast_is_offered or ray_bounds_clip"], cwd=ROOT, env=env, capture_output=True, text=True,
+                       timeout=HANG_GUARD_S)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    assert "PASSED   test_raycast_is_offered_by_no_array_library_backend[jax:cpu]" in p.stdout
+    assert "ray_bounds_clip" not in p.stdout  # marked slow itself: left out by --fast

@@ -33,15 +33,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the backend: a registered id (numpy, torch:cpu, …) or a plug-in package.module:attribute")
     p.add_argument("--select", metavar="EXPR", help="only the checks whose names match this pytest -k expression "
                    "(e.g. 'root_depth or evals'); default: every check")
-    p.add_argument("--fast", action="store_true", help="leave out the checks marked slow (catalog sweeps, many "
-                   "compiled kernels)")
+    p.add_argument("--fast", action="store_true", help="leave out the checks marked slow themselves (catalog "
+                   "sweeps, many compiled kernels); a compiling backend's other checks still run")
 
 
 class _Outcomes:
     """A pytest plugin: keeps the checks of one backend, records and prints each outcome."""
 
-    def __init__(self, backend_id: str):
+    def __init__(self, backend_id: str, fast: bool = False):
         self.backend_id = backend_id
+        self.fast = fast
         self.counts = {"passed": 0, "failed": 0, "skipped": 0, "xfailed": 0}
         self.not_offered: dict[str, int] = {}  # skip reason → checks: one line each at the end
 
@@ -49,9 +50,21 @@ class _Outcomes:
         params = getattr(getattr(item, "callspec", None), "params", {})
         return params.get("any_backend") == self.backend_id or params.get("backend") == self.backend_id
 
+    @staticmethod
+    def _slow_itself(item) -> bool:
+        """Marked slow by the check itself, not only by its backend parameter.
+
+        tests/conftest.py marks every check of a compiling backend (jax, numba) slow, so that
+        ``pytest -m "not slow"`` runs the eager backends only; ``--fast`` on such a backend must
+        still keep its quick checks (``-m "not slow"`` here would keep none of them)."""
+        slow = sum(1 for _ in item.iter_markers("slow"))
+        from_param = sum(1 for m in getattr(getattr(item, "callspec", None), "marks", ()) if m.name == "slow")
+        return slow > from_param
+
     def pytest_collection_modifyitems(self, session, config, items):
-        keep = [it for it in items if self._ours(it)]
-        config.hook.pytest_deselected(items=[it for it in items if not self._ours(it)])
+        keep = [it for it in items if self._ours(it) and not (self.fast and self._slow_itself(it))]
+        kept = set(map(id, keep))
+        config.hook.pytest_deselected(items=[it for it in items if id(it) not in kept])
         items[:] = keep
 
     def pytest_collectreport(self, report):
@@ -102,14 +115,13 @@ def run(args) -> int:
                                                     args.backend]))
     if str(ROOT) not in sys.path:  # the suite imports tests.conftest from the repository root
         sys.path.insert(0, str(ROOT))
-    plugin = _Outcomes(args.backend)
+    plugin = _Outcomes(args.backend, fast=args.fast)
     print(f"conformance of {backend.id} ({args.backend}): {SUITE.relative_to(ROOT)}", flush=True)
     # this plugin prints the outcomes: pytest's own terminal output, its random order, its cache
     # and parallel workers are off (the checks of one backend run in this process, in file order)
     argv = [str(SUITE), "-p", "no:terminal", "-p", "no:randomly", "-p", "no:cacheprovider", "-p", "no:xdist",
             "--rootdir", str(ROOT), "-o", "addopts="]
     argv += ["-k", args.select] if args.select else []
-    argv += ["-m", "not slow"] if args.fast else []
     code = pytest.main(argv, plugins=[plugin])
     c = plugin.counts
     print(f"{backend.id}: {c['passed']} passed, {c['failed']} failed, {c['skipped']} skipped, "
