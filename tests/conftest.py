@@ -25,7 +25,7 @@ from bench.run.environment import configure_caches, configure_threads, default_c
 # one thread per library, OpenMP threads waiting passively, as the bench commands run (set before
 # torch, jax or a BLAS starts its thread pool): pytest-xdist already runs one worker per core, and
 # more threads per worker only fight over the cores (10-20× slower torch under load;
-# docs/performance.md, "torch under load")
+# CHANGELOG.md, "torch under load")
 configure_threads(1)
 
 # compiled kernels (jax, numba) kept in the user's isobench cache directory, as the bench commands

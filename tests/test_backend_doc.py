@@ -119,6 +119,7 @@ def test_the_conformance_command_is_documented(where):
     assert "python -m bench conformance --backend" in text and "ISOBENCH_EXTRA_BACKENDS" in text
 
 
+@pytest.mark.slow  # jax's checks are in the slow tier (tests/conftest.py, COMPILING_LIBS)
 def test_fast_keeps_a_compiling_backends_quick_checks():
     """``--fast`` leaves out the checks marked slow themselves, not every check of jax or numba.
 

@@ -139,6 +139,7 @@ def _cached_module(tmp_path):
     return tmp_path
 
 
+@pytest.mark.slow  # fresh processes that compile numba kernels, two of them paused (tests/conftest.py: COMPILING_LIBS)
 def test_numba_kernels_compiled_at_once_by_two_processes_load_their_own_code(tmp_path):
     """Two processes compile two signatures of one cached function at once, with numba's index
     update paused where a loaded machine interleaves it (without the lock, the int64 entry ends up
@@ -153,6 +154,7 @@ def test_numba_kernels_compiled_at_once_by_two_processes_load_their_own_code(tmp
         assert again == {"total": 90, "hits": 1}, (dtype, again)
 
 
+@pytest.mark.slow  # fresh processes that compile numba kernels (tests/conftest.py: COMPILING_LIBS)
 def test_a_numba_cache_entry_of_another_signature_is_compiled_afresh(tmp_path):
     """An index that maps one signature to another's code (what an unlocked concurrent update
     leaves, or a cache written by an older isobench) is not run: the entry's own signature is

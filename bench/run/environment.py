@@ -100,7 +100,7 @@ def configure_threads(n: int) -> dict[str, str]:
         # (and OpenMP BLAS) spin at every parallel region's barrier by default; with more than
         # one thread on a machine whose cores are busy, a spinning thread holds the core its
         # partner needs, so adding threads makes a configuration slower instead of faster
-        # (docs/performance.md, "torch under load").  Passive waiting costs a wake-up per region.
+        # (CHANGELOG.md, "torch under load").  Passive waiting costs a wake-up per region.
         os.environ["OMP_WAIT_POLICY"] = done["OMP_WAIT_POLICY"] = "PASSIVE"
     if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", "") and n == 1:
         # XLA's CPU client spreads element-wise work over its Eigen thread pool; off = one thread

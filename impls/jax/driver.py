@@ -27,7 +27,7 @@ from ..core.driver import _whole_at_least
 # level is a copy of every stage's loop with φ inlined, so XLA's compile time grows with the
 # number of levels, and a harness run compiles once per configuration and times a few calls.
 # Ratio 4 against 2 halves the compile at a run time between −17 % and +9 % (measurements:
-# docs/performance.md, "jax compaction levels").  The last level of a chunk stops after TAIL_CAP steps and hands its
+# CHANGELOG.md, "jax compaction levels").  The last level of a chunk stops after TAIL_CAP steps and hands its
 # stragglers to one pass over all chunks' stragglers, so the long tail's loop runs once, not
 # once per chunk (0.30 s → 0.25 s in one side-by-side run).
 CHUNK = 1 << 16
