@@ -106,9 +106,8 @@ def _init_status(xp, status, f, conv, unres=None):
 
 #: rays at or below which :func:`_verdict` picks the status with a chain of selects (fewer
 #: operations: on few rays the per-call overhead is the cost) rather than a sum of indicators
-#: (cheaper per element on many rays).  Measured per call (_verdict with all six indicators, 2-core
-#: EPYC): numpy 18.0 → 12.4 µs at 1024 rays, 24.9 → 23.7 µs at 4096, 166 → 480 µs at 65536; torch
-#: 63.5 → 32.2 µs at 1024, 68.4 → 37.2 µs at 4096, 173 → 328 µs at 65536.
+#: (cheaper per element on many rays); the crossover lies between 4,096 and 65,536 rays on numpy
+#: and torch (measurements: CHANGELOG.md, the entry on ``VERDICT_SELECT_RAYS``)
 VERDICT_SELECT_RAYS = 4096
 
 
