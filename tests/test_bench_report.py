@@ -10,6 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
+import pytest  # noqa: E402
 
 import bench.claims  # noqa: E402
 from bench import commands  # noqa: E402
@@ -272,6 +273,9 @@ def test_report_figures_are_filled_in_after_the_tables(tmp_path):
     jobs = _fig_jobs(tmp_path, 3)
     rels = [str(p.relative_to(tmp_path)) for *_, p in jobs]
     doc = doc_mod.Document("t", [doc_mod.Figures(tuple(doc_mod.Figure(f"t{i}", None, r) for i, r in enumerate(rels)))])
-    doc_mod.fill_figures(doc, dict(zip(rels, plots.start_rendering(jobs)())))
+    pngs = dict(zip(rels, plots.start_rendering(jobs)()))
+    with pytest.raises(ValueError, match="would be lost"):  # a drawn figure that no block holds
+        doc_mod.fill_figures(doc, {**pngs, "plots/elsewhere.png": b"\x89PNG"})
+    doc_mod.fill_figures(doc, pngs)
     (block,) = doc.blocks
     assert [f.path for f in block.items] == rels and all(f.png.startswith(b"\x89PNG") for f in block.items)

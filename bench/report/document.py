@@ -85,7 +85,12 @@ class Figures:
 def fill_figures(doc, pngs: dict[str, bytes]) -> None:
     """Put the PNG bytes of ``pngs`` (by path relative to the report) into the figures of
     ``doc``'s top-level :class:`Figures` blocks (built before their figures were drawn:
-    :func:`bench.report.build.build`)."""
+    :func:`bench.report.build.build`).  A drawn figure that no block holds is an error, not a
+    figure silently left out of the report."""
+    placed = {f.path for b in doc.blocks if isinstance(b, Figures) for f in b.items}
+    if set(pngs) - placed:
+        raise ValueError(f"fill_figures: no top-level Figures block holds {sorted(set(pngs) - placed)[:3]} "
+                         "(a figure drawn for the report would be lost)")
     doc.blocks = [Figures(tuple(dataclasses.replace(f, png=pngs.get(f.path, f.png)) for f in b.items))
                   if isinstance(b, Figures) else b for b in doc.blocks]
 
