@@ -62,9 +62,11 @@ Backends: φ evaluates on numpy, torch and jax points through a host call into l
 float64; results are cast back to the points' dtype and device).  torch: a
 ``torch.autograd.Function`` whose backward and forward-mode ``jvp`` use ∇φ from the same host
 call (``torch.autograd.grad`` and ``torch.func.jvp`` work); its backward raises a RuntimeError under ``create_graph=True``,
-so a second derivative fails loudly instead of returning a zero Hessian.  jax: ``jax.pure_callback`` under ``jax.custom_jvp`` with tangent
+so a second derivative fails loudly instead of returning a zero Hessian.  jax: a host call under ``jax.custom_jvp`` with tangent
 ⟨∇φ, dx⟩ (``jax.jit``, ``jax.grad``, ``jax.jvp`` work; a second derivative raises, since the
-callback returning ∇φ has no derivative).  Cost: the host call into libigl's closest-point
+call returning ∇φ has no derivative); on the CPU an XLA FFI custom call named by the mesh data's
+SHA-256, so that jax's persistent compilation cache keeps the programs (:mod:`reference.jax_host_call`;
+``jax.pure_callback`` programs are never cached), elsewhere ``jax.pure_callback``.  Cost: the host call into libigl's closest-point
 query dominates on every backend (the torch and jax bridges add nothing measurable over numpy),
 so mesh cases are the costliest per point of the catalog.  A call with a point the pseudonormal
 leaves undecided also pays the winding-number call's tree build (rare).
@@ -543,28 +545,31 @@ def _torch_fn():
 
 
 def _jax_fn(mesh: MeshSDF):
-    """The jax φ of ``mesh``, built once per mesh (so jit caches see one function)."""
+    """The jax φ of ``mesh``, built once per mesh (so jit caches see one function): the host
+    query as a custom call named by the mesh data's SHA-256 (:mod:`reference.jax_host_call`), so
+    that programs tracing it are kept by jax's persistent compilation cache."""
     import jax
     import jax.numpy as jnp
 
+    from .jax_host_call import host_call
+
+    key = f"isobench_mesh_{mesh._static_spec()['data_sha256'][:24]}"
+
     def host_phi(x):
-        return mesh._host(np.asarray(x), False).astype(x.dtype)
+        return (mesh._host(x, False),)
 
     def host_phi_grad(x):
-        phi, g = mesh._host(np.asarray(x), True)
-        return phi.astype(x.dtype), g.astype(x.dtype)
+        return mesh._host(x, True)
 
     @jax.custom_jvp
     def phi(x):
-        return jax.pure_callback(host_phi, jax.ShapeDtypeStruct(x.shape[:-1], x.dtype), x,
-                                 vmap_method="broadcast_all")
+        return host_call(key + "_phi", host_phi, x, (jax.ShapeDtypeStruct(x.shape[:-1], x.dtype),))[0]
 
     @phi.defjvp
     def phi_jvp(primals, tangents):
         (x,), (dx,) = primals, tangents
-        p, g = jax.pure_callback(host_phi_grad, (jax.ShapeDtypeStruct(x.shape[:-1], x.dtype),
-                                                 jax.ShapeDtypeStruct(x.shape, x.dtype)), x,
-                                 vmap_method="broadcast_all")
+        p, g = host_call(key + "_phi_grad", host_phi_grad, x, (jax.ShapeDtypeStruct(x.shape[:-1], x.dtype),
+                                                              jax.ShapeDtypeStruct(x.shape, x.dtype)))
         return p, jnp.sum(g * dx, axis=-1)
 
     return phi

@@ -42,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dtype", action="append", help="float64 and/or float32 (default: the suite's)")
     p.add_argument("--out", help="output directory (default: reports/<run-id>/)")
     p.add_argument("--min-time", type=seconds, default=None, help="seconds of timed calls per configuration "
-                   "(default: the suite's, 0.05 quick, 0.1 full)")
+                   "(default: the suite's, 0.02 quick, 0.05 full)")
     p.add_argument("--max-time", type=seconds, default=None, help="seconds of timed calls per configuration at most "
                    f"(default {DEFAULT_MAX_TIME_S:g}, or --min-time if larger; ≥ --min-time)")
     p.add_argument("--min-repeats", type=int_at_least(1), default=None, help="timing samples per configuration at least "

@@ -197,13 +197,15 @@ SUITES = {
     # quick: CI and the README's first command, a showcase: every method on the same four scene
     # kinds where they apply (sphere grazing rays, torus, CSG torus ∪ box, the MLP; the next quick
     # cases where one does not), its main dial at 3 settings on the first (a short time-versus-error
-    # curve per method and backend) and defaults on the others, float64, 0.05 s and ≥ 3 samples of
-    # timing each; volume renderers against ρ(x*) only (the rendering integral costs ~10 s to
+    # curve per method and backend) and defaults on the others, float64, 0.02 s and ≥ 3 samples of
+    # timing each (0.05 s cost 26 CPU-s more of a warm run's 180 and left the samples' spread the same:
+    # interquartile range / median 3–8 % at the median configuration either way, docs/performance.md);
+    # volume renderers against ρ(x*) only (the rendering integral costs ~10 s to
     # minutes per case); then the stability stage (below).  The workload scenes tagged "quick" (the
     # torus mesh, the neural SDF) run on every root finder, the surface renderer and the gradients
     # (not dt/dθ: the neural SDF's 4481 weights cost 2–120 s a configuration).
     "quick": Suite(name="quick", case_pattern="*", case_tags=("quick",), dtypes=("float64",), sweeps={}, level="quick",
-                   min_time_s=0.05, main_dial_only=True, max_cases=4, sweep_cases=1, min_repeats=3, budget_s=None,
+                   min_time_s=0.02, main_dial_only=True, max_cases=4, sweep_cases=1, min_repeats=3, budget_s=None,
                    expensive_references=False, small_cases_first=True, diverse_cases=True, rotate_families=False,
                    lead_cases={"*": ("sphere.grazing.1e-6", "torus.camera.32x32", "csg.union.camera.32x32",
                                      "mlp.camera.32x32"),
