@@ -127,7 +127,9 @@ class TorchBackend(ArrayBackend):
             autodiff="both",
             jit=False,
             notes=("eager; torch.compile is not used for timing",
-                   "active-set loops (one host sync per iteration); dφ/dt and ∇φ by one backward pass, the Hessian by "
+                   "active-set loops (one host sync per iteration); on the CPU the loop's step arithmetic runs on numpy "
+                   "views of the same memory and φ in torch (impls.torch.driver: float64 bit for bit the same, float32 "
+                   "to rounding); dφ/dt and ∇φ by one backward pass, the Hessian by "
                    "double backward, θ-Jacobians by torch.func.jacfwd",
                    "namespace: array_api_compat.torch with torch's own where, clip, isfinite and take_along_axis "
                    "(impls.torch.backend.xp_fast; per-call overhead)",
