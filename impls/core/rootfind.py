@@ -1010,7 +1010,7 @@ class MarchRefine(_Search):
         if rule.certifies:
             # a first pair that is a plain step (h ≤ r) rejected by rounding alone: the ray steps its
             # certified radius next (as in step_march)
-            plain_rejected = stopped & (e[:, 0] == 0) & ~at(stands) & (h <= r)
+            plain_rejected = stopped & ~cross_e & (e[:, 0] == 0) & ~at(stands) & (h <= r)
             new["dl"] = xp.where(plain_rejected, xp.zeros_like(new["dl"]), new["dl"])
         if self.deriv:
             DF = xp.reshape(DF, (m, k))
