@@ -46,6 +46,20 @@ def test_host_call_returns_the_functions_values_under_jit_and_vmap(dtype):
     np.testing.assert_allclose(np.asarray(total(jnp.asarray(x))), expect, rtol=1e-5 if dtype == "float32" else 1e-15)
 
 
+def test_off_the_cpu_it_is_a_pure_callback_with_the_same_values(monkeypatch):
+    """Where jax's default backend is not the CPU (a GPU machine) a CPU custom call cannot run in
+    the program: the same function goes through ``jax.pure_callback`` (forced here on the CPU)."""
+    import reference.jax_host_call as hc
+
+    monkeypatch.setattr(hc, "on_cpu", lambda: False)
+    x = jnp.asarray(np.random.default_rng(2).normal(size=(6, 3)))
+    lowered = jax.jit(_phi).lower(x)
+    assert "isobench_test_norms" not in lowered.as_text()
+    got = lowered.compile()(x)
+    for g, w in zip(got, _norms(np.asarray(x))):
+        np.testing.assert_allclose(np.asarray(g), w, rtol=0, atol=0)
+
+
 def test_an_error_in_the_host_function_is_the_programs_error():
     def broken(x):
         raise ValueError("no closest point for this query")
