@@ -95,6 +95,8 @@ _HANDLER = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.POINTER(_CallFrame))
 
 #: name → (ctypes handler, capsule, fn): registered targets, kept alive for the process's life
 _TARGETS: dict[str, tuple] = {}
+#: how many times :func:`host_call` has been traced in this process (:func:`traced_calls`)
+_CALLS = [0]
 _LOCK = threading.Lock()
 
 
@@ -155,6 +157,13 @@ def _register(name: str, fn: Callable) -> None:
         _TARGETS[name] = (handler, capsule, fn)
 
 
+def traced_calls() -> int:
+    """How many host calls have been traced in this process: a program traced while it grew calls
+    back into Python, and its executable is worth nothing without this process's registrations
+    (:mod:`impls.jax.executables` stores no such program)."""
+    return _CALLS[0]
+
+
 def on_cpu() -> bool:
     """Whether jax's default backend is the CPU (then :func:`host_call` is a cacheable custom call)."""
     import jax
@@ -169,6 +178,7 @@ def host_call(name: str, fn: Callable, x, out_shapes):
     broadcasting (``vmap_method="broadcast_all"``): ``fn`` must work on any leading shape."""
     import jax
 
+    _CALLS[0] += 1
     if not on_cpu():
         def host(a):
             return tuple(np.asarray(v).astype(s.dtype) for v, s in zip(fn(np.asarray(a, np.float64)), out_shapes))

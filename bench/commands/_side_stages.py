@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
+import time
 from pathlib import Path
 
 from ._common import configure_process, make_console, resolve_backends, run_claims_into, split
@@ -122,6 +123,7 @@ class SideStages:
         self.share = share  # a bench.run.sharing.PlanShare: the process joins the configurations after its stages
         self.process = self.conn = None
         self.start_error = ""
+        self.waited = False
 
     def start(self) -> "SideStages":
         ctx = multiprocessing.get_context("spawn")
@@ -139,7 +141,10 @@ class SideStages:
         return self
 
     def wait(self) -> dict[str, str]:
-        """Block until the second process ends; its notes, one per stage asked for."""
+        """Block until the second process has sent its notes (and, where it shares the plan, the
+        run has every row: the caller waits for those); its notes, one per stage asked for.  Its
+        exit is not waited for here (:meth:`close` ends it): a process holding torch, jax and
+        numba takes 1–2.5 s to exit, time the report is drawn in instead."""
         got, why = {}, self.start_error and f"the second process did not start: {self.start_error}"
         if self.share is not None:
             self.share.offer(None)  # it waits for a plan: a run that offered none ended early
@@ -148,13 +153,9 @@ class SideStages:
                 got = self.conn.recv()  # returns when the child sends, or raises EOFError when it died
             except (EOFError, OSError):
                 got = {}
-            while self.process.is_alive():
-                # its last messages go unread here (the run has its rows): reading them lets it exit
-                if self.share is not None:
-                    self.share.receive(0.1)
-                else:
-                    self.process.join(0.1)
-            self.process.join()
+            if not got:
+                self.process.join()  # it died: its exit code says how
+            self.waited = True
             if "error" in got:
                 why = f"the second process raised {got.pop('error')}"
             elif not got:
@@ -166,7 +167,16 @@ class SideStages:
         return self.process is not None and self.process.is_alive()
 
     def close(self) -> None:
-        """Terminate the second process if it is still running (the first one leaves early)."""
+        """After :meth:`wait`, let the second process end (reading its last messages, which the run
+        no longer needs, so that its queue's feeder can finish) for up to 10 s; terminate it if it
+        is still running then, or at once when the first process leaves early (no :meth:`wait`)."""
+        if self.process is not None and self.process.is_alive() and self.waited:
+            deadline = time.monotonic() + 10.0
+            while self.process.is_alive() and time.monotonic() < deadline:
+                if self.share is not None:
+                    self.share.receive(0.1)
+                else:
+                    self.process.join(0.1)
         if self.process is not None and self.process.is_alive():
             self.process.terminate()
             self.process.join(5)

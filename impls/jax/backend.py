@@ -7,6 +7,7 @@ are placed on the backend's device explicitly, so the global default device does
 from __future__ import annotations
 
 import collections
+import contextlib
 import time
 
 import jax
@@ -49,7 +50,8 @@ from jax import lax  # noqa: E402
 
 from ..base import ArrayBackend  # noqa: E402
 from ..protocol import Capabilities  # noqa: E402
-from . import derivatives, driver  # noqa: E402
+from reference.jax_host_call import traced_calls  # noqa: E402
+from . import derivatives, driver, executables  # noqa: E402
 
 
 #: compiled kernels a backend object keeps for reuse (:meth:`JaxBackend.compile_configuration`)
@@ -177,6 +179,8 @@ class JaxBackend(ArrayBackend):
         )
         super().__init__(device, settings)
         self.jax_device = jax.devices(device)[0]
+        # kernels on disk by what they compute, found without tracing (None without a cache directory)
+        self._store = executables.default_store()
 
     def asarray(self, a, dtype):
         return jax.device_put(jnp.asarray(np.asarray(a), dtype=dtype), self.jax_device)
@@ -194,12 +198,18 @@ class JaxBackend(ArrayBackend):
         """``jax.jit(fn)`` lowered and compiled for ``example_args``: (compiled, seconds).  Whether
         the executable came from the persistent cache is left in ``last_compile_cache``
         ("reused" or "compiled"; None without a cache directory)."""
-        hits = _cache_hits[0]
         t0 = time.perf_counter()
-        compiled = jax.jit(fn).lower(*example_args).compile()
-        took = time.perf_counter() - t0
+        compiled = self._compile_traced(jax.jit(fn).trace(*example_args))
+        return compiled, time.perf_counter() - t0
+
+    def _compile_traced(self, traced, fresh: bool = False):
+        """A traced kernel lowered and compiled (``fresh``: by XLA, not loaded from jax's persistent
+        cache, so that it can be serialized into the kernel store); sets ``last_compile_cache``."""
+        hits = _cache_hits[0]
+        with executables.fresh_compilation() if fresh else contextlib.nullcontext():
+            compiled = traced.lower().compile()
         self.last_compile_cache = None if not PERSISTENT_CACHE else ("reused" if _cache_hits[0] > hits else "compiled")
-        return compiled, took
+        return compiled
 
     def compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
         """One kernel per structure: the knobs are traced arguments of the jitted function where the
@@ -207,9 +217,12 @@ class JaxBackend(ArrayBackend):
         those knobs run one compiled kernel (the backend object keeps the last ``KEEP_KERNELS``).
         The kernel is keyed by everything compiled into it: the method, the scene and colour
         objects (their parameters are constants of the kernel), the depth range, the knobs compiled in,
-        the driver settings and the rays' shapes and dtype.  ``last_compile_cache``: "reused" when
-        the kernel came from this table or from the persistent cache, "compiled" otherwise (None
-        without a cache directory and nothing to reuse).  A traced knob is a weakly typed scalar,
+        the driver settings and the rays' shapes and dtype.  A kernel not in the table is looked up
+        in the cache directory's kernel store by the same inputs taken by value
+        (:mod:`impls.jax.executables`: no trace, no lowering), and else traced, lowered and compiled
+        (or loaded from jax's persistent cache) and stored.  ``last_compile_cache``: "reused" when
+        the kernel came from this table, the kernel store or the persistent cache, "compiled"
+        otherwise (None without a cache directory and nothing to reuse).  A traced knob is a weakly typed scalar,
         so it enters float32 arithmetic as the Python constant it replaces does.  The rays run as
         ``driver.padded_size(n, settings.pad)`` rows (copies of the first ray appended, padded once
         here, their outputs dropped), so that ray sets of nearby sizes share a kernel."""
@@ -235,16 +248,30 @@ class JaxBackend(ArrayBackend):
                 def fn(o, d, th, traced, static=static):
                     return call(o, d, th, {**static, **traced})
 
-                try:
-                    compiled, _ = self.compile(fn, o, d, th, {k: knobs[k] for k in names})
-                except (TypeError, ValueError) as exc:
-                    if not names or not _is_trace_error(exc):
-                        raise  # a fault of the scene or the knobs, not of tracing them
-                    # the method's code branches on (or sizes arrays by) one of these knobs:
-                    # compile them in, for this configuration and its sweeps from now on
-                    _TRACED_FAILED.add(key)
-                    spent += time.perf_counter() - t0
-                    continue
+                traced = {k: knobs[k] for k in names}
+                stored = None if self._store is None else executables.kernel_key(
+                    self, method, scene, t_range, extra, static, traced, (o, d, th))
+                compiled = None if stored is None else self._store.load(stored, self.jax_device)
+                if compiled is not None:
+                    self.last_compile_cache = "reused"
+                else:
+                    host_calls = traced_calls()
+                    try:
+                        trace = jax.jit(fn).trace(o, d, th, traced)
+                    except (TypeError, ValueError) as exc:
+                        if not names or not _is_trace_error(exc):
+                            raise  # a fault of the scene or the knobs, not of tracing them
+                        # the method's code branches on (or sizes arrays by) one of these knobs:
+                        # compile them in, for this configuration and its sweeps from now on
+                        _TRACED_FAILED.add(key)
+                        spent += time.perf_counter() - t0
+                        continue
+                    # a program that calls back into Python (a mesh's φ) is never stored: it stays
+                    # on jax's persistent cache, and its trace registers the call's target
+                    storable = stored is not None and traced_calls() == host_calls
+                    compiled = self._compile_traced(trace, fresh=storable)
+                    if storable:
+                        self._store.save(stored, compiled, (o, d, th, traced), self.jax_device)
                 # the scene and colour objects are kept alive with the kernel: their ids are in the key
                 self._kernels[key] = kept = (compiled, scene, extra)
                 while len(self._kernels) > KEEP_KERNELS:

@@ -1,0 +1,224 @@
+"""Compiled jax kernels kept on disk by what they compute, so that a warm run neither traces nor
+lowers them.
+
+jax's persistent compilation cache (``<cache dir>/jax``, :mod:`impls.jax.backend`) is keyed by
+the lowered program, so a warm run still traces and lowers every kernel to find its entry: 14 of
+the 20 CPU-seconds a warm quick run spent getting its 163 jax kernels (measured: trace 7.7 s,
+lower 6.4 s, loading the executables 5.8 s).  This store keys a kernel instead by everything it
+is a function of, computed without tracing (:func:`kernel_key`), and keeps the executable
+(``jax.experimental.serialize_executable``) under ``<cache dir>/jax-kernels/<key>.bin``.
+
+What the key holds, and why it is complete:
+
+* the kernel's inputs as :meth:`JaxBackend.compile_configuration` keys its in-process table:
+  the method, the depth range, the knobs compiled in and the names and types of the traced ones,
+  the device, the driver settings, the rays' shapes and dtypes;
+* the scene and colour objects *by value*: their pickle, in which every class, function and
+  global must come from isobench's own packages (``reference``, ``impls``), numpy or Python's
+  builtins (:func:`value_digest`).  A user's scene class or function (code this store cannot
+  see change) gives no key, and the kernel is traced as before;
+* the code: the SHA-256 of every ``.py`` file of the ``impls`` and ``reference`` packages (the
+  methods, drivers and fields that are traced), and the method's implementation and the backend's
+  class must come from them;
+* the libraries and the machine: jax, jaxlib, numpy and Python versions, every ``jax.config``
+  value, ``XLA_FLAGS``, the device's platform and kind, and the CPU's model and feature flags
+  (XLA compiles for the host's instruction set).
+
+A program that calls back into Python is never stored (jax's own cache does not keep one
+either): the meshes' φ is a custom call whose target is registered when it is traced
+(:mod:`reference.jax_host_call`), so skipping its trace would leave the target unregistered.
+Such kernels stay on jax's persistent cache.  A store entry that cannot be read or loaded is a
+miss (the kernel is traced and compiled, and the entry rewritten); entries are written atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import io
+import os
+import pickle
+import platform
+import secrets
+import sys
+from pathlib import Path
+from typing import Any
+
+#: bump when the entry format or the key's composition changes
+FORMAT = 1
+
+#: top-level packages whose classes, functions and globals may appear in a scene's pickle
+_OWN = ("reference", "impls")
+_TRUSTED = _OWN + ("numpy", "builtins", "copyreg", "_codecs", "collections")
+
+
+class _Untrusted(Exception):
+    pass
+
+
+class _CheckingPickler(pickle.Pickler):
+    """A pickler that refuses any object whose class (or, for a class or function, itself) comes
+    from a module outside :data:`_TRUSTED`: its code is not in the store's key."""
+
+    def reducer_override(self, obj):
+        for thing in (obj, type(obj)) if isinstance(obj, type) or callable(obj) else (type(obj),):
+            module = getattr(thing, "__module__", None) or ""
+            if module.split(".")[0] not in _TRUSTED:
+                raise _Untrusted(f"{thing!r} from module {module!r}")
+        return NotImplemented
+
+
+def value_digest(obj: Any) -> str | None:
+    """SHA-256 of ``obj``'s pickle, or None where it cannot be pickled or holds anything from
+    outside isobench's packages, numpy and the builtins (see :class:`_CheckingPickler`)."""
+    buf = io.BytesIO()
+    try:
+        _CheckingPickler(buf, protocol=5).dump(obj)
+    except Exception:  # noqa: BLE001 - unpicklable or untrusted: no key, the kernel is traced
+        return None
+    return hashlib.sha256(buf.getvalue()).hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """SHA-256 over the paths and contents of every ``.py`` file of the ``impls`` and
+    ``reference`` packages."""
+    import importlib
+
+    h = hashlib.sha256()
+    for name in _OWN:
+        for root in importlib.import_module(name).__path__:
+            base = Path(root)
+            for path in sorted(base.rglob("*.py")):
+                h.update(f"{name}/{path.relative_to(base).as_posix()}\0".encode())
+                h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_flags() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [ln for ln in f if ln.startswith(("model name", "flags"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor()
+
+
+def _environment(device) -> str:
+    import jax
+    import jaxlib
+    import numpy as np
+
+    config = sorted((k, repr(v)) for k, v in jax.config.values.items())
+    return repr((FORMAT, sys.version, jax.__version__, jaxlib.__version__, np.__version__, config,
+                 os.environ.get("XLA_FLAGS", ""), device.platform, device.device_kind, platform.machine(), _cpu_flags()))
+
+
+def _own(obj: Any) -> bool:
+    return (getattr(obj, "__module__", None) or "").split(".")[0] in _OWN
+
+
+def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, traced: dict, arrays) -> str | None:
+    """The store's key of a kernel of :meth:`JaxBackend.compile_configuration` (hex SHA-256), or
+    None where the kernel depends on code outside isobench's packages (a user's scene, colour
+    field, method or backend class) and must be traced."""
+    impl = getattr(backend, "_impl", {}).get(method)
+    if impl is None or not _own(impl) or not _own(type(backend)):
+        return None
+    values = value_digest((scene, extra))
+    if values is None:
+        return None
+    parts = (_environment(backend.jax_device), _code_digest(), values, method, t_range,
+             sorted((k, repr(v)) for k, v in static.items()),
+             sorted((k, type(v).__name__) for k, v in traced.items()), backend.device, repr(backend.settings),
+             [None if a is None else (tuple(a.shape), str(a.dtype)) for a in arrays])
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+@contextlib.contextmanager
+def fresh_compilation():
+    """Compile with jax's persistent compilation cache off (and restored after).  Why: an
+    executable that jax loaded from that cache serializes into bytes that fail when run (jax
+    0.10.2 on the CPU: ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``, measured), so
+    a kernel bound for the store is compiled by XLA; it is then kept here, not in jax's cache."""
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    if not jax.config.values.get("jax_enable_compilation_cache", False):
+        yield
+        return
+    compilation_cache.reset_cache()  # jax decides once per process whether the cache is used
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
+        compilation_cache.reset_cache()
+
+
+class KernelStore:
+    """Executables under ``root`` by :func:`kernel_key`."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    def _path(self, key: str) -> Path:
+        return self.root / f"{key}.bin"
+
+    def load(self, key: str, device):
+        """The executable stored under ``key``, loaded onto ``device``, or None (absent, or an
+        entry that cannot be read or loaded: a miss)."""
+        from jax.experimental import serialize_executable
+
+        try:
+            with open(self._path(key), "rb") as f:
+                payload, in_tree, out_tree = pickle.load(f)
+            return serialize_executable.deserialize_and_load(payload, in_tree, out_tree,
+                                                             execution_devices=[device])
+        except FileNotFoundError:
+            return None
+        except Exception:  # noqa: BLE001 - a damaged or foreign entry: compiled again and rewritten
+            return None
+
+    def save(self, key: str, compiled, example_args: tuple, device) -> bool:
+        """Write ``compiled`` under ``key`` atomically (a temporary file renamed onto the entry), once
+        its serialization, loaded back, gives on ``example_args`` the very outputs ``compiled``
+        gives (bit for bit, NaN where NaN): an executable whose bytes do not run as it does is
+        not kept.  Returns whether it was stored; a failure to serialize, check or write leaves no
+        entry and is not an error."""
+        import jax
+        import numpy as np
+        from jax.experimental import serialize_executable
+
+        path = self._path(key)
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
+        try:
+            parts = serialize_executable.serialize(compiled)
+            again = serialize_executable.deserialize_and_load(*parts, execution_devices=[device])
+            want, got = jax.tree.leaves(compiled(*example_args)), jax.tree.leaves(again(*example_args))
+            if len(want) != len(got) or not all(np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True)
+                                                for a, b in zip(want, got)):
+                return False
+            blob = pickle.dumps(parts, protocol=5)
+            self.root.mkdir(parents=True, exist_ok=True)
+            with open(tmp, "wb") as f:
+                f.write(blob)
+            os.replace(tmp, path)
+            return True
+        except Exception:  # noqa: BLE001 - an unserializable executable or a full disk: not stored
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+            return False
+
+
+def default_store() -> KernelStore | None:
+    """The store of the bench commands' cache directory (``<cache dir>/jax-kernels``), or None
+    without one (:mod:`impls.cache`)."""
+    from ..cache import subdir
+
+    where = subdir("jax-kernels")
+    return None if where is None else KernelStore(where)

@@ -1,0 +1,142 @@
+"""The jax kernel store (:mod:`impls.jax.executables`): a kernel found by what it computes, with
+no trace, gives exactly what the traced kernel gives; anything the key cannot see (a user's
+class or function, a host call) is never stored; a damaged entry is a miss."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from impls.jax import executables
+from reference import Sphere, Torus
+from tests.conftest import resolve_or_skip
+
+
+def _rays(n=48):
+    rng = np.random.default_rng(1)
+    o = np.tile([0.0, 0.0, -3.0], (n, 1))
+    d = np.column_stack([rng.uniform(-0.3, 0.3, n), rng.uniform(-0.3, 0.3, n), np.ones(n)])
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _backend(store):
+    from impls.jax.backend import JaxBackend
+
+    resolve_or_skip("jax:cpu")
+    b = JaxBackend("cpu")
+    b._store = store
+    return b
+
+
+def _run(b, scene, method="hybrid_secant", dtype="float64", **knobs):
+    o, d = _rays()
+    prep = b.prepare(method, scene, o, d, dtype=dtype, t_min=0.0, t_max=10.0, **knobs)
+    return prep, prep.result(prep.run())
+
+
+class UserSphere(Sphere):
+    """A user's scene class: its code is outside isobench's packages."""
+
+
+def test_a_value_digest_follows_the_value_and_refuses_code_it_cannot_see():
+    a = executables.value_digest(Sphere(center=(0.0, 0.0, 0.0), radius=1.0))
+    assert a is not None
+    assert executables.value_digest(Sphere(center=(0.0, 0.0, 0.0), radius=1.0)) == a
+    assert executables.value_digest(Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 2**-40)) != a
+    assert executables.value_digest(Torus(major=1.0, minor=0.25)) not in (None, a)
+    assert executables.value_digest(UserSphere(center=(0.0, 0.0, 0.0), radius=1.0)) is None
+    assert executables.value_digest({"f": lambda x: x}) is None  # not picklable
+    assert executables.value_digest({"f": _rays}) is None  # a function of a module outside the packages
+
+
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_a_stored_kernel_runs_without_a_trace_and_gives_the_same_bits(dtype, tmp_path, monkeypatch):
+    from impls.jax import backend as jb
+
+    store = executables.KernelStore(tmp_path)
+    scene = Torus(major=1.0, minor=0.3)
+    first, want = _run(_backend(store), scene, dtype=dtype, xtol=1e-9)
+    assert len(list(tmp_path.glob("*.bin"))) == 1
+
+    def no_trace(*args, **kwargs):
+        raise AssertionError("traced although the kernel store holds the kernel")
+
+    monkeypatch.setattr(jb.JaxBackend, "compile", no_trace)
+    again, got = _run(_backend(store), scene, dtype=dtype, xtol=1e-9)
+    assert again.compile_cache == "reused"
+    for k in ("t", "status", "iterations", "evals"):
+        np.testing.assert_array_equal(getattr(got, k), getattr(want, k), err_msg=k)
+    # a traced knob is still a runtime argument of the stored kernel
+    _, other = _run(_backend(store), scene, dtype=dtype, xtol=1e-3)
+    assert np.any(other.iterations != want.iterations)
+    # a parameter of the scene is part of the key: a kernel of its own, traced
+    monkeypatch.undo()
+    _run(_backend(store), Torus(major=1.0, minor=0.31), dtype=dtype, xtol=1e-9)
+    assert len(list(tmp_path.glob("*.bin"))) == 2
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_what_the_key_cannot_see_is_traced_and_never_stored(tmp_path):
+    store = executables.KernelStore(tmp_path)
+    _, want = _run(_backend(store), UserSphere(center=(0.0, 0.0, 0.0), radius=1.0))
+    assert not list(tmp_path.glob("*.bin"))
+
+    from impls.jax.backend import JaxBackend
+
+    class UserJax(JaxBackend):
+        pass
+
+    resolve_or_skip("jax:cpu")
+    b = UserJax("cpu")
+    b._store = store
+    _run(b, Sphere(center=(0.0, 0.0, 0.0), radius=1.0))
+    assert not list(tmp_path.glob("*.bin"))
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_a_program_with_a_host_call_is_not_stored(tmp_path):
+    from reference.cases import get_case
+
+    case = get_case("mesh.torus.camera.16x16")
+    store = executables.KernelStore(tmp_path)
+    b = _backend(store)
+    prep = b.prepare("sphere_trace", case.scene, case.origins[:64], case.directions[:64], dtype="float64",
+                     t_min=case.t_min, t_max=case.t_max)
+    prep.result(prep.run())
+    assert not list(tmp_path.glob("*.bin"))
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_a_damaged_entry_is_a_miss_and_is_rewritten(tmp_path):
+    store = executables.KernelStore(tmp_path)
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+    _, want = _run(_backend(store), scene)
+    (entry,) = tmp_path.glob("*.bin")
+    entry.write_bytes(b"not an executable")
+    prep, got = _run(_backend(store), scene)
+    np.testing.assert_array_equal(got.t, want.t)
+    assert entry.read_bytes() != b"not an executable"
+
+
+def test_the_key_changes_with_what_the_kernel_is_a_function_of():
+    from impls.jax.backend import JaxBackend
+    from impls.jax.driver import MaskedSettings
+
+    resolve_or_skip("jax:cpu")
+    b = JaxBackend("cpu")
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+    o = np.zeros((64, 3))
+    base = dict(method="sphere_trace", scene=scene, t_range=(0.0, 10.0), extra={}, static={"bounds": 1},
+                traced={"tol": 1e-6}, arrays=(o, o, None))
+    key = executables.kernel_key(b, **base)
+    assert key is not None and key == executables.kernel_key(b, **base)
+    for change in (dict(method="march_newton"), dict(t_range=(0.0, 11.0)), dict(static={"bounds": 0}),
+                   dict(traced={"tol": 1}), dict(traced={}), dict(arrays=(o[:32], o[:32], None)),
+                   dict(arrays=(o.astype(np.float32), o.astype(np.float32), None)),
+                   dict(scene=dataclasses.replace(scene, radius=2.0))):
+        assert executables.kernel_key(b, **{**base, **change}) != key, change
+    b2 = JaxBackend("cpu", MaskedSettings(ratio=2))
+    assert executables.kernel_key(b2, **base) != key
