@@ -14,7 +14,7 @@ import fnmatch
 import functools
 import hashlib
 import json
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -80,6 +80,12 @@ class Case:
             raise val.with_traceback(None)
         return val
 
+    def preload_answer(self, key: str, compute: Callable[[], Any]) -> None:
+        """Memoise ``compute()`` as the answer ``key`` (as :meth:`_answer` would compute it), unless
+        the case has it already: how a caller that keeps answers elsewhere (bench's cache directory)
+        hands one back.  ``"t"``: ``(exact_t, per-ray error bounds or None)``."""
+        self._answer(key, compute)
+
     @property
     def exact_t(self) -> np.ndarray:
         """First-hit depth per ray in (t_min, t_max]; ``inf`` for a miss, NaN where the reference
@@ -121,11 +127,17 @@ class Case:
             if self.scene.info.exact_hits:
                 t = self.scene.first_hit(self.origins, self.directions, self.t_min)
                 return np.where(t <= self.t_max, t, np.inf), None  # bounds: _depth_bounds, on demand
-            from .numerical import first_hit_numeric
-
-            return first_hit_numeric(self._truth_scene(), self.origins, self.directions, self.t_min, self.t_max)
+            return self.numerical_hits()
 
         return self._answer("t", compute)
+
+    def numerical_hits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(first-hit depths, per-ray error bounds) by the numerical reference
+        (:func:`reference.numerical.first_hit_numeric`), not memoised: what :attr:`exact_t` is
+        for a scene without closed-form hits."""
+        from .numerical import first_hit_numeric
+
+        return first_hit_numeric(self._truth_scene(), self.origins, self.directions, self.t_min, self.t_max)
 
     def _depth_bounds(self) -> np.ndarray:
         t, err = self._exact_t_and_bound

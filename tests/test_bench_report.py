@@ -76,7 +76,7 @@ def test_report_inlines_the_claims_ledger(tmp_path):
 
 
 def test_claims_failure_is_a_visible_note_not_a_crash(tmp_path, monkeypatch):
-    def broken(out_dir, *, quick=True, only=None):
+    def broken(out_dir, *, quick=True, only=None, reference_dir=None):
         raise RuntimeError("ledger exploded")
 
     monkeypatch.setattr(bench.claims, "run_claims", broken)
@@ -95,7 +95,7 @@ def test_claims_failure_is_a_visible_note_not_a_crash(tmp_path, monkeypatch):
 def test_claims_subcommand_calls_run_claims(tmp_path, monkeypatch, capsys):
     seen = {}
 
-    def fake(out_dir, *, quick=True, only=None):
+    def fake(out_dir, *, quick=True, only=None, reference_dir=None):
         seen.update(quick=quick, only=only)
         df = pd.DataFrame([{"id": "7", "statement": "s", "equation": "(1)", "how_checked": "h", "verdict": "holds",
                             "key_numbers": "{}", "plot": "", "seconds": 0.5, "counterexample": "", "message": ""}],

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from bench.run.environment import default_cache_dir
@@ -233,3 +234,60 @@ def test_numba_kernels_of_two_scenes_from_two_processes_run_their_own_scene(tmp_
     assert run("intersection") == {"intersection": True}
     assert run("union", "intersection") == {"union": True, "intersection": True}
     assert run("intersection", "union") == {"intersection": True, "union": True}
+
+
+def test_numerical_first_hits_are_kept_in_the_cache_directory_by_case_and_code(tmp_path, monkeypatch):
+    """bench keeps a case's numerical first hits (a scene without closed-form hits) under the
+    reference cache: a second case object with the same scene and rays reads them, bit for bit,
+    without the numerical reference; other rays are another entry."""
+    import dataclasses
+
+    from bench.run.references import load_numerical_hits
+    from reference.cases import Case, get_case
+
+    base = get_case("mlp.camera.32x32")
+    case = Case("mlp.test", base.scene, base.origins[::97], base.directions[::97], base.t_min, base.t_max)
+    assert not case.scene.info.exact_hits
+    load_numerical_hits(case, tmp_path)
+    (entry,) = tmp_path.glob("first_hit-*.npz")
+    want, bounds = case.exact_t, case.exact_t_error_bounds
+    assert np.isfinite(want).any()
+
+    again = dataclasses.replace(case)
+    monkeypatch.setattr(Case, "numerical_hits", lambda self: pytest.fail("computed although the cache holds it"))
+    load_numerical_hits(again, tmp_path)
+    np.testing.assert_array_equal(again.exact_t, want)
+    np.testing.assert_array_equal(again.exact_t_error_bounds, bounds)
+    monkeypatch.undo()
+
+    other = dataclasses.replace(case, origins=case.origins[1:], directions=case.directions[1:])
+    load_numerical_hits(other, tmp_path)
+    assert len(list(tmp_path.glob("first_hit-*.npz"))) == 2
+    # a damaged entry is computed again (and rewritten), not an error
+    entry.write_bytes(b"not an npz")
+    fresh = dataclasses.replace(case)
+    load_numerical_hits(fresh, tmp_path)
+    np.testing.assert_array_equal(fresh.exact_t, want)
+    # a scene with closed-form hits has nothing to keep
+    load_numerical_hits(get_case("torus.camera.32x32"), tmp_path)
+    assert len(list(tmp_path.glob("first_hit-*.npz"))) == 2
+
+
+def test_a_claims_integral_is_kept_by_all_of_its_inputs(tmp_path, monkeypatch):
+    """render_exact_kept computes the rendering integral once per inputs: the same inputs read the
+    stored answer bit for bit, without render_exact; another sharpness or ray is another entry."""
+    from bench.run.references import render_exact_kept
+    from reference import Sphere, rendering
+
+    scene, rho = Sphere(), rendering.SineColor()
+    o, d = np.array([[0.0, 0.0, 3.0]]), np.array([[0.0, 0.0, -1.0]])
+    want = render_exact_kept(tmp_path, scene, rho, "neus", 50.0, o, d, 1.5, 2.5)
+    np.testing.assert_array_equal(want[0], rendering.render_exact(scene, rho, "neus", 50.0, o, d, 1.5, 2.5)[0])
+    monkeypatch.setattr(rendering, "render_exact", lambda *a, **k: pytest.fail("computed although it is kept"))
+    got = render_exact_kept(tmp_path, scene, rho, "neus", 50.0, o, d, 1.5, 2.5)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    monkeypatch.undo()
+    render_exact_kept(tmp_path, scene, rho, "neus", 60.0, o, d, 1.5, 2.5)
+    render_exact_kept(tmp_path, scene, rho, "neus", 50.0, o, d * -1.0, 1.5, 2.5)
+    assert len(list(tmp_path.glob("render_exact-kept-*.npz"))) == 3

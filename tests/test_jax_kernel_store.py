@@ -1,10 +1,15 @@
 """The jax kernel store (:mod:`impls.jax.executables`): a kernel found by what it computes, with
 no trace, gives exactly what the traced kernel gives; anything the key cannot see (a user's
-class or function, a host call) is never stored; a damaged entry is a miss."""
+class or function, a host call) is never stored; a damaged entry is a miss.
+
+The scenes here carry a parameter drawn afresh per session (:data:`FRESH`): the store keeps only
+kernels XLA compiled in the process, and a program jax's persistent cache (the user's cache
+directory, shared with earlier sessions) already holds would be loaded from there instead."""
 
 from __future__ import annotations
 
 import dataclasses
+import random
 
 import numpy as np
 import pytest
@@ -12,6 +17,10 @@ import pytest
 from impls.jax import executables
 from reference import Sphere, Torus
 from tests.conftest import resolve_or_skip
+
+
+#: a radius offset of this session: programs no earlier session compiled
+FRESH = random.Random().uniform(1e-9, 1e-6)
 
 
 def _rays(n=48):
@@ -57,7 +66,7 @@ def test_a_stored_kernel_runs_without_a_trace_and_gives_the_same_bits(dtype, tmp
     from impls.jax import backend as jb
 
     store = executables.KernelStore(tmp_path)
-    scene = Torus(major=1.0, minor=0.3)
+    scene = Torus(major=1.0, minor=0.3 + FRESH)
     first, want = _run(_backend(store), scene, dtype=dtype, xtol=1e-9)
     assert len(list(tmp_path.glob("*.bin"))) == 1
 
@@ -74,14 +83,14 @@ def test_a_stored_kernel_runs_without_a_trace_and_gives_the_same_bits(dtype, tmp
     assert np.any(other.iterations != want.iterations)
     # a parameter of the scene is part of the key: a kernel of its own, traced
     monkeypatch.undo()
-    _run(_backend(store), Torus(major=1.0, minor=0.31), dtype=dtype, xtol=1e-9)
+    _run(_backend(store), Torus(major=1.0, minor=0.31 + FRESH), dtype=dtype, xtol=1e-9)
     assert len(list(tmp_path.glob("*.bin"))) == 2
 
 
 @pytest.mark.slow  # compiles jax kernels
 def test_what_the_key_cannot_see_is_traced_and_never_stored(tmp_path):
     store = executables.KernelStore(tmp_path)
-    _, want = _run(_backend(store), UserSphere(center=(0.0, 0.0, 0.0), radius=1.0))
+    _, want = _run(_backend(store), UserSphere(center=(0.0, 0.0, 0.0), radius=1.0 + 3 * FRESH))
     assert not list(tmp_path.glob("*.bin"))
 
     from impls.jax.backend import JaxBackend
@@ -92,7 +101,7 @@ def test_what_the_key_cannot_see_is_traced_and_never_stored(tmp_path):
     resolve_or_skip("jax:cpu")
     b = UserJax("cpu")
     b._store = store
-    _run(b, Sphere(center=(0.0, 0.0, 0.0), radius=1.0))
+    _run(b, Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 2 * FRESH))
     assert not list(tmp_path.glob("*.bin"))
 
 
@@ -110,15 +119,16 @@ def test_a_program_with_a_host_call_is_not_stored(tmp_path):
 
 
 @pytest.mark.slow  # compiles jax kernels
-def test_a_damaged_entry_is_a_miss_and_is_rewritten(tmp_path):
+def test_a_damaged_entry_is_a_miss_and_is_removed(tmp_path):
     store = executables.KernelStore(tmp_path)
-    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + FRESH)
     _, want = _run(_backend(store), scene)
     (entry,) = tmp_path.glob("*.bin")
     entry.write_bytes(b"not an executable")
     prep, got = _run(_backend(store), scene)
     np.testing.assert_array_equal(got.t, want.t)
-    assert entry.read_bytes() != b"not an executable"
+    # (the kernel came from jax's persistent cache this time, which is not stored)
+    assert not entry.exists() or entry.read_bytes() != b"not an executable"
 
 
 def test_the_key_changes_with_what_the_kernel_is_a_function_of():
@@ -140,3 +150,20 @@ def test_the_key_changes_with_what_the_kernel_is_a_function_of():
         assert executables.kernel_key(b, **{**base, **change}) != key, change
     b2 = JaxBackend("cpu", MaskedSettings(ratio=2))
     assert executables.kernel_key(b2, **base) != key
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_a_kernel_from_jax_persistent_cache_is_not_stored(tmp_path):
+    """jax's executable loaded from its persistent cache serializes into bytes that fail when run
+    (jax 0.10.2, CPU): such a kernel is used, not stored."""
+    from impls.jax import backend as jb
+
+    if not jb.PERSISTENT_CACHE:
+        pytest.skip("no cache directory: jax's persistent cache is off")
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 4 * FRESH)
+    _, want = _run(_backend(executables.KernelStore(tmp_path / "a")), scene)  # compiled: stored in a
+    assert len(list((tmp_path / "a").glob("*.bin"))) == 1
+    prep, got = _run(_backend(executables.KernelStore(tmp_path / "b")), scene)  # from jax's cache
+    assert prep.compile_cache == "reused"
+    assert not (tmp_path / "b").exists() or not list((tmp_path / "b").glob("*.bin"))
+    np.testing.assert_array_equal(got.t, want.t)

@@ -108,13 +108,14 @@ def write_csv_atomic(df, path: Path) -> None:
 
 
 def run_claims(out_dir: Path, *, quick: bool = True, only: list[str] | None = None, ledger: Ledger | None = None,
-               progress=None):
+               progress=None, reference_dir: Path | None = None):
     """Check the claims and write ``claims.csv`` and ``claim_<id>.png`` into ``out_dir``.
 
     quick:    small grids (all claims in well under a minute); ``False`` for the full grids.
     only:     claim ids to run (``None``: all); an unknown id is a ValueError listing the known ones.
     ledger:   the claims to run (default: the lecture's, :data:`LEDGER`; tests pass planted ones).
     progress: optional callable ``(claim_id, row)`` called after each claim.
+    reference_dir: where costly reference answers are kept between runs (None: computed each time).
 
     Returns a pandas DataFrame with the columns :data:`COLUMNS`, one row per claim.
     """
@@ -128,7 +129,7 @@ def run_claims(out_dir: Path, *, quick: bool = True, only: list[str] | None = No
         raise ValueError(f"out_dir={str(out_dir)!r} is a file; pass a folder for claims.csv and the plots")
     claims = ledger.select(only)
     out_dir.mkdir(parents=True, exist_ok=True)
-    ctx = CheckContext(quick=bool(quick))
+    ctx = CheckContext(quick=bool(quick), reference_dir=None if reference_dir is None else Path(reference_dir))
     rows = []
     for claim in claims:
         row = run_one(claim, out_dir, ctx)

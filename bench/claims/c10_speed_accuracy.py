@@ -24,7 +24,6 @@ import time
 import numpy as np
 
 from reference import Sphere
-from reference.rendering import render_exact
 
 from . import adapters
 from .figures import figure
@@ -38,12 +37,16 @@ W_EXACT = 0.5  # half-width of the window around the hit for the continuous inte
 COS_MIN = 0.3  # pixels with |⟨n, d⟩| ≥ 0.3: outside the window NeuS's σ and T are ≤ e^{−s·W·0.3} = e^{−30}
 
 
-def continuous_floor(scene, rho, o, d, t_exact, c_exact, pick):
+def continuous_floor(scene, rho, o, d, t_exact, c_exact, pick, disk=None):
     """‖C_exact − C_surface‖ per picked pixel, C_exact the continuous NeuS integral (``render_exact``) on
-    [t_s − W, t_s + W]: the error volume rendering at s = S_SHARP keeps for every N (its N → ∞ limit)."""
+    [t_s − W, t_s + W]: the error volume rendering at s = S_SHARP keeps for every N (its N → ∞ limit);
+    each integral kept in ``disk`` between runs (:func:`bench.run.references.render_exact_kept`)."""
+    from ..run.references import render_exact_kept
+
     out, bounds = [], []
     for i in pick:
-        c, qb = render_exact(scene, rho, "neus", S_SHARP, o[[i]], d[[i]], t_exact[i] - W_EXACT, t_exact[i] + W_EXACT)
+        c, qb = render_exact_kept(disk, scene, rho, "neus", S_SHARP, o[[i]], d[[i]], t_exact[i] - W_EXACT,
+                                  t_exact[i] + W_EXACT)
         out.append(float(np.linalg.norm(c[0] - c_exact[i])))
         bounds.append(float(qb[0]))
     return np.array(out), max(bounds)
@@ -112,7 +115,7 @@ def _speed(ctx):
     cos_nd = np.abs(np.einsum("ij,ij->i", scene.normal_exact(o + np.where(hit, t_exact, 0)[:, None] * d), d))
     eligible = np.flatnonzero(hit & (cos_nd >= COS_MIN))
     pick = np.sort(np.random.default_rng(ctx.seed + 10).choice(eligible, 2 if ctx.quick else 8, replace=False))
-    floors, floor_bound = continuous_floor(scene, rho, o, d, t_exact, c_exact, pick)
+    floors, floor_bound = continuous_floor(scene, rho, o, d, t_exact, c_exact, pick, ctx.reference_dir)
 
     trials, key = [], {}
     s_err = np.array([r[2] for r in surf])

@@ -35,6 +35,7 @@ import enum
 import functools
 import json
 import math
+from pathlib import Path
 from typing import Any, Callable
 
 
@@ -82,10 +83,13 @@ class Evidence:
 
 @dataclasses.dataclass(frozen=True)
 class CheckContext:
-    """What a check may depend on: the mode and a seed (checks are deterministic)."""
+    """What a check may depend on: the mode and a seed (checks are deterministic); and where costly
+    reference answers are kept between runs (``reference_dir``, None: computed every time), which
+    changes no result."""
 
     quick: bool = True
     seed: int = 20211
+    reference_dir: Path | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -193,14 +193,15 @@ def configure_process(args) -> dict[str, str]:
     return record
 
 
-def run_claims_into(out: Path, *, quick: bool, console, only: list[str] | None = None) -> str:
+def run_claims_into(out: Path, *, quick: bool, console, only: list[str] | None = None,
+                    reference_dir: Path | None = None) -> str:
     """Call the claims ledger (``bench.claims.run_claims``, the claims ``only`` or all) into
-    ``out``; never raises.  Returns a one-line note for the report and the console ("" when it
-    worked)."""
+    ``out``, costly reference answers kept in ``reference_dir``; never raises.  Returns a
+    one-line note for the report and the console ("" when it worked)."""
     try:
         from ..claims import run_claims
 
-        df = run_claims(out, quick=quick, only=only)
+        df = run_claims(out, quick=quick, only=only, reference_dir=reference_dir)
         n = 0 if df is None else len(df)
         console.print(f"claims: {n} checked, ledger in {out / 'claims.csv'}")
         return ""

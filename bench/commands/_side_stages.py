@@ -64,7 +64,10 @@ def stages_main(args: argparse.Namespace, out: str, stability_suite: str | None,
             notes["stability"] = (f"stability stage failed: {msg}" if msg else
                                   run_stability_into(Path(out), get_suite(stability_suite), backends, args, console))
     if claims:
-        notes["claims"] = run_claims_into(Path(out), quick=quick, console=console)
+        from impls.cache import subdir
+
+        reference_dir = None if getattr(args, "no_reference_cache", False) else subdir("reference")
+        notes["claims"] = run_claims_into(Path(out), quick=quick, console=console, reference_dir=reference_dir)
     return notes
 
 

@@ -45,7 +45,9 @@ def run(args) -> int:
     if held:
         return error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     console = make_console()
-    note = run_claims_into(out, quick=not args.full, console=console, only=args.only)
+    from impls.cache import subdir
+
+    note = run_claims_into(out, quick=not args.full, console=console, only=args.only, reference_dir=subdir("reference"))
     if not (out / "environment.json").exists():
         write_json(out / "environment.json", {**collect(), "run_id": out.name, "suite": "claims"})
     if (out / "claims.csv").exists():

@@ -321,7 +321,7 @@ def _finish(args, suite, backends, out: Path, df, console, lines: ProgressLines,
         write_json(out / "environment.json", env)
     if side is None and "claims" in stages:
         lines.line("claims: checking the lecture's claims")
-        note = run_claims_into(out, quick=suite.name == "quick", console=console)
+        note = run_claims_into(out, quick=suite.name == "quick", console=console, reference_dir=_reference_cache(args))
         env["claims"] = note or "ran"
         write_json(out / "environment.json", env)
     lines.line("report: writing report.md and report.html")

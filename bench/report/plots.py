@@ -287,35 +287,41 @@ POOL_FROM = 12
 
 def start_rendering(jobs: list[tuple]) -> Callable[[], list[bytes]]:
     """Start :func:`_render` of every job and return ``collect()``, which waits for them and gives
-    their PNGs in job order.  The figures are drawn in worker processes (one per usable core,
-    ``spawn``: no forked copy of the caller's thread pools) where there are ≥ 2 cores and ≥
-    :data:`POOL_FROM` jobs, so that the caller can build the report's tables while they draw;
-    else, or for the jobs a pool that could not start or broke left undone, by ``collect()``
-    here.  Why: the figures are independent, and a quick run's ~30 of them took 20 s of its
-    report's 25 s on one core (tight layout and tick-label text extents are most of it)."""
+    their PNGs in job order.  Where there are ≥ 2 cores and ≥ :data:`POOL_FROM` jobs, worker
+    processes (one fewer than the usable cores, at most 3; ``spawn``: no forked copy of the
+    caller's thread pools) draw the jobs from the first on, so that the caller can build the
+    report's tables meanwhile; ``collect()`` then draws, from the last job backwards, every job
+    no worker has started (a pending future it can cancel), so the caller's core draws too once
+    its tables are done, until the two meet.  Without a pool, or for the jobs a pool that could
+    not start or broke left undone, ``collect()`` draws them here.  Why: the figures are
+    independent, and a quick run's ~30 of them took 20 s of its report's 25 s on one core
+    (tight layout and tick-label text extents are most of it); two workers on two cores left the
+    caller idle for the last ~2 s of a quick run's report, one worker and the caller does not."""
     from ..run.environment import usable_cores
 
     cores = usable_cores()
     ex, futures = None, []
     if cores >= 2 and len(jobs) >= POOL_FROM:
         try:
-            ex = concurrent.futures.ProcessPoolExecutor(max_workers=min(cores, 4),
+            ex = concurrent.futures.ProcessPoolExecutor(max_workers=min(cores - 1, 3),
                                                         mp_context=multiprocessing.get_context("spawn"))
             futures = [ex.submit(_render, job) for job in jobs]
         except (OSError, concurrent.futures.process.BrokenProcessPool):
             futures = []  # drawn by collect() instead: the report is never lost to a pool that could not run
 
     def collect() -> list[bytes]:
-        out = []
+        out: list = [None] * len(jobs)
         try:
-            for job, fut in itertools.zip_longest(jobs, futures):
-                png = None
-                if fut is not None:
+            pending = list(itertools.zip_longest(range(len(jobs)), futures))
+            for i, fut in reversed(pending):  # the caller takes the jobs no worker has started
+                if fut is None or fut.cancel():
+                    out[i] = _render(jobs[i])
+            for i, fut in pending:
+                if out[i] is None:
                     try:
-                        png = fut.result()
+                        out[i] = fut.result()
                     except (OSError, concurrent.futures.process.BrokenProcessPool):
-                        pass
-                out.append(_render(job) if png is None else png)
+                        out[i] = _render(jobs[i])
         finally:
             if ex is not None:
                 ex.shutdown(cancel_futures=True)

@@ -7,12 +7,14 @@ import dataclasses
 import datetime as _dt
 import fnmatch
 import secrets
+from pathlib import Path
 
 from impls import METHODS
 from reference import Case, catalog
 from reference.cases import LARGE
 
 from .metrics import family_skip_reason
+from .references import load_numerical_hits
 from .results import knob_string
 from .suites import Suite
 
@@ -53,7 +55,7 @@ def applies(spec, case) -> str | None:
 
 
 def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
-         dtypes: list[str] | None) -> list[Config]:
+         dtypes: list[str] | None, reference_disk: Path | None = None) -> list[Config]:
     """Configurations in measuring order.
 
     Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
@@ -66,7 +68,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     runner records as skipped with the reason.  Order: every default-knob configuration first
     (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
-    interleave in time and none is always first."""
+    interleave in time and none is always first.  ``reference_disk``: where numerical first hits
+    are kept between runs (:func:`bench.run.references.load_numerical_hits`)."""
     if methods:
         unknown = [m for m in methods if m not in METHODS]
         if unknown:
@@ -76,6 +79,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
         if dt not in ("float64", "float32", "float16", "bfloat16"):
             raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
     cases = select_cases(suite, case_pattern)
+    for case in cases:  # numerical first hits from the cache directory, where it has them
+        load_numerical_hits(case, reference_disk)
     explicit = bool(case_pattern)
     # the suite's cost exclusions hold for the match-all sweep, not for cases named on purpose
     names_cases = explicit and any(g.strip() not in ("", "*") for g in str(case_pattern).split(","))

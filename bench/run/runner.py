@@ -189,7 +189,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     out_dir, started = Path(out_dir), time.monotonic()
     env, previous = _environment(suite, backends, out_dir, opts)
     run_id = env["run_id"]
-    cfgs = plan(suite, list(backends), opts.case_pattern, opts.methods, opts.dtypes)
+    cfgs = plan(suite, list(backends), opts.case_pattern, opts.methods, opts.dtypes,
+                reference_disk=opts.reference_cache_dir)
     if previous is not None:  # before the first write: a refused resume leaves the run as it was
         previous = check_case_versions(previous, cfgs, opts.rerun_cases)
     write_json(out_dir / "environment.json", env)

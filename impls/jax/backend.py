@@ -7,7 +7,6 @@ are placed on the backend's device explicitly, so the global default device does
 from __future__ import annotations
 
 import collections
-import contextlib
 import time
 
 import jax
@@ -202,12 +201,11 @@ class JaxBackend(ArrayBackend):
         compiled = self._compile_traced(jax.jit(fn).trace(*example_args))
         return compiled, time.perf_counter() - t0
 
-    def _compile_traced(self, traced, fresh: bool = False):
-        """A traced kernel lowered and compiled (``fresh``: by XLA, not loaded from jax's persistent
-        cache, so that it can be serialized into the kernel store); sets ``last_compile_cache``."""
+    def _compile_traced(self, traced):
+        """A traced kernel lowered and compiled (or loaded from jax's persistent cache); sets
+        ``last_compile_cache``."""
         hits = _cache_hits[0]
-        with executables.fresh_compilation() if fresh else contextlib.nullcontext():
-            compiled = traced.lower().compile()
+        compiled = traced.lower().compile()
         self.last_compile_cache = None if not PERSISTENT_CACHE else ("reused" if _cache_hits[0] > hits else "compiled")
         return compiled
 
@@ -266,11 +264,11 @@ class JaxBackend(ArrayBackend):
                         _TRACED_FAILED.add(key)
                         spent += time.perf_counter() - t0
                         continue
-                    # a program that calls back into Python (a mesh's φ) is never stored: it stays
-                    # on jax's persistent cache, and its trace registers the call's target
-                    storable = stored is not None and traced_calls() == host_calls
-                    compiled = self._compile_traced(trace, fresh=storable)
-                    if storable:
+                    compiled = self._compile_traced(trace)
+                    # stored: a kernel XLA compiled here (one jax loaded from its persistent cache
+                    # serializes into bytes that do not run: impls.jax.executables), without a call
+                    # back into Python (a mesh's φ: its trace registers the call's target)
+                    if stored is not None and traced_calls() == host_calls and self.last_compile_cache != "reused":
                         self._store.save(stored, compiled, (o, d, th, traced), self.jax_device)
                 # the scene and colour objects are kept alive with the kernel: their ids are in the key
                 self._kernels[key] = kept = (compiled, scene, extra)

@@ -24,16 +24,23 @@ What the key holds, and why it is complete:
   value, ``XLA_FLAGS``, the device's platform and kind, and the CPU's model and feature flags
   (XLA compiles for the host's instruction set).
 
-A program that calls back into Python is never stored (jax's own cache does not keep one
-either): the meshes' φ is a custom call whose target is registered when it is traced
-(:mod:`reference.jax_host_call`), so skipping its trace would leave the target unregistered.
-Such kernels stay on jax's persistent cache.  A store entry that cannot be read or loaded is a
-miss (the kernel is traced and compiled, and the entry rewritten); entries are written atomically.
+What is stored: a kernel XLA compiled in this process, once its serialization, loaded back, ran
+on the configuration's arrays to the very same outputs (:meth:`KernelStore.save`).  Not stored:
+
+* a kernel jax loaded from its persistent cache: its serialization does not run (jax 0.10.2 on
+  the CPU, measured: ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``).  Such a kernel
+  (one whose program is unchanged since it was cached, e.g. after an edit of isobench elsewhere
+  changed the store's key) keeps costing its trace and lowering, as before this store;
+* a program that calls back into Python (jax's own cache does not keep one either): the meshes'
+  φ is a custom call whose target is registered when it is traced
+  (:mod:`reference.jax_host_call`), so skipping its trace would leave the target unregistered.
+
+A store entry that cannot be read or loaded is removed and is a miss (the kernel is traced and
+compiled, and stored again if XLA compiled it); entries are written atomically.
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import io
@@ -137,27 +144,6 @@ def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, 
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 
 
-@contextlib.contextmanager
-def fresh_compilation():
-    """Compile with jax's persistent compilation cache off (and restored after).  Why: an
-    executable that jax loaded from that cache serializes into bytes that fail when run (jax
-    0.10.2 on the CPU: ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``, measured), so
-    a kernel bound for the store is compiled by XLA; it is then kept here, not in jax's cache."""
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    if not jax.config.values.get("jax_enable_compilation_cache", False):
-        yield
-        return
-    compilation_cache.reset_cache()  # jax decides once per process whether the cache is used
-    jax.config.update("jax_enable_compilation_cache", False)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_compilation_cache", True)
-        compilation_cache.reset_cache()
-
-
 class KernelStore:
     """Executables under ``root`` by :func:`kernel_key`."""
 
@@ -169,7 +155,7 @@ class KernelStore:
 
     def load(self, key: str, device):
         """The executable stored under ``key``, loaded onto ``device``, or None (absent, or an
-        entry that cannot be read or loaded: a miss)."""
+        entry that cannot be read or loaded: removed, a miss)."""
         from jax.experimental import serialize_executable
 
         try:
@@ -179,7 +165,11 @@ class KernelStore:
                                                              execution_devices=[device])
         except FileNotFoundError:
             return None
-        except Exception:  # noqa: BLE001 - a damaged or foreign entry: compiled again and rewritten
+        except Exception:  # noqa: BLE001 - a damaged or foreign entry: removed, a miss
+            try:
+                self._path(key).unlink()
+            except OSError:
+                pass
             return None
 
     def save(self, key: str, compiled, example_args: tuple, device) -> bool:

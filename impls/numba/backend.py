@@ -22,6 +22,8 @@ try:
 except ImportError as exc:  # the registry turns this into Unavailable(reason=…)
     raise ImportError("numba is not installed: pip install -c constraints.txt -e '.[numba]'") from exc
 
+import warnings
+
 import numpy as np
 
 from ..base import HostArrayBackend
@@ -29,6 +31,11 @@ from ..core.table import METHOD_TABLE
 from ..methods import get_method
 from ..protocol import Capabilities, Declined
 from . import driver, fields
+
+# numba tries its TBB threading layer first and, where the installed TBB is too old, warns and falls
+# back to OpenMP (or its workqueue): the kernels run the same, and the warning is noise in every run
+warnings.filterwarnings("ignore", message=".*The TBB threading layer requires TBB version",
+                        category=numba.core.errors.NumbaWarning)
 
 #: the methods compiled here (root finders) and ``render_surface`` (their hit, shaded with numpy)
 OFFERED = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton", "render_surface")

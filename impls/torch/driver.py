@@ -17,6 +17,8 @@ stays in torch on the device."""
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 from ..core.driver import CompactingSettings, run_compacted
@@ -34,6 +36,12 @@ def _take(a, idx, axis):
 
 def _move(v, holes, src):
     v.index_copy_(0, holes, torch.index_select(v, 0, src))
+
+
+# numpy's loop hands φ read-only views (broadcast depths, rays), which torch.from_numpy wraps with a
+# warning that writing through them is undefined: φ only reads its inputs
+warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning,
+                        module=__name__)
 
 
 def _host_ev(ev):
