@@ -13,4 +13,6 @@ code = main()
 atexit._run_exitfuncs()
 sys.stdout.flush()
 sys.stderr.flush()
-os._exit(code if isinstance(code, int) else 1)
+if code is not None and not isinstance(code, int):  # as SystemExit(code) would: printed, status 1
+    print(code, file=sys.stderr, flush=True)
+os._exit(0 if code is None else code if isinstance(code, int) else 1)
