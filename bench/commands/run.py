@@ -169,6 +169,14 @@ def _select(args, suite):
     return cases
 
 
+def _backend_ids_known(args) -> bool:
+    """Whether every ``--backend`` id names a backend, found without importing any library
+    (``impls.registry.unknown_reason``); :func:`_backends` says what is wrong otherwise."""
+    from impls import registry
+
+    return all(registry.unknown_reason(spec) is None for spec in split(args.backend) or ())
+
+
 def _backends(args) -> dict:
     """{id: backend or Unavailable} of ``--backend`` (default: every registered one); a plug-in's
     spec is kept in ``args.specs`` (id → spec) for the run's record and the cluster's workers."""
@@ -220,16 +228,22 @@ def _run(args, held: list) -> int:
         held.append(claim_out(out, resume=args.resume))
     except ValueError as exc:  # OutError, LockHeld
         raise UsageError(str(exc)) from None
-    backends = _backends(args)
-    budget = suite.budget_s if args.budget is None else (args.budget or None)
     live = console.is_terminal and not args.no_progress
     lines = ProgressLines(periodic=not live and not args.no_progress)
+    # without a cluster, the second process starts now and loads its libraries while this one
+    # loads its own (3–4 s each on 2 cores: one core idled through them when it started after)
+    early = not (args.cluster or args.scheduler) and _backend_ids_known(args)
+    side = _start_side_stages(args, suite, out, None, lines) if early else None
+    held += [side] if side else []
+    backends = _backends(args)
+    budget = suite.budget_s if args.budget is None else (args.budget or None)
     executor, msg = start_executor(args, lines)
     if msg:
         raise UsageError(msg)
     held += [executor] if executor else []
-    side = _start_side_stages(args, suite, out, executor, lines)
-    held += [side] if side else []
+    if not early:
+        side = _start_side_stages(args, suite, out, executor, lines)
+        held += [side] if side else []
     lines.line(f"run {'(resumed) ' if args.resume else ''}suite {suite.name}: {len(cases)} cases, backends "
                f"{', '.join(backends)}; budget {'none' if budget is None else f'{budget:g} s'}; out {out}")
     options = _run_options_of(args, suite, backends, policy, budget, run_id, executor,
