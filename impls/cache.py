@@ -10,6 +10,7 @@ default for a library user who imports a backend directly).
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 from pathlib import Path
 
@@ -24,6 +25,23 @@ def subdir(name: str) -> Path | None:
     d = Path(root) / name
     d.mkdir(parents=True, exist_ok=True)
     return d
+
+
+@functools.lru_cache(maxsize=None)
+def source_digest(*packages: str) -> str:
+    """SHA-256 over the relative paths and contents of every ``.py`` file of ``packages`` (top-level
+    package names, e.g. ``"impls", "reference"``): what a cached answer or kernel computed by their
+    code is also a function of, so that an edit of that code makes it a miss."""
+    import importlib
+
+    h = hashlib.sha256()
+    for name in packages:
+        for root in importlib.import_module(name).__path__:
+            base = Path(root)
+            for path in sorted(base.rglob("*.py")):
+                h.update(f"{name}/{path.relative_to(base).as_posix()}\0".encode())
+                h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def lock_numba_cache(dispatcher) -> None:

@@ -193,6 +193,14 @@ def configure_process(args) -> dict[str, str]:
     return record
 
 
+def reference_cache_dir(args) -> Path | None:
+    """Where a command keeps costly reference answers: ``<cache dir>/reference`` (None with
+    ``--no-cache``, or ``--no-reference-cache`` where the command has it)."""
+    from impls.cache import subdir
+
+    return None if getattr(args, "no_reference_cache", False) else subdir("reference")
+
+
 def run_claims_into(out: Path, *, quick: bool, console, only: list[str] | None = None,
                     reference_dir: Path | None = None) -> str:
     """Call the claims ledger (``bench.claims.run_claims``, the claims ``only`` or all) into

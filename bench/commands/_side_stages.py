@@ -28,7 +28,8 @@ import os
 import time
 from pathlib import Path
 
-from ._common import configure_process, make_console, resolve_backends, run_claims_into, split
+from ._common import (configure_process, make_console, reference_cache_dir, resolve_backends, run_claims_into,
+                      split)
 from ..run.environment import usable_cores
 from ._run_stages import run_stability_into
 
@@ -64,10 +65,8 @@ def stages_main(args: argparse.Namespace, out: str, stability_suite: str | None,
             notes["stability"] = (f"stability stage failed: {msg}" if msg else
                                   run_stability_into(Path(out), get_suite(stability_suite), backends, args, console))
     if claims:
-        from impls.cache import subdir
-
-        reference_dir = None if getattr(args, "no_reference_cache", False) else subdir("reference")
-        notes["claims"] = run_claims_into(Path(out), quick=quick, console=console, reference_dir=reference_dir)
+        notes["claims"] = run_claims_into(Path(out), quick=quick, console=console,
+                                          reference_dir=reference_cache_dir(args))
     return notes
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import DEFAULT_REPORTS, error, make_console, run_claims_into
+from ._common import DEFAULT_REPORTS, error, make_console, reference_cache_dir, run_claims_into
 
 ORDER = 2
 HELP = ("check the lecture's claims; writes claims.csv, plots and a report")
@@ -45,9 +45,8 @@ def run(args) -> int:
     if held:
         return error(f"--out: {out} already holds {', '.join(held)}; results are never overwritten. Pass another --out")
     console = make_console()
-    from impls.cache import subdir
-
-    note = run_claims_into(out, quick=not args.full, console=console, only=args.only, reference_dir=subdir("reference"))
+    note = run_claims_into(out, quick=not args.full, console=console, only=args.only,
+                           reference_dir=reference_cache_dir(args))
     if not (out / "environment.json").exists():
         write_json(out / "environment.json", {**collect(), "run_id": out.name, "suite": "claims"})
     if (out / "claims.csv").exists():

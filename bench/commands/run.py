@@ -18,7 +18,8 @@ import sys
 from pathlib import Path
 
 from ._common import (ALLOCATOR_HELP, DEFAULT_REPORTS, ProgressLines, UsageError, configure_process, error,
-                      int_at_least, load_user_cases, make_console, resolve_backends, run_claims_into, seconds, split)
+                      int_at_least, load_user_cases, make_console, reference_cache_dir, resolve_backends,
+                      run_claims_into, seconds, split)
 from ._run_options import LIST_OPTIONS, RESUMED_OPTIONS, contradictions, empty_option, restore_run_options, run_options
 from ._run_stages import closing_summary, run_stability_into, start_executor
 
@@ -109,14 +110,6 @@ def _check_options(args) -> None:
     err = err or contradictions(args)  # after the restore: a resumed plan's options count too
     if err:
         raise UsageError(err)
-
-
-def _reference_cache(args) -> Path | None:
-    """Where a run keeps costly reference answers: ``<cache dir>/reference`` (None with
-    ``--no-cache`` or ``--no-reference-cache``)."""
-    from impls.cache import subdir
-
-    return None if args.no_reference_cache else subdir("reference")
 
 
 def _suite(args):
@@ -260,7 +253,7 @@ def _run_options_of(args, suite, backends, policy, budget, run_id, executor, env
 
     return RunOptions(case_pattern=args.case, methods=split(args.method), dtypes=split(args.dtype), policy=policy,
                       run_id=run_id, resume=args.resume, env_extra=env_extra, budget_s=budget, rounds=args.rounds,
-                      reference_cache_dir=_reference_cache(args), reference_timeout_s=args.reference_timeout,
+                      reference_cache_dir=reference_cache_dir(args), reference_timeout_s=args.reference_timeout,
                       executor=executor, rerun_cases=split(args.rerun_case),
                       share=None if side is None or side.share is None else (side.share, side.alive))
 
@@ -335,7 +328,8 @@ def _finish(args, suite, backends, out: Path, df, console, lines: ProgressLines,
         write_json(out / "environment.json", env)
     if side is None and "claims" in stages:
         lines.line("claims: checking the lecture's claims")
-        note = run_claims_into(out, quick=suite.name == "quick", console=console, reference_dir=_reference_cache(args))
+        note = run_claims_into(out, quick=suite.name == "quick", console=console,
+                               reference_dir=reference_cache_dir(args))
         env["claims"] = note or "ran"
         write_json(out / "environment.json", env)
     lines.line("report: writing report.md and report.html")

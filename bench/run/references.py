@@ -14,12 +14,13 @@ density model a method's name or knobs select (:func:`density_model`); and
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import time
 from pathlib import Path
 
 import numpy as np
+
+from impls.cache import source_digest
 
 from .results import write_atomic
 
@@ -88,19 +89,6 @@ def _disk_key(case, parts: tuple, module) -> str:
     return h.hexdigest()[:20]
 
 
-@functools.lru_cache(maxsize=1)
-def _reference_source_digest() -> str:
-    """SHA-256 of every ``.py`` file of the ``reference`` package (paths and contents): what a
-    numerical reference answer is a function of besides the case itself."""
-    import reference
-
-    h = hashlib.sha256()
-    for root in reference.__path__:
-        for path in sorted(Path(root).rglob("*.py")):
-            h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
-    return h.hexdigest()
-
-
 def load_numerical_hits(case, disk: Path | None) -> None:
     """Give ``case`` its numerical first hits (``Case.exact_t`` and its error bounds, for a scene
     without closed-form hits: an MLP, the neural SDF; 1.5 s and 0.75 s on the quick run's two
@@ -111,7 +99,7 @@ def load_numerical_hits(case, disk: Path | None) -> None:
     if disk is None or case.scene.info.exact_hits:
         return
     h = hashlib.sha256(repr(("first_hit_numeric", case.version)).encode())
-    h.update(_reference_source_digest().encode())
+    h.update(source_digest("reference").encode())
     path = Path(disk) / f"first_hit-{case.id}-{h.hexdigest()[:20]}.npz"
 
     try:
@@ -133,7 +121,7 @@ def render_exact_kept(disk: Path | None, scene, color, model: str, sharpness: fl
         return rendering.render_exact(scene, color, model, sharpness, o, d, t_min, t_max)
     h = hashlib.sha256(repr(("render_exact", scene.spec(), repr(color), model, float(sharpness), float(t_min),
                              float(t_max), o.shape)).encode())
-    h.update(o.tobytes() + d.tobytes() + _reference_source_digest().encode())
+    h.update(o.tobytes() + d.tobytes() + source_digest("reference").encode())
     path = Path(disk) / f"render_exact-kept-{h.hexdigest()[:24]}.npz"
     return _kept_arrays(path, ("colors", "bounds"),
                         lambda: rendering.render_exact(scene, color, model, sharpness, o, d, t_min, t_max))

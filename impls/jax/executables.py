@@ -52,6 +52,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..cache import source_digest
+
 #: bump when the entry format or the key's composition changes
 FORMAT = 1
 
@@ -88,22 +90,6 @@ def value_digest(obj: Any) -> str | None:
 
 
 @functools.lru_cache(maxsize=1)
-def _code_digest() -> str:
-    """SHA-256 over the paths and contents of every ``.py`` file of the ``impls`` and
-    ``reference`` packages."""
-    import importlib
-
-    h = hashlib.sha256()
-    for name in _OWN:
-        for root in importlib.import_module(name).__path__:
-            base = Path(root)
-            for path in sorted(base.rglob("*.py")):
-                h.update(f"{name}/{path.relative_to(base).as_posix()}\0".encode())
-                h.update(path.read_bytes())
-    return h.hexdigest()
-
-
-@functools.lru_cache(maxsize=1)
 def _cpu_flags() -> str:
     try:
         with open("/proc/cpuinfo") as f:
@@ -137,7 +123,7 @@ def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, 
     values = value_digest((scene, extra))
     if values is None:
         return None
-    parts = (_environment(backend.jax_device), _code_digest(), values, method, t_range,
+    parts = (_environment(backend.jax_device), source_digest(*_OWN), values, method, t_range,
              sorted((k, repr(v)) for k, v in static.items()),
              sorted((k, type(v).__name__) for k, v in traced.items()), backend.device, repr(backend.settings),
              [None if a is None else (tuple(a.shape), str(a.dtype)) for a in arrays])
