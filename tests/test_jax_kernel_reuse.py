@@ -162,3 +162,44 @@ def test_knob_sets_start_from_the_declaration_and_fall_back_to_floats():
     assert all(k not in s for s in sets for k in ("bounds", "ladder"))
     user = {"tol": 1e-6, "n": 8, "gain": 0.5}
     assert jb._traced_sets("users_method", user) == [("gain", "n", "tol"), ("gain", "tol"), ("tol",), ()]
+
+
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("n", [32, 100])  # 100 rays: padded to 128 rows, the outputs cut back
+def test_render_surface_shades_the_hybrid_kernels_hit_with_the_fused_kernels_results(n, monkeypatch):
+    """render_surface runs hybrid_secant's own kernel (one compilation for both methods) and a
+    shading kernel given its output; its outputs equal, bit for bit, those of one kernel that
+    finds the hit and shades it."""
+    from impls.core import rendering
+    from impls.jax.backend import JaxBackend
+
+    resolve_or_skip("jax:cpu")
+    scene, (o, d) = Sphere(center=(0.0, 0.0, 0.0), radius=0.75), _rays(n)
+    b = JaxBackend("cpu")
+    b._store = None
+    kw = dict(dtype="float64", t_min=0.0, t_max=10.0, xtol=1e-10)
+    b.prepare("hybrid_secant", scene, o, d, **kw)
+    hybrid = set(b._kernels)
+    prep = b.prepare("render_surface", scene, o, d, **kw)
+    added = set(b._kernels) - hybrid
+    assert [k[0] for k in added] == ["render_surface"]  # the hit's kernel was hybrid_secant's
+    got = prep.result(prep.run())
+    monkeypatch.setattr(rendering.render_surface, "hit_method", None)
+    fused = JaxBackend("cpu")
+    fused._store = None
+    want_prep = fused.prepare("render_surface", scene, o, d, **kw)
+    assert [k[0] for k in fused._kernels] == ["render_surface"]
+    want = want_prep.result(want_prep.run())
+    assert got.t.shape == (n,) and got.outputs["color"].shape == (n, 3)
+    assert (got.status == Status.CONVERGED).any() and (got.status == Status.MISS).any()
+    for k in ("t", "status", "iterations", "evals"):
+        np.testing.assert_array_equal(getattr(got, k), getattr(want, k), err_msg=k)
+    np.testing.assert_array_equal(got.outputs["color"], want.outputs["color"])
+
+
+def test_a_precomputed_hit_is_refused_with_a_callers_theta():
+    from impls.core import rendering
+
+    with pytest.raises(ValueError, match="precomputed hit"):
+        rendering.render_surface(resolve_or_skip("numpy"), Sphere(center=(0.0, 0.0, 0.0), radius=1.0), None, None,
+                                 t_min=0.0, t_max=1.0, t_hit=None, color=None, theta=np.zeros(4), hit={})

@@ -173,6 +173,8 @@ def config_task(run_id: str, case_id: str, case_version: str, backend_id: str, m
             return {"error": f"on worker {ident['worker']}: {type(exc).__name__}: {exc}", **ident}
         cfg = Config(case, backend_id, method, dtype, dict(knobs))
         backend = _backend(backend_id)
+        if policy.accuracy_only:  # as the in-process runner: the backend's compile-light driver settings
+            backend = environment.untimed_backend(backend)
         cf: dict = {}
 
         def cf_time() -> float:

@@ -72,6 +72,30 @@ def configure_driver(backend, threads: int) -> None:
         configure(threads=threads)
 
 
+def untimed_backend(backend):
+    """``backend`` as a run that times nothing uses it (``TimingPolicy.accuracy_only``: the stability
+    stage, ``--accuracy-only``): a copy configured with the driver settings its optional hook
+    ``untimed_settings() -> dict`` names, settings that give the same per-ray results at less
+    compile cost (jax: one compaction level, :meth:`impls.jax.backend.JaxBackend.untimed_settings`),
+    recorded with every row as any settings are.  The backend itself where it has no such hook,
+    or where the hook or the settings it names fail: a plug-in's fault costs it the saving, not
+    its rows."""
+    import copy
+
+    hook = getattr(backend, "untimed_settings", None)
+    if not callable(hook) or not callable(getattr(backend, "configure", None)):
+        return backend
+    try:
+        changes = hook()
+        if not isinstance(changes, dict) or not changes:
+            return backend
+        twin = copy.copy(backend)  # the caller's object keeps its settings (a later timed run uses them)
+        twin.configure(**changes)
+        return twin
+    except Exception:  # noqa: BLE001 - untrusted plug-in code
+        return backend
+
+
 def driver_record(backend) -> str:
     """``backend.settings.record()`` as JSON (the loop driver's settings, recorded with every row);
     "" for a backend that states none, or whose record fails (a plug-in's fault is not the run's)."""

@@ -186,6 +186,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     """
     opts = options if options is not None else RunOptions(**option_values)
     opts.check()
+    if opts.policy.accuracy_only:  # nothing timed: each backend's compile-light driver settings, if it has any
+        backends = {bid: environment.untimed_backend(b) for bid, b in backends.items()}
     out_dir, started = Path(out_dir), time.monotonic()
     env, previous = _environment(suite, backends, out_dir, opts)
     run_id = env["run_id"]

@@ -226,9 +226,16 @@ def make_volume_impl(model, sampler):
     return impl
 
 
-def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=None, **knobs):
+def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=None, hit=None, **knobs):
     """``render_surface``: ρ at the first hit found by the backend's hybrid root finder; 0 on a
     miss; NaN on a ray the root finder did not resolve (any other status; ``t`` NaN on BAD_INPUT).
+
+    ``hit``: that root finder's output on these rays (``t``, ``status``, ``iterations``,
+    ``evals``), where the backend ran it already: the root method :data:`render_surface.hit_method
+    <render_surface>` (``hybrid_secant``) with these knobs is the same algorithm, so a backend
+    that compiles kernels runs that method's kernel and shades its hit in a second one
+    (:meth:`impls.jax.backend.JaxBackend.compile_configuration`); only with ``theta`` not given
+    (a caller's θ moves the hit).
 
     Differentiable through the hit (backends with autodiff, i.e. with a ``backend.stop_gradient``):
     the colour is ρ(o + t d) with IDR's depth (Yariv et al. 2020, eq. 3; lecture eq. 7–8) t = t̂ − φ(x̂; θ)/⟨∇φ(x̂; θ₀), d⟩, where the hit t̂ (root finder) and
@@ -247,8 +254,11 @@ def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=No
         theta = theta0(backend, scene, o)
     const = stop_gradient if differentiable else (lambda a: a)
     th_c = None if theta is None else const(theta)
-    s = backend.solve("render_surface", scene, const(o), const(d), t_min=t_min, t_max=t_max,
-                      theta=th_c if given else None, **knobs)
+    if hit is not None and given:
+        raise ValueError("render_surface: a precomputed hit is the hit at the scene's own parameters; with theta "
+                         "given, let the root finder run")
+    s = hit if hit is not None else backend.solve("render_surface", scene, const(o), const(d), t_min=t_min,
+                                                  t_max=t_max, theta=th_c if given else None, **knobs)
     ok = s["status"] == CONV
     o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
     d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
@@ -276,6 +286,9 @@ def render_surface(backend, scene, o, d, *, t_min, t_max, t_hit, color, theta=No
             "iterations": s["iterations"], "evals": evals,
             "color": xp.where(ok[:, None], rgb, xp.broadcast_to(blank[:, None], rgb.shape))}
 
+
+#: the root method whose algorithm render_surface's hit is (the same knobs, the same catalog builder)
+render_surface.hit_method = "hybrid_secant"
 
 IMPLS = {"render_surface": render_surface,
          **{f"volume_{model}_{sampler}": make_volume_impl(model, sampler) for model in DENSITIES for sampler in SAMPLERS}}

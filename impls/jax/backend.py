@@ -170,7 +170,9 @@ class JaxBackend(ArrayBackend):
                    "compacted level by level into smaller batches, one lax.while_loop per stage and level; the "
                    "chunks' stragglers after a capped number of steps of the last level finished together; n rays "
                    "run as the next power of two ≥ max(n, settings.pad) rows, copies of the first ray, whose "
-                   "outputs are dropped (sizes: backend.settings, recorded with every result)",),
+                   "outputs are dropped (sizes: backend.settings, recorded with every result)",
+                   "render_surface runs two kernels: hybrid_secant's own (compiled once for both methods) and one "
+                   "that shades its hit; its timing is the two calls",),
             expected_failures=(
                 ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
                  "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
@@ -223,17 +225,68 @@ class JaxBackend(ArrayBackend):
         otherwise (None without a cache directory and nothing to reuse).  A traced knob is a weakly typed scalar,
         so it enters float32 arithmetic as the Python constant it replaces does.  The rays run as
         ``driver.padded_size(n, settings.pad)`` rows (copies of the first ray appended, padded once
-        here, their outputs dropped), so that ray sets of nearby sizes share a kernel."""
+        here, their outputs dropped), so that ray sets of nearby sizes share a kernel.
+
+        A method whose implementation names a root method it shades the hit of (``hit_method``:
+        ``render_surface``, the hit of ``hybrid_secant``) runs as two kernels: that root method's,
+        the very kernel its own configurations run (compiled once for both), and one that shades
+        its output (:func:`impls.core.rendering.render_surface`'s ``hit``).  The root finder's
+        loops are most of the compile time of such a method, and nothing fuses across them."""
         n = o.shape[0]
         rows = driver.padded_size(n, self.settings.pad)
         given = (o, d, th)
-        o, d, th = (None if a is None else driver.pad_rows(a, rows) for a in given)
+        padded = tuple(None if a is None else driver.pad_rows(a, rows) for a in given)
+        hit_method = getattr(self._impl.get(method), "hit_method", None)
+        if hit_method is not None and th is None and hit_method in self._impl:
+            return self._compile_hit_then_shade(call, hit_method, knobs, n, rows, given, padded, method=method,
+                                                scene=scene, t_range=t_range, extra=extra)
+        compiled, traced, spent = self._kernel(call, knobs, *padded, method=method, scene=scene, t_range=t_range,
+                                               extra=extra)
+        if rows == n:
+            return (lambda o, d, th: compiled(o, d, th, traced)), spent
+        return _padded_call(compiled, traced, n, rows, given, padded), spent
+
+    def _compile_hit_then_shade(self, call, hit_method, knobs, n, rows, given, padded, *, method, scene, t_range,
+                                extra):
+        """``method``'s run as ``hit_method``'s kernel followed by a shading kernel given its output
+        (:meth:`compile_configuration`); ``last_compile_cache`` "reused" when both were."""
+        impl, (t_min, t_max) = self._impl[hit_method], t_range
+        o, d, _ = padded
+
+        def hit_call(o, d, th, knobs):  # what prepare() runs for hit_method's own configurations
+            return impl(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=th, **knobs)
+
+        def shade_call(o, d, hit, knobs):
+            return call(o, d, None, {**knobs, "hit": hit})
+
+        hit_kernel, hit_traced, spent = self._kernel(hit_call, knobs, o, d, None, method=hit_method, scene=scene,
+                                                     t_range=t_range, extra={})
+        reused = self.last_compile_cache == "reused"
+        t0 = time.perf_counter()
+        example = hit_kernel(o, d, None, hit_traced)  # the shading kernel's example input
+        spent += time.perf_counter() - t0
+        shade, shade_traced, more = self._kernel(shade_call, knobs, o, d, example, method=method, scene=scene,
+                                                 t_range=t_range, extra=extra)
+        if self.last_compile_cache is not None:
+            self.last_compile_cache = "reused" if reused and self.last_compile_cache == "reused" else "compiled"
+
+        def run(o, d, th):
+            o, d = (p if a is g else driver.pad_rows(a, rows) for a, g, p in zip((o, d), given, padded))
+            out = shade(o, d, hit_kernel(o, d, None, hit_traced), shade_traced)
+            return out if rows == n else {k: v[:n] if getattr(v, "ndim", 0) and v.shape[0] == rows else v
+                                          for k, v in out.items()}
+
+        return run, spent + more
+
+    def _kernel(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
+        """``(compiled, traced knob values, seconds spent)`` of ``call(o, d, th, knobs)`` on rays
+        already padded (:meth:`compile_configuration`); ``th``: None, an array or a dict of arrays."""
         spent = 0.0
         for names in _traced_sets(method, knobs):
             static = {k: v for k, v in knobs.items() if k not in names}
             key = (method, _identity(scene), t_range, tuple(sorted((k, _identity(v)) for k, v in extra.items())),
                    tuple(sorted(static.items())), names, self.device, self.settings,
-                   *((None,) if a is None else (tuple(a.shape), str(a.dtype)) for a in (o, d, th)))
+                   *(executables.array_layout(a) for a in (o, d, th)))
             if names and key in _TRACED_FAILED:
                 continue
             t0 = time.perf_counter()
@@ -274,12 +327,17 @@ class JaxBackend(ArrayBackend):
                 self._kernels[key] = kept = (compiled, scene, extra)
                 while len(self._kernels) > KEEP_KERNELS:
                     self._kernels.popitem(last=False)
-            compiled = kept[0]
-            traced = {k: knobs[k] for k in names}
-            if rows == n:
-                return (lambda o, d, th: compiled(o, d, th, traced)), spent + time.perf_counter() - t0
-            return _padded_call(compiled, traced, n, rows, given, (o, d, th)), spent + time.perf_counter() - t0
+            return kept[0], {k: knobs[k] for k in names}, spent + time.perf_counter() - t0
         raise AssertionError("unreachable: the last set of traced knobs is empty")  # pragma: no cover
+
+    def untimed_settings(self) -> dict:
+        """Driver settings for a run that times nothing (the stability stage, ``--accuracy-only``;
+        :func:`bench.run.environment.untimed_backend`): one compaction level per chunk
+        (``last = chunk``).  The levels exist for run time only: a ray's results do not depend on
+        them (``tests/test_driver.py``), and each level is a copy of every stage's loop, φ inlined,
+        in the compiled program.  On the quick suite's stability stage (22 jax kernels, 256–1,024
+        rays) XLA's compile time falls from 45.6 to 18.0 s with the same rows."""
+        return {"last": self.settings.chunk}
 
     def versions(self):
         import jaxlib

@@ -109,6 +109,16 @@ def _environment(device) -> str:
                  os.environ.get("XLA_FLAGS", ""), device.platform, device.device_kind, platform.machine(), _cpu_flags()))
 
 
+def array_layout(a: Any):
+    """What a kernel is compiled for of an input: None, an array's ``(shape, dtype)``, or a dict
+    of arrays' ``((key, layout), …)`` in key order (a shading kernel's input hit)."""
+    if a is None:
+        return None
+    if isinstance(a, dict):
+        return tuple((k, array_layout(v)) for k, v in sorted(a.items()))
+    return (tuple(a.shape), str(a.dtype))
+
+
 def _own(obj: Any) -> bool:
     return (getattr(obj, "__module__", None) or "").split(".")[0] in _OWN
 
@@ -126,7 +136,7 @@ def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, 
     parts = (_environment(backend.jax_device), source_digest(*_OWN), values, method, t_range,
              sorted((k, repr(v)) for k, v in static.items()),
              sorted((k, type(v).__name__) for k, v in traced.items()), backend.device, repr(backend.settings),
-             [None if a is None else (tuple(a.shape), str(a.dtype)) for a in arrays])
+             [array_layout(a) for a in arrays])
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 
 

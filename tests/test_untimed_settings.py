@@ -1,0 +1,105 @@
+"""Runs that time nothing (the stability stage, ``--accuracy-only``) use each backend's optional
+``untimed_settings()`` hook (:func:`bench.run.environment.untimed_backend`): a copy of the backend
+with driver settings that give the same per-ray results at less compile cost (jax: one compaction
+level), recorded with every row; the caller's object keeps its settings, and a hook that fails
+costs the backend the saving, never its rows."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pandas as pd
+import pytest
+
+from bench.run import runner
+from bench.run.environment import driver_record, untimed_backend
+from bench.run.suites import Suite
+from bench.run.timing import TimingPolicy
+from impls import registry
+
+
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    levels: int = 3
+
+    def record(self):
+        return {"driver": "fake", "levels": self.levels}
+
+
+class _Configurable:
+    settings = _Settings()
+
+    def configure(self, **changes):
+        self.settings = dataclasses.replace(self.settings, **changes)
+
+
+class _Offers(_Configurable):
+    def untimed_settings(self):
+        return {"levels": 1}
+
+
+class _Raises(_Configurable):
+    def untimed_settings(self):
+        raise RuntimeError("planted")
+
+
+class _NotADict(_Configurable):
+    def untimed_settings(self):
+        return [("levels", 1)]
+
+
+class _UnknownSetting(_Configurable):
+    def untimed_settings(self):
+        return {"no_such_setting": 1}
+
+
+def test_the_untimed_backend_is_a_configured_copy_and_the_callers_object_keeps_its_settings():
+    b = _Offers()
+    u = untimed_backend(b)
+    assert u is not b and u.settings.levels == 1 and b.settings.levels == 3
+    assert json.loads(driver_record(u))["levels"] == 1  # recorded with every row
+
+
+@pytest.mark.parametrize("cls", [_Configurable, _Raises, _NotADict, _UnknownSetting])
+def test_no_hook_or_a_failing_one_leaves_the_backend_as_it_is(cls):
+    b = cls()
+    assert untimed_backend(b) is b and b.settings.levels == 3
+
+
+def test_a_backend_without_configure_is_left_alone():
+    class OnlyHook:
+        def untimed_settings(self):
+            return {"levels": 1}
+
+    b = OnlyHook()
+    assert untimed_backend(b) is b
+
+
+def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
+    """An accuracy-only run records jax's one-level settings; its rows equal a timed run's (the
+    levels change the compiled program, not a ray's results)."""
+    pytest.importorskip("jax")
+    from impls.jax import driver
+
+    b = registry.resolve("jax:cpu")
+    if isinstance(b, registry.Unavailable):
+        pytest.skip(b.reason)
+    u = untimed_backend(b)
+    assert u.settings.last == u.settings.chunk and b.settings.last == driver.LAST
+    assert driver.level_sizes(u.settings.chunk, u.settings.ratio, u.settings.last) == [u.settings.chunk]
+    # rays from a few steps to hundreds (the timed run's levels compact them)
+    suite = Suite(name="t", case_pattern="torus.tangent", dtypes=("float64",), sweeps={"sphere_trace": [{}]},
+                  methods=("sphere_trace",))
+    frames = {}
+    for accuracy_only in (True, False):
+        policy = TimingPolicy(min_repeats=1, min_time_s=0.0, min_sample_s=0.0, warmup=0, timeout_s=0,
+                              accuracy_only=accuracy_only)
+        frames[accuracy_only] = runner.run(suite, {"jax:cpu": b}, tmp_path / str(accuracy_only), policy=policy)
+    untimed, timed = frames[True], frames[False]
+    assert json.loads(untimed["driver_json"].iloc[0])["last"] == b.settings.chunk
+    assert json.loads(timed["driver_json"].iloc[0])["last"] == driver.LAST  # the caller's backend is unchanged
+    assert set(untimed["outcome"]) == {"ok"}
+    cols = ["quantity", "status_counts", "error_max", "error_p99", "n_false_hit", "n_false_miss", "evals_per_ray",
+            "evals_max", "iterations_max"]
+    pd.testing.assert_frame_equal(untimed[cols].reset_index(drop=True), timed[cols].reset_index(drop=True))
