@@ -203,3 +203,50 @@ def test_a_precomputed_hit_is_refused_with_a_callers_theta():
     with pytest.raises(ValueError, match="precomputed hit"):
         rendering.render_surface(resolve_or_skip("numpy"), Sphere(center=(0.0, 0.0, 0.0), radius=1.0), None, None,
                                  t_min=0.0, t_max=1.0, t_hit=None, color=None, theta=np.zeros(4), hit={})
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_volume_renderers_share_a_sampler_kernel_and_a_shading_kernel_with_the_fused_results(monkeypatch):
+    """The volume renderers whose bins are fixed up front run a sampler kernel (one per sampler,
+    whatever the density model) and a shading kernel (one per model, whatever the sampler); their
+    statuses and counts equal those of one kernel per method, and their floats are equal to a few
+    units in the last place (XLA contracts a multiply and an add into one FMA where both are in
+    one fused loop, so where the bins are computed, in their own kernel or inside the shading's,
+    can move a sample by one rounding)."""
+    from impls.core.table import METHOD_TABLE
+    from impls.jax.backend import JaxBackend
+
+    resolve_or_skip("jax:cpu")
+    scene, (o, d) = Sphere(center=(0.0, 0.0, 0.0), radius=0.75), _rays(100)
+    t_hit = np.full(len(o), 2.5)
+    b = JaxBackend("cpu")
+    b._store = None
+    methods = [f"volume_{m}_{s}" for m in ("nerf", "neus") for s in ("uniform", "stratified", "band")]
+
+    def run(backend, method):
+        kw = dict(dtype="float64", t_min=0.0, t_max=6.0, n_samples=24, sharpness=20.0)
+        if method.endswith("band"):
+            kw.update(t_hit=t_hit, delta=0.3)
+        prep = backend.prepare(method, scene, o, d, **kw)
+        return prep.result(prep.run())
+
+    got = {m: run(b, m) for m in methods}
+    assert sorted(k[0] for k in b._kernels) == sorted(
+        ["volume_samples_uniform", "volume_samples_stratified", "volume_samples_band", "volume_shading_nerf",
+         "volume_shading_neus"])
+    for m in methods:
+        monkeypatch.delattr(METHOD_TABLE[m], "stages")
+    fused = JaxBackend("cpu")
+    fused._store = None
+    for m in methods:
+        want = run(fused, m)
+        assert got[m].t.shape == (100,) and (got[m].status == Status.CONVERGED).any()
+        for k in ("status", "iterations", "evals"):
+            np.testing.assert_array_equal(getattr(got[m], k), getattr(want, k), err_msg=f"{m} {k}")
+        assert set(got[m].outputs) == set(want.outputs)
+        for k, a, w in [("t", got[m].t, want.t), *((k, got[m].outputs[k], want.outputs[k]) for k in want.outputs)]:
+            a, w = np.asarray(a, dtype=np.float64), np.asarray(w, dtype=np.float64)
+            finite = np.isfinite(w)
+            np.testing.assert_array_equal(a[~finite], w[~finite], err_msg=f"{m} {k}")
+            np.testing.assert_array_max_ulp(a[finite], w[finite], maxulp=4)  # 3 measured (neus, band)
+    assert sorted(k[0] for k in fused._kernels) == sorted(methods)

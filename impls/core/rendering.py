@@ -176,51 +176,103 @@ def composite(xp, scene, color, o, d, edges, pts, *, model, s, threshold, compac
     return C, 1 - T, depth, used, evals
 
 
+#: the volume renderers' knobs that shade (the rest choose the samples)
+SHADING_KNOBS = ("sharpness", "t_threshold")
+
+
+def _check_far_end(t_max):
+    if not math.isfinite(t_max):
+        raise ValueError("volume rendering needs a finite t_max (the far end of the sampled interval)")
+
+
+def _shade(xp, backend, scene, color, o, d, edges, pts, status, *, model, sharpness, t_threshold, planned,
+           coarse_cost):
+    """Composite the samples ``pts`` in bins ``edges`` (:func:`composite`) into the method's outputs."""
+    o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
+    d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
+    C, opacity, depth, used, evals = composite(xp, scene, color, o_safe, d_safe, edges, pts, model=model, s=sharpness,
+                                               threshold=t_threshold, compact=backend.compact, status=status)
+    ok = status == CONV
+    evals = evals + xp.astype(ok, xp.int32) * coarse_cost
+    saved = xp.astype(planned - used, o.dtype) / planned
+    # a non-finite colour, opacity or depth (φ or ρ NaN along the ray) is NON_FINITE, not a result
+    finite = xp.isfinite(depth) & xp.isfinite(opacity) & xp.all(xp.isfinite(C), axis=1)
+    status = xp.astype(xp.where(ok & ~finite, NONF, status), xp.int32)
+    ok = status == CONV
+    # flagged rays (BAD_INPUT, NON_FINITE): every float output NaN; MISS (band, no hit): t = inf,
+    # colour and opacity 0 (the background), nothing sampled
+    bad = (status == BAD) | (status == NONF)
+    nan = xp.full_like(depth, math.nan)
+    t = xp.where(ok, depth, xp.where(bad, nan, xp.full_like(depth, math.inf)))
+    return {"t": t, "status": status, "iterations": used, "evals": evals,
+            "color": xp.where(bad[:, None], xp.full_like(C, math.nan), C),
+            "opacity": xp.where(bad, nan, opacity), "samples_used": used,
+            "work_saved": xp.where(bad, nan, saved)}
+
+
+def make_volume_sampler(sampler):
+    """The samples of a sampler that fixes its bins up front (``uniform``, ``stratified``,
+    ``band``): ``sample(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, **knobs)`` →
+    ``{"edges", "pts", "status"}`` (:func:`bins`; the scene is not read)."""
+
+    def sample(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, **knobs):
+        _check_far_end(t_max)
+        edges, pts, status = bins(backend.xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs)
+        return {"edges": edges, "pts": pts, "status": status}
+
+    sample.__name__ = f"volume_samples_{sampler}"
+    return sample
+
+
+def make_volume_shading(model):
+    """Density model ``model`` composited over given samples: ``shade(backend, scene, o, d, *,
+    samples, color, sharpness, t_threshold)``, ``samples`` a sampler's output
+    (:func:`make_volume_sampler`); the same outputs as the method of that sampler."""
+
+    def shade(backend, scene, o, d, *, samples, color, sharpness, t_threshold):
+        n_samples = samples["pts"].shape[1]
+        return _shade(backend.xp, backend, scene, color, o, d, samples["edges"], samples["pts"], samples["status"],
+                      model=model, sharpness=sharpness, t_threshold=t_threshold, planned=n_samples, coarse_cost=0)
+
+    shade.__name__ = f"volume_shading_{model}"
+    shade.knobs = SHADING_KNOBS  # its knobs; the sampler takes the others
+    return shade
+
+
 def make_volume_impl(model, sampler):
     """A ``volume_<model>_<sampler>`` implementation; ``backend.compact``: drop terminated rays
-    (numpy, torch)."""
+    (numpy, torch).  For the samplers that fix their bins up front it is a sampler followed by a
+    shading of the model (``impl.stages`` = (sample, shade), :func:`make_volume_sampler`,
+    :func:`make_volume_shading`), so a backend that compiles kernels may compile the two apart: a
+    model's shading is then one kernel for the three samplers."""
+    if sampler != "importance":
+        sample, shade = make_volume_sampler(sampler), make_volume_shading(model)
+
+        def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, **knobs):
+            samples = sample(backend, scene, o, d, t_min=t_min, t_max=t_max, t_hit=t_hit, n_samples=n_samples, **knobs)
+            return shade(backend, scene, o, d, samples=samples, color=color, sharpness=sharpness,
+                         t_threshold=t_threshold)
+
+        impl.stages = (sample, shade)
+        impl.__name__ = f"volume_{model}_{sampler}"
+        return impl
 
     def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, **knobs):
         xp = backend.xp
-        if not math.isfinite(t_max):
-            raise ValueError("volume rendering needs a finite t_max (the far end of the sampled interval)")
-        if sampler == "importance":
-            nc = knobs["n_coarse"]
-            e0, p0, status = bins(xp, backend, "uniform", o, d, t_min, t_max, t_hit, nc, knobs)
-            o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
-            d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
-            xc = o_safe[:, None, :] + (e0 if model == "neus" else p0)[..., None] * d_safe[:, None, :]
-            a = alpha(xp, model, scene.value(xc, xp), e0[:, 1:] - e0[:, :-1], sharpness)
-            w = xp.cumulative_prod(1 - a, axis=-1, include_initial=True)[:, :-1] * a
-            fine = inverse_cdf(xp, e0, w, n_samples)
-            pts = xp.sort(xp.concat([p0, fine], axis=1), axis=1)
-            mids = 0.5 * (pts[:, 1:] + pts[:, :-1])
-            edges = xp.concat([e0[:, :1], mids, e0[:, -1:]], axis=1)
-            planned = nc + n_samples
-            coarse_cost = nc + (1 if model == "neus" else 0)
-        else:
-            edges, pts, status = bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs)
-            planned, coarse_cost = n_samples, 0
+        _check_far_end(t_max)
+        nc = knobs["n_coarse"]
+        e0, p0, status = bins(xp, backend, "uniform", o, d, t_min, t_max, t_hit, nc, knobs)
         o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
         d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
-        C, opacity, depth, used, evals = composite(xp, scene, color, o_safe, d_safe, edges, pts, model=model, s=sharpness,
-                                                   threshold=t_threshold, compact=backend.compact, status=status)
-        ok = status == CONV
-        evals = evals + xp.astype(ok, xp.int32) * coarse_cost
-        saved = xp.astype(planned - used, o.dtype) / planned
-        # a non-finite colour, opacity or depth (φ or ρ NaN along the ray) is NON_FINITE, not a result
-        finite = xp.isfinite(depth) & xp.isfinite(opacity) & xp.all(xp.isfinite(C), axis=1)
-        status = xp.astype(xp.where(ok & ~finite, NONF, status), xp.int32)
-        ok = status == CONV
-        # flagged rays (BAD_INPUT, NON_FINITE): every float output NaN; MISS (band, no hit): t = inf,
-        # colour and opacity 0 (the background), nothing sampled
-        bad = (status == BAD) | (status == NONF)
-        nan = xp.full_like(depth, math.nan)
-        t = xp.where(ok, depth, xp.where(bad, nan, xp.full_like(depth, math.inf)))
-        return {"t": t, "status": status, "iterations": used, "evals": evals,
-                "color": xp.where(bad[:, None], xp.full_like(C, math.nan), C),
-                "opacity": xp.where(bad, nan, opacity), "samples_used": used,
-                "work_saved": xp.where(bad, nan, saved)}
+        xc = o_safe[:, None, :] + (e0 if model == "neus" else p0)[..., None] * d_safe[:, None, :]
+        a = alpha(xp, model, scene.value(xc, xp), e0[:, 1:] - e0[:, :-1], sharpness)
+        w = xp.cumulative_prod(1 - a, axis=-1, include_initial=True)[:, :-1] * a
+        fine = inverse_cdf(xp, e0, w, n_samples)
+        pts = xp.sort(xp.concat([p0, fine], axis=1), axis=1)
+        mids = 0.5 * (pts[:, 1:] + pts[:, :-1])
+        edges = xp.concat([e0[:, :1], mids, e0[:, -1:]], axis=1)
+        return _shade(xp, backend, scene, color, o, d, edges, pts, status, model=model, sharpness=sharpness,
+                      t_threshold=t_threshold, planned=nc + n_samples, coarse_cost=nc + (1 if model == "neus" else 0))
 
     impl.__name__ = f"volume_{model}_{sampler}"
     return impl

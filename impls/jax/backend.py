@@ -73,6 +73,9 @@ TRACEABLE_KNOBS = {
     **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") for m in ("bisect", "newton", "secant")},
     "sphere_trace": ("max_steps", "omega", "tol"),
     "curvature": (), "normal": (),
+    # the parts of the volume renderers that fix their bins up front (compile_configuration)
+    "volume_samples_band": ("delta",), "volume_samples_stratified": (), "volume_samples_uniform": (),
+    **{f"volume_shading_{m}": () for m in ("nerf", "neus", "unisurf", "volsdf")},
     **{m: ("min_cos",) for m in ("dt_finite_diff", "dt_idr", "dt_implicit")},
     "dt_unrolled": ("min_cos", "steps"),
     **{f"volume_{m}_{s}": ("delta",) if s == "band" else ()
@@ -172,7 +175,9 @@ class JaxBackend(ArrayBackend):
                    "run as the next power of two ≥ max(n, settings.pad) rows, copies of the first ray, whose "
                    "outputs are dropped (sizes: backend.settings, recorded with every result)",
                    "render_surface runs two kernels: hybrid_secant's own (compiled once for both methods) and one "
-                   "that shades its hit; its timing is the two calls",),
+                   "that shades its hit; the volume renderers with the uniform, stratified and band samplers run the "
+                   "sampler's kernel and the density model's shading kernel (one per model for the three "
+                   "samplers); a time is the two calls",),
             expected_failures=(
                 ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
                  "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
@@ -227,62 +232,88 @@ class JaxBackend(ArrayBackend):
         ``driver.padded_size(n, settings.pad)`` rows (copies of the first ray appended, padded once
         here, their outputs dropped), so that ray sets of nearby sizes share a kernel.
 
-        A method whose implementation names a root method it shades the hit of (``hit_method``:
-        ``render_surface``, the hit of ``hybrid_secant``) runs as two kernels: that root method's,
-        the very kernel its own configurations run (compiled once for both), and one that shades
-        its output (:func:`impls.core.rendering.render_surface`'s ``hit``).  The root finder's
-        loops are most of the compile time of such a method, and nothing fuses across them."""
+        A method whose implementation comes in two parts runs as two kernels, the second given the
+        first's outputs (nothing fuses across a root finder's loops), and the first is shared:
+
+        * ``hit_method`` (``render_surface``, the hit of ``hybrid_secant``): that root method's
+          kernel, the very one its own configurations run, then one that shades its hit
+          (:func:`impls.core.rendering.render_surface`'s ``hit``);
+        * ``stages`` (the volume renderers whose bins are fixed up front,
+          :func:`impls.core.rendering.make_volume_impl`): the sampler's kernel (it does not read
+          the scene), then the density model's shading, one kernel for the uniform, stratified
+          and band samplers."""
         n = o.shape[0]
         rows = driver.padded_size(n, self.settings.pad)
         given = (o, d, th)
         padded = tuple(None if a is None else driver.pad_rows(a, rows) for a in given)
-        hit_method = getattr(self._impl.get(method), "hit_method", None)
+        impl = self._impl.get(method)
+        hit_method, stages = getattr(impl, "hit_method", None), getattr(impl, "stages", None)
+        t_min, t_max = t_range
         if hit_method is not None and th is None and hit_method in self._impl:
-            return self._compile_hit_then_shade(call, hit_method, knobs, n, rows, given, padded, method=method,
-                                                scene=scene, t_range=t_range, extra=extra)
+            root = self._impl[hit_method]
+
+            def hit_call(o, d, th, knobs):  # what prepare() runs for hit_method's own configurations
+                return root(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=th, **knobs)
+
+            first = dict(call=hit_call, knobs=knobs, method=hit_method, impl=root, scene=scene, extra={})
+            second = dict(call=lambda o, d, hit, knobs: call(o, d, None, {**knobs, "hit": hit}), knobs=knobs,
+                          method=method, impl=impl, scene=scene, extra=extra)
+            return self._compile_chain(first, second, n, rows, given, padded, t_range)
+        if stages is not None and set(extra) <= {"color"}:
+            sample, shade = stages
+
+            def sample_call(o, d, th, knobs):
+                return sample(self, None, o, d, t_min=t_min, t_max=t_max, t_hit=th, **knobs)
+
+            def shade_call(o, d, samples, knobs):
+                return shade(self, scene, o, d, samples=samples, **extra, **knobs)
+
+            first = dict(call=sample_call, knobs={k: v for k, v in knobs.items() if k not in shade.knobs},
+                         method=sample.__name__, impl=sample, scene=None, extra={})
+            second = dict(call=shade_call, knobs={k: v for k, v in knobs.items() if k in shade.knobs},
+                          method=shade.__name__, impl=shade, scene=scene, extra=extra)
+            return self._compile_chain(first, second, n, rows, given, padded, t_range)
         compiled, traced, spent = self._kernel(call, knobs, *padded, method=method, scene=scene, t_range=t_range,
                                                extra=extra)
         if rows == n:
             return (lambda o, d, th: compiled(o, d, th, traced)), spent
         return _padded_call(compiled, traced, n, rows, given, padded), spent
 
-    def _compile_hit_then_shade(self, call, hit_method, knobs, n, rows, given, padded, *, method, scene, t_range,
-                                extra):
-        """``method``'s run as ``hit_method``'s kernel followed by a shading kernel given its output
-        (:meth:`compile_configuration`); ``last_compile_cache`` "reused" when both were."""
-        impl, (t_min, t_max) = self._impl[hit_method], t_range
-        o, d, _ = padded
-
-        def hit_call(o, d, th, knobs):  # what prepare() runs for hit_method's own configurations
-            return impl(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=th, **knobs)
-
-        def shade_call(o, d, hit, knobs):
-            return call(o, d, None, {**knobs, "hit": hit})
-
-        hit_kernel, hit_traced, spent = self._kernel(hit_call, knobs, o, d, None, method=hit_method, scene=scene,
-                                                     t_range=t_range, extra={})
+    def _compile_chain(self, first: dict, second: dict, n, rows, given, padded, t_range):
+        """``run(o, d, th)`` as two kernels (:meth:`compile_configuration`): ``first["call"](o, d,
+        th, knobs)``, then ``second["call"](o, d, out, knobs)`` given the first's output ``out``;
+        ``last_compile_cache`` "reused" when both were."""
+        o, d, th = padded
+        k1, traced1, spent = self._kernel(first["call"], first["knobs"], o, d, th, method=first["method"],
+                                          impl=first["impl"], scene=first["scene"], t_range=t_range,
+                                          extra=first["extra"])
         reused = self.last_compile_cache == "reused"
         t0 = time.perf_counter()
-        example = hit_kernel(o, d, None, hit_traced)  # the shading kernel's example input
+        example = k1(o, d, th, traced1)  # the second kernel's example input
         spent += time.perf_counter() - t0
-        shade, shade_traced, more = self._kernel(shade_call, knobs, o, d, example, method=method, scene=scene,
-                                                 t_range=t_range, extra=extra)
+        k2, traced2, more = self._kernel(second["call"], second["knobs"], o, d, example, method=second["method"],
+                                         impl=second["impl"], scene=second["scene"], t_range=t_range,
+                                         extra=second["extra"])
         if self.last_compile_cache is not None:
             self.last_compile_cache = "reused" if reused and self.last_compile_cache == "reused" else "compiled"
 
         def run(o, d, th):
-            o, d = (p if a is g else driver.pad_rows(a, rows) for a, g, p in zip((o, d), given, padded))
-            out = shade(o, d, hit_kernel(o, d, None, hit_traced), shade_traced)
+            o, d, th = (p if a is g else (None if a is None else driver.pad_rows(a, rows))
+                        for a, g, p in zip((o, d, th), given, padded))
+            out = k2(o, d, k1(o, d, th, traced1), traced2)
             return out if rows == n else {k: v[:n] if getattr(v, "ndim", 0) and v.shape[0] == rows else v
                                           for k, v in out.items()}
 
         return run, spent + more
 
-    def _kernel(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
+    def _kernel(self, call, knobs, o, d, th, *, method, scene, t_range, extra, impl=None):
         """``(compiled, traced knob values, seconds spent)`` of ``call(o, d, th, knobs)`` on rays
-        already padded (:meth:`compile_configuration`); ``th``: None, an array or a dict of arrays."""
+        already padded (:meth:`compile_configuration`); ``th``: None, an array or a dict of arrays;
+        ``impl``: the function ``call`` runs, where it is not the method's own (the store's key
+        checks whose code it is)."""
         spent = 0.0
         for names in _traced_sets(method, knobs):
+            names = tuple(k for k in names if k in knobs)  # a part of a method takes part of its knobs
             static = {k: v for k, v in knobs.items() if k not in names}
             key = (method, _identity(scene), t_range, tuple(sorted((k, _identity(v)) for k, v in extra.items())),
                    tuple(sorted(static.items())), names, self.device, self.settings,
@@ -301,7 +332,7 @@ class JaxBackend(ArrayBackend):
 
                 traced = {k: knobs[k] for k in names}
                 stored = None if self._store is None else executables.kernel_key(
-                    self, method, scene, t_range, extra, static, traced, (o, d, th))
+                    self, method, scene, t_range, extra, static, traced, (o, d, th), impl=impl)
                 compiled = None if stored is None else self._store.load(stored, self.jax_device)
                 if compiled is not None:
                     self.last_compile_cache = "reused"

@@ -123,11 +123,13 @@ def _own(obj: Any) -> bool:
     return (getattr(obj, "__module__", None) or "").split(".")[0] in _OWN
 
 
-def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, traced: dict, arrays) -> str | None:
+def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, traced: dict, arrays,
+               impl=None) -> str | None:
     """The store's key of a kernel of :meth:`JaxBackend.compile_configuration` (hex SHA-256), or
     None where the kernel depends on code outside isobench's packages (a user's scene, colour
-    field, method or backend class) and must be traced."""
-    impl = getattr(backend, "_impl", {}).get(method)
+    field, method or backend class) and must be traced.  ``impl``: the function the kernel runs
+    where it is not ``method``'s implementation (a part of one: a volume renderer's sampler)."""
+    impl = impl if impl is not None else getattr(backend, "_impl", {}).get(method)
     if impl is None or not _own(impl) or not _own(type(backend)):
         return None
     values = value_digest((scene, extra))
