@@ -100,15 +100,15 @@ def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs):
 
 def inverse_cdf(xp, edges, weights, n_fine):
     """n_fine samples of the piecewise-constant pdf ∝ weights on the bins ``edges`` at the
-    deterministic quantiles u_k = (k + ½)/n_fine (one-hot gather: no library-specific indexing)."""
+    deterministic quantiles u_k = (k + ½)/n_fine: each quantile's bin k (the cdf's interior
+    values ≤ u_k, counted), its bin's values gathered with the standard's ``take_along_axis``
+    (int64 indices: torch's take only those)."""
     w = weights + 1e-5
     pdf = w / xp.sum(w, axis=-1, keepdims=True)
     cdf = xp.cumulative_sum(pdf, axis=-1, include_initial=True)  # (n, Nc + 1)
     u = xp.asarray((np.arange(n_fine) + 0.5) / n_fine, dtype=edges.dtype, device=_device(edges))
-    nc = pdf.shape[-1]
-    k = xp.sum(xp.astype(cdf[:, None, 1:-1] <= u[None, :, None], xp.int32), axis=-1)  # (n, Nf) bin index
-    onehot = xp.astype(k[..., None] == xp.arange(nc, device=_device(edges))[None, None, :], edges.dtype)
-    pick = lambda a: xp.sum(onehot * a[:, None, :], axis=-1)  # noqa: E731
+    k = xp.sum(xp.astype(cdf[:, None, 1:-1] <= u[None, :, None], xp.int64), axis=-1)  # (n, Nf) bin index
+    pick = lambda a: xp.take_along_axis(a, k, axis=1)  # noqa: E731
     lo, width, c0, p = pick(edges[:, :-1]), pick(edges[:, 1:] - edges[:, :-1]), pick(cdf[:, :-1]), pick(pdf)
     return lo + xp.clip((u[None, :] - c0) / p, 0.0, 1.0) * width
 
