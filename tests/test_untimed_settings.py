@@ -76,6 +76,7 @@ def test_a_backend_without_configure_is_left_alone():
     assert untimed_backend(b) is b
 
 
+@pytest.mark.slow  # compiles jax kernels
 def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
     """An accuracy-only run records jax's one-level settings; its rows equal a timed run's (the
     levels change the compiled program, not a ray's results)."""
@@ -88,8 +89,8 @@ def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
     u = untimed_backend(b)
     assert u.settings.last == u.settings.chunk and b.settings.last == driver.LAST
     assert driver.level_sizes(u.settings.chunk, u.settings.ratio, u.settings.last) == [u.settings.chunk]
-    # rays from a few steps to hundreds (the timed run's levels compact them)
-    suite = Suite(name="t", case_pattern="torus.tangent", dtypes=("float64",), sweeps={"sphere_trace": [{}]},
+    # the torus camera: most rays take a few steps, grazing ones hundreds (the timed run's levels compact them)
+    suite = Suite(name="t", case_pattern="torus.camera.32x32", dtypes=("float64",), sweeps={"sphere_trace": [{}]},
                   methods=("sphere_trace",))
     frames = {}
     for accuracy_only in (True, False):
@@ -100,6 +101,8 @@ def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
     assert json.loads(untimed["driver_json"].iloc[0])["last"] == b.settings.chunk
     assert json.loads(timed["driver_json"].iloc[0])["last"] == driver.LAST  # the caller's backend is unchanged
     assert set(untimed["outcome"]) == {"ok"}
+    depth = untimed[untimed["quantity"] == "depth"].iloc[0]
+    assert depth["evals_max"] > 20 * depth["evals_per_ray"]  # a long tail: what the levels are for
     cols = ["quantity", "status_counts", "error_max", "error_p99", "n_false_hit", "n_false_miss", "evals_per_ray",
             "evals_max", "iterations_max"]
     pd.testing.assert_frame_equal(untimed[cols].reset_index(drop=True), timed[cols].reset_index(drop=True))
