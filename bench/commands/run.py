@@ -54,7 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "recorded (default 1)")
     p.add_argument("--allocator", choices=("tuned", "default"), default="tuned", help=ALLOCATOR_HELP)
     p.add_argument("--accuracy-only", action="store_true", help="one call per configuration, no timing samples "
-                   "(deterministic, for baselines)")
+                   "(deterministic, for baselines), each backend with its compile-light driver settings where it "
+                   "has them (jax: one compaction level; the same results, recorded with every row)")
     p.add_argument("--resume", action="store_true", help="finish the interrupted run in --out DIR, with the plan "
                    "options it recorded (--suite, --case, --method, --dtype, --backend, --cases, --threads, "
                    "--allocator, --accuracy-only, --no-claims, --no-stability); every case is checked against the content hash "
