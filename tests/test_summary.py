@@ -58,3 +58,19 @@ def test_counts_and_failures_are_per_configuration():
     ov = summary.overview(df, {"run_id": "r1", "suite": "quick", "complete": "false"})
     assert ov["configurations"] == "1 ran · 1 skipped · 1 failed"
     assert ov["complete"].startswith("NO")
+
+
+def test_claim_lines_are_cut_between_words_and_say_so():
+    long = ("sphere tracing on non-SDF implicit functions with the plain step φ (no Lipschitz bound) terminates "
+            "at the first intersection")
+    claims = pd.DataFrame([{"id": "5c", "verdict": "holds under conditions", "statement": long,
+                            "conditions": "Lipschitz constant ≤ 1"},
+                           {"id": "9", "verdict": "fails", "statement": "short", "conditions": "",
+                            "counterexample": "x" * 200}])
+    lines = summary.claims_lines(claims)
+    assert list(lines["id"]) == ["9", "5c"]  # failures first
+    cut = lines.set_index("id").loc["5c", "statement"]
+    assert len(cut) <= 110 and cut.endswith("…") and long.startswith(cut[:-1]) and long[len(cut) - 1] == " "
+    assert lines.set_index("id").loc["9", "statement"] == "short"
+    assert len(lines.set_index("id").loc["9", "holds on / counterexample"]) == 160  # one word: cut inside it
+    assert summary.clip_words("a b c", 5) == "a b c" and summary.clip_words("alpha beta", 8) == "alpha…"

@@ -204,18 +204,30 @@ def pick_grid(picks: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(list(rows.values()))
 
 
+def clip_words(text: str, width: int) -> str:
+    """``text`` of at most ``width`` characters: whole, or cut at the last space before the limit
+    with "…" (a word is never cut in half; one longer than the limit is)."""
+    text = str(text)
+    if len(text) <= width:
+        return text
+    head = text[:width - 1]
+    cut = head.rsplit(" ", 1)[0] if " " in head else head
+    return cut.rstrip(" ,;:") + "…"
+
+
 def claims_lines(claims: pd.DataFrame | None) -> pd.DataFrame:
-    """One line per claim, failures first: id, verdict, statement (short), scope (short)."""
+    """One line per claim, failures first: id, verdict, statement (short), scope (short); the
+    full texts are in the claims ledger."""
     if claims is None or not len(claims):
         return pd.DataFrame(columns=["id", "verdict", "statement"])
     order = {"fails": 0, "error": 1, "holds under conditions": 2, "holds": 3}
     c = claims.assign(_r=claims["verdict"].map(order).fillna(1)).sort_values("_r", kind="stable")
     out = pd.DataFrame({"id": c["id"], "verdict": c["verdict"],
-                        "statement": c["statement"].astype(str).str.slice(0, 110)})
+                        "statement": [clip_words(t, 110) for t in c["statement"]]})
     if "conditions" in c:
         out["holds on / counterexample"] = [
-            (f"holds on: {r['conditions']}" if r["verdict"] == "holds under conditions" else
-             str(r.get("counterexample", "")) if r["verdict"] == "fails" else "")[:160]
+            clip_words(f"holds on: {r['conditions']}" if r["verdict"] == "holds under conditions" else
+                       str(r.get("counterexample", "")) if r["verdict"] == "fails" else "", 160)
             for _, r in c.iterrows()]
     return out
 
