@@ -195,27 +195,19 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
         rendering = _rendering_module()
         idx = reference_rays(case.n_rays, opts.max_rays)
         path = opts.disk / f"render_exact-{_disk_key(case, (model, s, opts.max_rays), rendering)}.npz" if opts.disk else None
+        def compute():
+            t0 = time.perf_counter()
+            with time_limit(opts.timeout_s):
+                colors, bound = rendering.render_exact(case.scene, color_field(case), model, s, case.origins[idx],
+                                                       case.directions[idx], case.t_min, case.t_max)
+            full = np.full((case.n_rays, 3), np.nan)
+            full[idx] = np.asarray(colors, np.float64).reshape(len(idx), 3)
+            cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
+            return full, float(np.max(bound, initial=0.0))
+
         try:
-            if path is not None and path.exists():
-                z = np.load(path)
-                cache[key] = (z["colors"], float(z["bound"]))
-            else:
-                t0 = time.perf_counter()
-                with time_limit(opts.timeout_s):
-                    colors, bound = rendering.render_exact(case.scene, color_field(case), model, s, case.origins[idx],
-                                                           case.directions[idx], case.t_min, case.t_max)
-                full = np.full((case.n_rays, 3), np.nan)
-                full[idx] = np.asarray(colors, np.float64).reshape(len(idx), 3)
-                cache[key] = (full, float(np.max(bound, initial=0.0)))
-                cache[("reference_s",) + key[1:]] = time.perf_counter() - t0
-                if path is not None:
-                    colors_full, bound_max = cache[key]
-
-                    def save(tmp):
-                        with open(tmp, "wb") as f:  # a file, not a name: savez would append ".npz"
-                            np.savez(f, colors=colors_full, bound=bound_max)
-
-                    write_atomic(path, save)
+            colors, bound = compute() if path is None else _kept_arrays(path, ("colors", "bound"), compute)
+            cache[key] = (colors, float(bound))
         except ValueError as exc:  # e.g. UNISURF: no continuous density, no integral
             cache[key] = NotApplicable(f"no continuous reference for {model}: {exc}")
         except Timeout:
