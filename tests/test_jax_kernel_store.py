@@ -19,8 +19,12 @@ from reference import Sphere, Torus
 from tests.conftest import resolve_or_skip
 
 
-#: a radius offset of this session: programs no earlier session compiled
-FRESH = random.Random().uniform(1e-9, 1e-6)
+#: a radius offset of this session: programs no earlier session compiled.  A whole multiple of
+#: 2**-22, so that it survives rounding to float32 (whose spacing is 2**-25 at 0.3 and 2**-23 at
+#: 1.0): an offset below half a float32 spacing vanished there, and a float32 program compiled in
+#: an earlier session (a cache directory outlives sessions) was found in jax's persistent cache
+#: and, rightly, not stored.  2**16 offsets: two sessions draw the same one with probability 2**-16.
+FRESH = random.Random().randrange(1, 2**16) * 2.0**-22
 
 
 def _rays(n=48):
