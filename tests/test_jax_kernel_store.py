@@ -135,6 +135,63 @@ def test_a_damaged_entry_is_a_miss_and_is_removed(tmp_path):
     assert not entry.exists() or entry.read_bytes() != b"not an executable"
 
 
+def _entry(path):
+    import pickle
+
+    with open(path, "rb") as f:
+        return pickle.load(f)
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_an_entry_is_checked_at_its_first_load_and_a_wrong_one_is_refused(tmp_path, monkeypatch):
+    """A small configuration's entry carries its arrays and the compiled kernel's outputs; its
+    first load runs the loaded executable on them: the same bits rewrite it without them, other
+    bits remove it and refuse its key, so that it is compiled, not stored, from then on."""
+    import pickle
+
+
+    from impls.jax import backend as jb
+
+    store = executables.KernelStore(tmp_path)
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 5 * FRESH)
+    _, want = _run(_backend(store), scene)
+    (path,) = tmp_path.glob("*.bin")
+    args, outputs = _entry(path)["example"]
+    assert len(outputs) >= 4 and args[0].shape == (64, 3)  # 48 rays padded to 64 rows
+    good = path.read_bytes()
+
+    def no_trace(*a, **k):
+        raise AssertionError("traced although the kernel store holds the kernel")
+
+    with monkeypatch.context() as m:
+        m.setattr(jb.JaxBackend, "compile", no_trace)
+        prep, got = _run(_backend(store), scene)
+    assert prep.compile_cache == "reused" and _entry(path)["example"] is None
+    np.testing.assert_array_equal(got.t, want.t)
+    _run(_backend(store), scene)  # a checked entry loads as it is
+    assert _entry(path)["example"] is None
+
+    # an entry whose executable gives other bits than the kernel it was made from: refused
+    entry = pickle.loads(good)
+    entry["example"][1][0] = entry["example"][1][0] + 1
+    path.write_bytes(pickle.dumps(entry))
+    key = path.stem
+    assert store.load(key, _backend(store).jax_device) is None
+    assert not path.exists() and (tmp_path / f"{key}.refused").exists()
+    prep, got = _run(_backend(store), scene)
+    np.testing.assert_array_equal(got.t, want.t)
+    assert not path.exists()  # compiled again (or taken from jax's cache), and not stored
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_a_large_configuration_is_checked_before_its_entry_is_written(tmp_path, monkeypatch):
+    monkeypatch.setattr(executables, "EXAMPLE_BYTES", 0)
+    store = executables.KernelStore(tmp_path)
+    _run(_backend(store), Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 6 * FRESH))
+    (path,) = tmp_path.glob("*.bin")
+    assert _entry(path)["example"] is None
+
+
 def test_the_key_changes_with_what_the_kernel_is_a_function_of():
     from impls.jax.backend import JaxBackend
     from impls.jax.driver import MaskedSettings

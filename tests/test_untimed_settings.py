@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -17,6 +18,7 @@ from bench.run.environment import driver_record, untimed_backend
 from bench.run.suites import Suite
 from bench.run.timing import TimingPolicy
 from impls import registry
+from impls.protocol import Status
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,3 +108,32 @@ def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
     cols = ["quantity", "status_counts", "error_max", "error_p99", "n_false_hit", "n_false_miss", "evals_per_ray",
             "evals_max", "iterations_max"]
     pd.testing.assert_frame_equal(untimed[cols].reset_index(drop=True), timed[cols].reset_index(drop=True))
+
+
+@pytest.mark.slow  # compiles numba kernels
+@pytest.mark.parametrize("case_id", ["csg.union.camera.32x32", "mlp.camera.32x32"])
+def test_numba_runs_untimed_without_the_lanes_kernel_and_the_same_results(case_id):
+    """numba's untimed settings run the constant-step marchers in ``march_one`` (one kernel per
+    scene with Newton's) instead of the lanes kernel: every ray's depth, status and counts are the
+    same, bit for bit, for each refiner the lanes kernel runs, with and without a Lipschitz check."""
+    pytest.importorskip("numba")
+    from reference.cases import get_case
+
+    b = registry.resolve("numba")
+    if isinstance(b, registry.Unavailable):
+        pytest.skip(b.reason)
+    u = untimed_backend(b)
+    assert u.settings.lanes is False and b.settings.lanes is True
+    assert json.loads(driver_record(u))["lanes"] == 0 and json.loads(driver_record(b))["lanes"] > 1
+    case = get_case(case_id)
+    for method in ("march_bisect", "march_secant"):
+        for knobs in ({}, {"step": 0.37, "xtol": 1e-11}):
+            got = []
+            for backend in (b, u):
+                p = backend.prepare(method, case.scene, case.origins, case.directions, t_min=case.t_min,
+                                    t_max=case.t_max, **knobs)
+                got.append(p.result(p.run()))
+            lanes, one = got
+            assert (lanes.status == Status.CONVERGED).sum() > 50  # rays that hit: the refiners ran
+            for k in ("t", "status", "iterations", "evals"):
+                np.testing.assert_array_equal(getattr(one, k), getattr(lanes, k), err_msg=f"{method} {knobs} {k}")

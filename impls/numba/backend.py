@@ -92,6 +92,13 @@ class NumbaBackend(HostArrayBackend):
                 raise Declined(reason)
         return super().prepare(method, scene, origins, directions, **kw)
 
+    def untimed_settings(self) -> dict:
+        """Driver settings for a run that times nothing (:func:`bench.run.environment.untimed_backend`):
+        no lanes kernel (``NumbaSettings.lanes``), so that the constant-step marchers share
+        ``march_one`` with Newton's, one compilation per scene structure instead of two; the
+        per-ray results are the same."""
+        return {"lanes": False}
+
     def compile(self, fn, o, d, th):
         """Compile by running ``fn`` on the first ray (numba compiles a kernel on its first call)."""
         driver.LAST_COMPILE = None

@@ -53,10 +53,17 @@ class NumbaSettings:
 
     threads: numba threads running rays side by side (``--threads`` of the bench commands; at
              most ``numba.config.NUMBA_NUM_THREADS``, fixed when numba starts);
-    ladder:  samples per ladder step where the knob ``ladder`` is -1 (the driver's choice)."""
+    ladder:  samples per ladder step where the knob ``ladder`` is -1 (the driver's choice);
+    lanes:   run the constant-step marchers without derivatives or ladder in the lanes kernel
+             (``LANES`` rays stepped in turn per thread); False: in ``march_one``, one ray at a
+             time, as Newton's.  The two give the same per-ray results (the same step templates,
+             :mod:`impls.numba.template`); the lanes kernel runs faster and is a compilation of
+             its own, ~4 s per scene structure cold, which a run that times nothing skips
+             (:meth:`impls.numba.backend.NumbaBackend.untimed_settings`)."""
 
     threads: int = 1
     ladder: int = LADDER
+    lanes: bool = True
 
     kind = "per-ray"
 
@@ -71,11 +78,11 @@ class NumbaSettings:
                              "(NUMBA_NUM_THREADS, set in the environment before numba is imported)")
 
     def record(self) -> dict:
-        """The settings as recorded with a result: ``{"driver": kind, field: value, …, "lanes": rays
-        stepped in turn per thread by the lanes kernel}``."""
+        """The settings as recorded with a result: ``{"driver": kind, field: value, …}`` with
+        ``lanes`` the rays stepped in turn per thread by the lanes kernel (0: that kernel is not used)."""
         from .template import LANES
 
-        return {"driver": self.kind, **dataclasses.asdict(self), "lanes": LANES}
+        return {"driver": self.kind, **dataclasses.asdict(self), "lanes": LANES if self.lanes else 0}
 
 
 # -- the algorithm's numbers, as the kernels take them -------------------------------------------
@@ -358,7 +365,7 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
         kernel(z, z, np.zeros(1, o.dtype), params, np.empty(1, o.dtype))
         out = _run_certified(kernel, params, alg, o, d)
     else:
-        if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1:
+        if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1 and settings.lanes:
             kind = "lanes"  # (no derivatives, no ladder stage: impls.numba.template)
         n = o.shape[0]
         out = {"t": np.empty(n, o.dtype), "status": np.empty(n, np.int32), "iterations": np.empty(n, np.int32),
