@@ -166,16 +166,21 @@ def test_an_entry_is_checked_at_its_first_load_and_a_wrong_one_is_refused(tmp_pa
     with monkeypatch.context() as m:
         m.setattr(jb.JaxBackend, "compile", no_trace)
         prep, got = _run(_backend(store), scene)
-    assert prep.compile_cache == "reused" and _entry(path)["example"] is None
+    key = path.stem
+    checked = tmp_path / f"{key}.checked"
+    assert prep.compile_cache == "reused" and checked.exists()
     np.testing.assert_array_equal(got.t, want.t)
-    _run(_backend(store), scene)  # a checked entry loads as it is
-    assert _entry(path)["example"] is None
+    with monkeypatch.context() as m:
+        m.setattr(executables, "_same_outputs", no_trace)  # a checked entry is not run again
+        prep, again = _run(_backend(store), scene)
+    assert prep.compile_cache == "reused"
+    np.testing.assert_array_equal(again.t, want.t)
 
-    # an entry whose executable gives other bits than the kernel it was made from: refused
+    # an unchecked entry whose executable gives other bits than the kernel it was made from: refused
     entry = pickle.loads(good)
     entry["example"][1][0] = entry["example"][1][0] + 1
     path.write_bytes(pickle.dumps(entry))
-    key = path.stem
+    checked.unlink()
     assert store.load(key, _backend(store).jax_device) is None
     assert not path.exists() and (tmp_path / f"{key}.refused").exists()
     prep, got = _run(_backend(store), scene)
