@@ -125,6 +125,9 @@ def test_numba_runs_untimed_without_the_lanes_kernel_and_the_same_results(case_i
     u = untimed_backend(b)
     assert u.settings.lanes is False and b.settings.lanes is True
     assert json.loads(driver_record(u))["lanes"] == 0 and json.loads(driver_record(b))["lanes"] > 1
+    for bad in (0, 1, "no"):
+        with pytest.raises(ValueError, match="lanes"):
+            u.configure(lanes=bad)
     case = get_case(case_id)
     for method in ("march_bisect", "march_secant"):
         for knobs in ({}, {"step": 0.37, "xtol": 1e-11}):

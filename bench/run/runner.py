@@ -41,8 +41,7 @@ __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "p
 #: the run, and writing every ``flush_s`` would take a growing share of a long sweep's wall time
 #: (docs/performance.md).  Waiting this many times the last write's cost between writes bounds
 #: writing to 1/(1 + FLUSH_COST_FACTOR) of the wall time, at the price of redoing at most that
-#: interval's configurations after a kill (--resume).  At 10 the quick suite's main process spent
-#: 5.3 of its ~110 Python-seconds writing (py-spy, cold run); 30 bounds it near 3 %.
+#: interval's configurations after a kill (--resume): 30, about 3 % (docs/performance.md).
 FLUSH_COST_FACTOR = 30.0
 
 

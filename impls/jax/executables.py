@@ -30,9 +30,8 @@ where it costs least: for a configuration whose inputs and outputs are small
 (:data:`EXAMPLE_BYTES`) the entry carries them and the check runs at the entry's first load, on the
 executable loaded anyway (a failed check removes the entry and refuses the key; a passed one
 leaves a marker, and later loads check nothing more); for a larger one it runs before the entry
-is written.  Loading
-an executable costs 0.01–0.26 s (jax 0.10.2, 2-core EPYC), so checking at save time cost a cold
-quick run ~12 CPU-s for 117 kernels that a warm run loads again anyway.  Not stored:
+is written.  Loading an executable back only to check it was a cold run's cost for a load that a
+warm run makes anyway (docs/performance.md).  Not stored:
 
 * a kernel jax loaded from its persistent cache: its serialization does not run (jax 0.10.2 on
   the CPU, measured: ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``).  Such a kernel
@@ -175,8 +174,8 @@ class KernelStore:
         configuration's arrays (:meth:`save`) is run on them at its first load: outputs other than
         the stored ones, bit for bit, remove it and refuse the key (a marker file ``<key>.refused``:
         :meth:`save` stores it no more); the same outputs leave a marker ``<key>.checked``, and
-        later loads run nothing more (rewriting the entry without the arrays cost a warm run
-        seconds: the executables are 0.1–1.8 MB)."""
+        later loads run nothing more (a marker, not a rewrite of the entry: the executables are
+        large)."""
         from jax.experimental import serialize_executable
 
         path = self._path(key)

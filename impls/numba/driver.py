@@ -58,7 +58,7 @@ class NumbaSettings:
              (``LANES`` rays stepped in turn per thread); False: in ``march_one``, one ray at a
              time, as Newton's.  The two give the same per-ray results (the same step templates,
              :mod:`impls.numba.template`); the lanes kernel runs faster and is a compilation of
-             its own, ~4 s per scene structure cold, which a run that times nothing skips
+             its own per scene structure, which a run that times nothing skips
              (:meth:`impls.numba.backend.NumbaBackend.untimed_settings`)."""
 
     threads: int = 1
@@ -70,6 +70,9 @@ class NumbaSettings:
     def __post_init__(self):
         _whole_at_least(type(self).__name__, "threads", self.threads, 1)
         _whole_at_least(type(self).__name__, "ladder", self.ladder, 0)
+        if not isinstance(self.lanes, bool):
+            raise ValueError(f"{type(self).__name__}: lanes must be True or False (the lanes kernel on or off); got "
+                             f"{self.lanes!r}")
         import numba
 
         most = numba.config.NUMBA_NUM_THREADS
