@@ -20,7 +20,8 @@ convergence (a sign-change bracket no wider than ``xtol``, adjacent floats, or �
 refiners the template has are compiled (:data:`REFINERS`); another is an error, not a stand-in.
 Where the array drivers step every ray still iterating once per loop step (compacting or
 masking), these kernels run each ray to completion on its own (``prange`` over rays, threads
-``NumbaSettings.threads``), with its state in registers: no per-step overhead, which is what the
+``NumbaSettings.threads``; on one thread, kernels compiled without numba's parallel pipeline:
+:func:`kernels`), with its state in registers: no per-step overhead, which is what the
 array drivers' ladder stage exists to amortise, so the driver's choice for the knob
 ``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).  Without derivatives or ladder
 steps two rays are stepped in turn per thread (the lanes kernel, whose rays' independent chains of
@@ -158,30 +159,33 @@ def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
 _KERNELS: dict = {}
 
 
-def kernels(key: str):
-    """``{"march": …, "lanes": …, "phi_rays": …}`` parallel kernels for the scene source ``key``
-    (:class:`impls.numba.fields.CompiledScene`), made once per key (the cache lives as long as the
-    process); numba compiles each on its first call.  With a cache directory
-    (:mod:`impls.cache`) they come from a generated module there (:func:`_cached_module`), whose
-    compiled kernels numba keeps on disk between runs."""
-    k = _KERNELS.get(key)
+def kernels(key: str, parallel: bool = True):
+    """``{"march": …, "lanes": …, "phi_rays": …}`` kernels for the scene source ``key``
+    (:class:`impls.numba.fields.CompiledScene`), made once per key and ``parallel`` (the cache
+    lives as long as the process); numba compiles each on its first call.  ``parallel``: the rays'
+    loops are numba's ``prange`` over threads; False, plain loops, for one thread (:func:`run_loop`:
+    the same per-ray results; numba's parallel pipeline adds about a fifth to the compile time,
+    for nothing on one thread).  With a cache directory (:mod:`impls.cache`) they come from a
+    generated module there (:func:`_cached_module`), whose compiled kernels numba keeps on disk
+    between runs."""
+    k = _KERNELS.get((key, parallel))
     if k is None:
         from ..cache import subdir
 
         where = subdir("numba")
         if where is not None:
-            mod = _cached_module(key, where)
+            mod = _cached_module(key, where, parallel)
             k = {"march": mod.run_march, "lanes": mod.run_lanes, "phi_rays": mod.phi_rays}
         else:
             from .fields import CompiledScene, scene_functions
 
             phi, bounds = scene_functions(CompiledScene(key, np.zeros(0)))
-            k = _make_kernels(phi, bounds)
-        _KERNELS[key] = k
+            k = _make_kernels(phi, bounds, parallel)
+        _KERNELS[(key, parallel)] = k
     return k
 
 
-def kernels_source(key: str) -> str:
+def kernels_source(key: str, parallel: bool = True) -> str:
     """The source of a module that defines the kernels of :func:`_make_kernels` for the scene
     source ``key`` at its top level, so that numba can cache them on disk (``cache=True`` needs a
     function of a module file, and keys a closure's cache entry on its cell contents, which for
@@ -217,6 +221,7 @@ def kernels_source(key: str) -> str:
         "from impls.numba.fields import helpers as _helpers",
         "globals().update({k: v for k, v in _helpers().items() if k not in globals()})",
         "_scene_jit = njit(error_model='numpy')",
+        f"parallel = {bool(parallel)}",
         "",
         key,
         "phi, bounds = _scene_jit(phi), _scene_jit(bounds)",
@@ -224,7 +229,7 @@ def kernels_source(key: str) -> str:
         body,
         "from impls.numba.template import CHUNK",
         "",
-        template.source(),
+        template.source(parallel),
         "",
         "for _k in (run_march, run_lanes, phi_rays):",
         "    lock_numba_cache(_k)",
@@ -232,9 +237,9 @@ def kernels_source(key: str) -> str:
     ])
 
 
-def _cached_module(key: str, where):
-    """The module of :func:`kernels_source` for ``key``, written to ``where`` (once, atomically,
-    named by the hash of its text and numba's version) and imported from there."""
+def _cached_module(key: str, where, parallel: bool = True):
+    """The module of :func:`kernels_source` for ``key`` and ``parallel``, written to ``where``
+    (once, atomically, named by the hash of its text and numba's version) and imported from there."""
     import hashlib
     import importlib.util
     import inspect
@@ -242,7 +247,7 @@ def _cached_module(key: str, where):
 
     import numba
 
-    src = kernels_source(key)
+    src = kernels_source(key, parallel)
     # the name covers what the module's text does not: the code it imports and compiles into the
     # kernels (φ's derivative, the helpers), so that a change there is not answered from the cache
     from . import derivatives, fields
@@ -271,7 +276,7 @@ def compile_state(kernel) -> tuple[int, int]:
     return len(kernel.overloads), sum(kernel.stats.cache_hits.values())
 
 
-def _make_kernels(phi, bounds):
+def _make_kernels(phi, bounds, parallel=True):
     from numba import njit, prange
 
     from .derivatives import make_ray_eval
@@ -332,7 +337,7 @@ def _make_kernels(phi, bounds):
         status = BAD if not fin else (MISS if outside else IN)
         return (t_min if outside else lo), hi, status
 
-    @njit(parallel=True, error_model="numpy")
+    @njit(parallel=parallel, error_model="numpy")
     def phi_rays(O, D, T, p, F):
         """φ(o_i + t_i d_i) for every ray i: the certified methods' evaluation (:func:`run_loop`)."""
         for i in prange(T.shape[0]):
@@ -345,7 +350,7 @@ def _make_kernels(phi, bounds):
           "_max": _max, "_min": _min, "math": math, "np": np, "njit": njit, "prange": prange, "inf": inf, "IN": IN,
           "NONF": NONF, "CONV": CONV, "CHUNK": template.CHUNK,
           **{k: v for k, v in globals().items() if k[:2] in ("F_", "I_")}}
-    exec(compile(template.source(), "<isobench numba kernels>", "exec"), ns)  # noqa: S102 - our own generated source
+    exec(compile(template.source(parallel), "<isobench numba kernels>", "exec"), ns)  # noqa: S102 - our own generated source
     run_march, run_lanes = ns["run_march"], ns["run_lanes"]
 
     return {"march": run_march, "lanes": run_lanes, "phi_rays": phi_rays}
@@ -361,7 +366,7 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     global LAST_COMPILE
     numba.set_num_threads(settings.threads)
     if kind == "sphere" or ic[I_CERT]:
-        kernel = kernels(key)["phi_rays"]
+        kernel = kernels(key, settings.threads > 1)["phi_rays"]
         before = compile_state(kernel)
         # compiled here, whether or not these rays evaluate φ (a run's first call compiles: prepare)
         z = np.zeros((1, 3), o.dtype)
@@ -373,7 +378,7 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
         n = o.shape[0]
         out = {"t": np.empty(n, o.dtype), "status": np.empty(n, np.int32), "iterations": np.empty(n, np.int32),
                "evals": np.empty(n, np.int32)}
-        kernel = kernels(key)[kind]
+        kernel = kernels(key, settings.threads > 1)[kind]
         before = compile_state(kernel)
         kernel(o, d, params, fc, ic, out["t"], out["status"], out["iterations"], out["evals"])
     after = compile_state(kernel)

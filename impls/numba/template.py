@@ -261,12 +261,13 @@ def run_lanes(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
         chunk_lanes_jit(O, D, p, fc, ic, out_t, out_s, out_i, out_e, c * CHUNK, min(c * CHUNK + CHUNK, n))
 """
 
-#: how the kernels are compiled (the names the kernels call: march_one_jit, chunk_lanes_jit)
+#: how the kernels are compiled (the names the kernels call: march_one_jit, chunk_lanes_jit);
+#: ``{parallel}``: whether the outer loops are numba's parallel ``prange`` (:func:`source`)
 _JIT = """
 march_one_jit = njit(error_model="numpy")(march_one)
-run_march = njit(parallel=True, error_model="numpy")(run_march)
+run_march = njit(parallel={parallel}, error_model="numpy")(run_march)
 chunk_lanes_jit = njit(error_model="numpy")(chunk_lanes)
-run_lanes = njit(parallel=True, error_model="numpy")(run_lanes)
+run_lanes = njit(parallel={parallel}, error_model="numpy")(run_lanes)
 """
 
 _SUFFIX = re.compile(r"_K\b")
@@ -316,7 +317,9 @@ def lanes_source(lanes: int = LANES) -> str:
     return "".join(parts)
 
 
-def source() -> str:
+def source(parallel: bool = True) -> str:
     """The module text of both kernels, compiled (:data:`_JIT`); its globals are those of
-    :func:`impls.numba.driver._make_kernels` (φ, the helper steps, the configuration's index names)."""
-    return "\n".join([one_ray_source(), lanes_source(), _JIT])
+    :func:`impls.numba.driver._make_kernels` (φ, the helper steps, the configuration's index names).
+    ``parallel``: the rays' loops are numba's parallel ``prange`` (threads); False, a plain loop
+    (``prange`` is ``range`` there), for one thread."""
+    return "\n".join([one_ray_source(), lanes_source(), _JIT.format(parallel=bool(parallel))])
