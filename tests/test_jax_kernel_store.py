@@ -145,10 +145,10 @@ def _entry(path):
 @pytest.mark.slow  # compiles jax kernels
 def test_an_entry_is_checked_at_its_first_load_and_a_wrong_one_is_refused(tmp_path, monkeypatch):
     """A small configuration's entry carries its arrays and the compiled kernel's outputs; its
-    first load runs the loaded executable on them: the same bits rewrite it without them, other
-    bits remove it and refuse its key, so that it is compiled, not stored, from then on."""
+    first load runs the loaded executable on them: the same bits leave a ``.checked`` marker (later
+    loads run nothing), other bits remove it and refuse its key, so that it is compiled, not
+    stored, from then on."""
     import pickle
-
 
     from impls.jax import backend as jb
 

@@ -115,7 +115,8 @@ def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
 def test_numba_runs_untimed_without_the_lanes_kernel_and_the_same_results(case_id):
     """numba's untimed settings run the constant-step marchers in ``march_one`` (one kernel per
     scene with Newton's) instead of the lanes kernel: every ray's depth, status and counts are the
-    same, bit for bit, for each refiner the lanes kernel runs, with and without a Lipschitz check."""
+    same, bit for bit, for each refiner the lanes kernel runs, at the default knobs and at another
+    step and tolerance."""
     pytest.importorskip("numba")
     from reference.cases import get_case
 

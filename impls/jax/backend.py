@@ -241,9 +241,8 @@ class JaxBackend(ArrayBackend):
         * ``stages`` (the volume renderers whose bins are fixed up front,
           :func:`impls.core.rendering.make_volume_impl`), on the CPU: the sampler's kernel (it
           does not read the scene), then the density model's shading, one kernel for the uniform,
-          stratified and band samplers.  Not on a GPU: there a second call's dispatch (measured on
-          an H200: 1,024 rays, 0.14–0.34 ms as one kernel, 0.23–0.51 ms as two) is as long as the
-          kernel's work; a root finder's loops are not (render_surface: the same times)."""
+          stratified and band samplers.  Not on a GPU: there a second call's dispatch is as long
+          as such a kernel's work (docs/performance.md); a root finder's loops are not."""
         n = o.shape[0]
         rows = driver.padded_size(n, self.settings.pad)
         given = (o, d, th)
@@ -299,14 +298,12 @@ class JaxBackend(ArrayBackend):
         if self.last_compile_cache is not None:
             self.last_compile_cache = "reused" if reused and self.last_compile_cache == "reused" else "compiled"
 
-        def run(o, d, th):
-            o, d, th = (p if a is g else (None if a is None else driver.pad_rows(a, rows))
-                        for a, g, p in zip((o, d, th), given, padded))
-            out = k2(o, d, k1(o, d, th, traced1), traced2)
-            return out if rows == n else {k: v[:n] if getattr(v, "ndim", 0) and v.shape[0] == rows else v
-                                          for k, v in out.items()}
+        def chained(o, d, th, _):
+            return k2(o, d, k1(o, d, th, traced1), traced2)
 
-        return run, spent + more
+        if rows == n:
+            return (lambda o, d, th: chained(o, d, th, None)), spent + more
+        return _padded_call(chained, None, n, rows, given, padded), spent + more
 
     def _kernel(self, call, knobs, o, d, th, *, method, scene, t_range, extra, impl=None):
         """``(compiled, traced knob values, seconds spent)`` of ``call(o, d, th, knobs)`` on rays
@@ -368,8 +365,7 @@ class JaxBackend(ArrayBackend):
         :func:`bench.run.environment.untimed_backend`): one compaction level per chunk
         (``last = chunk``).  The levels exist for run time only: a ray's results do not depend on
         them (``tests/test_driver.py``), and each level is a copy of every stage's loop, φ inlined,
-        in the compiled program.  On the quick suite's stability stage (22 jax kernels, 256–1,024
-        rays) XLA's compile time falls from 45.6 to 18.0 s with the same rows."""
+        in the compiled program (compile times: docs/performance.md)."""
         return {"last": self.settings.chunk}
 
     def versions(self):
