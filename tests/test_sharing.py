@@ -93,3 +93,39 @@ def test_a_plan_that_cannot_be_pickled_is_not_shared_and_the_second_process_is_t
     assert share.offer(lambda: 0) is False  # pickled here, not in the queue's feeder thread
     assert share.wait_plan() is None
     assert share.offer(None) is False  # once only
+
+
+class _Fake:
+    """A backend as far as the claim order reads one: its methods and capabilities."""
+
+    def __init__(self, jit, methods=("sphere_trace", "hybrid_secant", "normal"), broken=False):
+        self.capabilities = type("Caps", (), {"jit": jit, "dtypes": ("float64",)})()
+        self._methods, self._broken = methods, broken
+
+    def methods(self):
+        if self._broken:
+            raise RuntimeError("a plug-in's broken hook")
+        return self._methods
+
+
+def test_groups_are_claimed_heaviest_first_by_their_estimated_cost():
+    """Compiling backends' groups before the others, a group of more methods before one of fewer;
+    a backend that runs nothing of its groups last; a broken one counts as compiling everything;
+    every group exactly once, and plan order among equal estimates."""
+    from bench.run.sharing import heaviest_first
+    from impls import Unavailable
+
+    ids = ["eager", "jitted", "few", "none", "broken", "gone"]
+    todo = plan(SUITE, ids, None, None, None)
+    backends = {"eager": _Fake(False), "jitted": _Fake(True), "few": _Fake(True, ("normal",)),
+                "none": _Fake(True, ()), "broken": _Fake(False, broken=True), "gone": Unavailable("gone", "not installed")}
+    groups = groups_of(todo)
+    order = heaviest_first(groups, todo, backends)
+    assert sorted(map(tuple, order)) == sorted(map(tuple, groups))
+    by = [(todo[g[0]].backend_id, todo[g[0]].case.id) for g in order]
+    rank = {b: [i for i, (bid, _) in enumerate(by) if bid == b] for b in ids}
+    assert max(rank["jitted"] + rank["broken"]) < min(rank["few"])  # 3 compiled methods before 1
+    assert max(rank["few"]) < min(rank["eager"])  # one compiled method (×10) before 3 eager ones
+    assert max(rank["eager"]) < min(rank["none"] + rank["gone"])  # nothing to run: last
+    cases = [c for b, c in by if b == "jitted"]
+    assert cases == sorted(cases, key=[t.case.id for t in todo].index)  # ties in plan order

@@ -168,6 +168,10 @@ class KernelStore:
     def _checked(self, key: str) -> Path:
         return self.root / f"{key}.checked"
 
+    def refuses(self, key: str) -> bool:
+        """Whether ``key`` is refused (its entry once failed its check): :meth:`save` stores it no more."""
+        return self._refused(key).exists()
+
     def load(self, key: str, device):
         """The executable stored under ``key``, loaded onto ``device``, or None (absent, or an
         entry that cannot be read or loaded: removed, a miss).  An entry that carries its
@@ -218,7 +222,7 @@ class KernelStore:
         import numpy as np
         from jax.experimental import serialize_executable
 
-        if self._refused(key).exists():
+        if self.refuses(key):
             return False
         try:
             parts = serialize_executable.serialize(compiled)
