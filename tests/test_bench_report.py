@@ -279,3 +279,20 @@ def test_report_figures_are_filled_in_after_the_tables(tmp_path):
     doc_mod.fill_figures(doc, pngs)
     (block,) = doc.blocks
     assert [f.path for f in block.items] == rels and all(f.png.startswith(b"\x89PNG") for f in block.items)
+
+
+def test_html_tables_keep_words_and_numbers_whole_and_scroll_instead():
+    """A cell breaks inside a word only where the word alone exceeds the column's width
+    (``overflow-wrap: break-word``, not ``anywhere``, which split "float64" and "0.0281" to fit the
+    page), a number never (at its exponent's sign either), and a table wider than the page scrolls
+    in its own box; the cells' text stays as it was."""
+    from bench.report import document
+
+    frame = pd.DataFrame({"dtype": ["float64"], "error": [6.9e-07], "n": [1024], "statuses": ["CONVERGED 756 · MISS 268"]})
+    doc = document.Document("t", (document.Table(frame),))
+    page = document.to_html(doc)
+    assert "anywhere" not in page and "overflow-wrap:break-word" in page
+    assert "<div class='scroll'><table" in page
+    assert "<td class='n'>6.9e-07</td>" in page and "<td class='n'>1024</td>" in page
+    assert "<td>float64</td>" in page and "<td>CONVERGED 756 · MISS 268</td>" in page
+    assert "td.n{white-space:nowrap}" in page

@@ -159,11 +159,18 @@ STYLE = ("body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto
          "table.t th{background:#f3f3f3}h2{border-bottom:2px solid #ccc;padding-bottom:2px}"
          "figure{display:inline-block;margin:0.5em;vertical-align:top}img{max-width:100%}"
          "p.note{color:#555;font-size:14px}.warn{color:#a40}div.scroll{overflow-x:auto}"
-         "table.t td{max-width:30em;overflow-wrap:anywhere}"
+         # a cell breaks inside a word only where the word alone is wider than the column can be
+         # (30em): "anywhere" let the layout split short words and numbers ("float6 4", "0.028 1")
+         # to fit the page; a wide table scrolls in its div instead
+         "table.t td{max-width:30em;overflow-wrap:break-word}table.t td.n{white-space:nowrap}"
          "table.stab td,table.stab th{padding:2px 5px;white-space:nowrap}table.stab td{max-width:none}"
          "td.st{font-family:ui-monospace,monospace;font-size:11px}td.ok{background:#e8f5e9}"
          "td.flag{background:#fff8e1}td.bad{background:#fdecea;color:#a00}td.na{color:#999}"
          "ul.board{font-weight:600}")
+
+
+#: a table cell holding one number as pandas writes it (float_format "{:.3g}", ints, inf, nan)
+_NUMBER_CELL = re.compile(r"<td>\s*([-+]?(?:\d+(?:\.\d*)?(?:e[-+]?\d+)?|inf|nan))\s*</td>")
 
 
 def inline(text: str) -> str:
@@ -213,7 +220,10 @@ def _html_block(b) -> str:
     if isinstance(b, Table):
         if not len(b.frame):
             return "<p class='note'>none</p>"
-        return b.frame.to_html(index=False, float_format=lambda v: f"{v:.3g}", border=0, classes="t", na_rep="")
+        table = b.frame.to_html(index=False, float_format=lambda v: f"{v:.3g}", border=0, classes="t", na_rep="")
+        # a number is one word: not broken at its exponent's sign ("6.9e-" over "07")
+        table = _NUMBER_CELL.sub(r"<td class='n'>\1</td>", table)
+        return f"<div class='scroll'>{table}</div>"  # a table wider than the page scrolls, the page does not
     if isinstance(b, Grid):
         return _html_grid(b)
     if isinstance(b, Figures):
