@@ -97,3 +97,46 @@ def test_accuracy_only_is_one_call(clock):
 def test_bad_policies_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         TimingPolicy(**{field: value})
+
+
+def test_the_unit_is_measured_right_before_and_after_the_samples_under_their_load(clock):
+    """The unit runs UNIT_CALLS times after the first call and as many after the last sample, so a
+    load that comes and goes between configurations is in both the samples and the unit; the
+    median of its calls is ``unit_s``.  Accuracy-only runs call no unit."""
+    c = clock(0.01)
+    log = c.events
+    unit_costs = iter([0.001, 0.003, 0.002, 0.005, 0.004, 0.006])
+
+    def unit():
+        c.now += next(unit_costs)
+        log.append("unit")
+
+    t, _ = measure(c.run, c.sync, TimingPolicy(min_repeats=3, min_time_s=0.0, min_sample_s=0.0, warmup=0), unit=unit)
+    runs = [i for i, e in enumerate(log) if e == "run"]
+    units = [i for i, e in enumerate(log) if e == "unit"]
+    assert len(units) == 2 * timing.UNIT_CALLS
+    assert units[:3] == [runs[0] + 2, runs[0] + 3, runs[0] + 4]  # after the first call (and its sync)
+    assert units[3] > runs[-1]  # the other three after the last sample
+    assert t.unit_s == pytest.approx(0.0035)  # median of 1, 3, 2, 5, 4, 6 ms
+    assert len(t.samples_s) == 3 and t.samples_s[0] == pytest.approx(0.01)
+
+    c2 = clock(0.01)
+    t2, _ = measure(c2.run, c2.sync, TimingPolicy(accuracy_only=True), unit=lambda: pytest.fail("unit called"))
+    assert t2.unit_s is None
+
+
+def test_a_rows_ratio_divides_by_the_unit_measured_beside_it(monkeypatch):
+    """``time_ratio_cf`` is the median time over ``Timing.unit_s``; the case's own unit (``cf_time``)
+    only where the timing has none."""
+    from bench.run import configuration
+
+    monkeypatch.setattr(configuration, "measure", lambda run, sync, policy, unit=None: (
+        timing.Timing(first_call_s=0.02, samples_s=[0.01, 0.01, 0.01], unit_s=0.002), run()))
+    from bench.run.plan import Config
+    from impls import registry
+    from reference.cases import get_case
+
+    cfg = Config(get_case("sphere.camera.64x64"), "numpy", "sphere_trace", "float64", {})
+    (row,) = [r for r in configuration.run_one("r", cfg, registry.resolve("numpy"), TimingPolicy(), cf_time=1.0)
+              if r["outcome"] == "ok"][:1]
+    assert row["time_ratio_cf"] == pytest.approx(5.0)

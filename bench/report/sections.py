@@ -118,8 +118,8 @@ def _bench_sections(df: pd.DataFrame, figs: list, series_all: list, stab: list) 
         Paragraph("Per case, method and checked quantity: the knob setting with the smallest max error over all "
                   "rays. Time is the median over repeated synchronised calls (compile and first call excluded, "
                   "reported apart); IQR is its spread. '× closed form' divides by the time of the exact ray–sphere "
-                  "formula on the same number of rays, measured in the same run — a unit that survives a noisy "
-                  "machine."), Table(summary_table(df)),
+                  "formula on the same number of rays, measured right before and after the configuration's samples — "
+                  "a unit that sees the same load as they do."), Table(summary_table(df)),
         Heading("Fastest configuration reaching an error target"),
         Paragraph("The cheapest knob setting whose max error is at or below the target: median time per call, its "
                   "multiple of the closed-form time, and the knob setting."), Table(fastest_to_target(df)),

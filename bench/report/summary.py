@@ -9,7 +9,7 @@ error over every ray of the case, on the family's primary quantity (depth, norma
 colour against the rendering integral), is at or below the target, with no false hit or miss and
 no ray the reference flags (a row with ``n_not_judged`` > 0 was not fully checked and is never
 picked; a case without another candidate reads ``not judged``).  "Fastest" is the median time in
-units of the closed-form ray–sphere intersection of the same rays measured in the same run
+units of the closed-form ray–sphere intersection of the same rays measured beside its samples
 (``time_ratio_cf``), so that cases of different sizes read alike; in an accuracy-only run (no
 timing) the cheapest in field evaluations per ray is taken instead, and the table says so.
 Comparisons are made within one case only: a method measured on another case is not its

@@ -41,9 +41,13 @@ import numpy as np
 
 @dataclasses.dataclass
 class Timing:
+    """``unit_s``: the median of :data:`UNIT_CALLS` calls of the unit right before the samples and
+    as many right after them (:func:`measure`), None where no unit was given."""
+
     first_call_s: float
     samples_s: list[float]
     loops: int = 1
+    unit_s: float | None = None
 
     @property
     def median_s(self) -> float:
@@ -118,12 +122,34 @@ def _timed(run: Callable[[], Any], sync: Callable[[Any], None], loops: int) -> t
     return clock() - t0, out
 
 
-def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingPolicy = TimingPolicy()) -> tuple[Timing, Any]:
+#: calls of the unit right before a configuration's samples, and as many right after them
+UNIT_CALLS = 3
+
+
+def _unit_times(unit: Callable[[], Any]) -> list[float]:
+    ts = []
+    for _ in range(UNIT_CALLS):
+        t0 = time.perf_counter()
+        unit()
+        ts.append(time.perf_counter() - t0)
+    return ts
+
+
+def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingPolicy = TimingPolicy(),
+            unit: Callable[[], Any] | None = None) -> tuple[Timing, Any]:
     """Time ``run`` (each call followed by ``sync(out)``); returns the timing and the first call's
-    output (the one whose accuracy is measured)."""
+    output (the one whose accuracy is measured).
+
+    ``unit`` (host work, not synchronised: the closed-form unit of
+    :func:`bench.run.configuration.closed_form_time`) is called :data:`UNIT_CALLS` times right
+    before the samples and as many right after, and ``Timing.unit_s`` is the median of those
+    calls: a unit measured under the same machine state as the samples, whatever the load does
+    before or after them (one measured once per case took that moment's load into every ratio of
+    the case: docs/performance.md, "How a time is measured")."""
     first, out = _timed(run, sync, 1)
     if policy.accuracy_only:
         return Timing(first_call_s=first, samples_s=[first], loops=1), out
+    before = _unit_times(unit) if unit is not None else []
     loops = 1
     if not policy.warmup and first >= max(policy.min_sample_s, policy.min_time_s / policy.min_repeats):
         samples, total = [first], first  # a long first call of a backend warm after it: the first sample
@@ -142,7 +168,8 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
         dt, _ = _timed(run, sync, loops)
         samples.append(dt / loops)
         total += dt
-    return Timing(first_call_s=first, samples_s=samples, loops=loops), out
+    unit_s = float(np.median(before + _unit_times(unit))) if unit is not None else None
+    return Timing(first_call_s=first, samples_s=samples, loops=loops, unit_s=unit_s), out
 
 
 class Timeout(BaseException):
