@@ -40,13 +40,16 @@ def _no_persistent_cache_write():
     """A context in which jax reads its persistent cache but writes no entry (its minimum
     compile time to write one raised to ∞, for this thread only), for a kernel the kernel store
     keeps (:mod:`impls.jax.executables`): a warm run loads it from the store, without tracing, so
-    jax's own entry of the same executable would only cost its serialization, compression and
-    write (4.5 of a cold quick run's CPU-seconds, py-spy).  A kernel the store refuses, or one
-    it cannot keep (a user's scene, a host call), is compiled outside it and cached by jax."""
+    jax's own entry of the same executable would only cost a second serialization, compression
+    and write (docs/performance.md).  A kernel the store refuses, or one it cannot keep (a user's
+    scene, a host call), is compiled outside it and cached by jax; one whose save fails is in
+    neither, and the next run compiles it again."""
     from jax._src import config as jax_config  # the thread-local override; jax.config.update is global
 
     state = getattr(jax_config, "persistent_cache_min_compile_time_secs", None)
     return contextlib.nullcontext() if state is None else state(math.inf)
+
+
 _cache_hits = [0]
 
 
