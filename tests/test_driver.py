@@ -154,3 +154,35 @@ def test_steps_read_only_what_they_declare(method):
                 for key, v in full.items():
                     s[key][rows] = v
     assert seen == set(alg.stages)
+
+
+def test_jax_constant_step_marches_keep_a_larger_smallest_level():
+    """A constant-step march (the march_* methods, whose rays take at most (t_max − t_min)/step
+    steps) runs its smallest level at ``last_constant`` rows, the certified methods at ``last``;
+    a runner's larger ``last`` (one level for a run that times nothing) wins for both.  The levels
+    change no per-ray result (test above, march_newton at last sizes 1 to 40)."""
+    pytest.importorskip("jax")
+    from impls.jax import driver
+    from impls.jax.backend import JaxBackend
+
+    case = get_case("torus.camera.32x32")
+    knobs = lambda m: {k.name: k.default for k in METHODS[m].knobs}  # noqa: E731
+    march = make_root_finder("march_secant", case.scene, 0.0, 10.0, knobs("march_secant"))
+    certified = make_root_finder("hybrid_secant", case.scene, 0.0, 10.0, knobs("hybrid_secant"))
+    st = driver.MaskedSettings()
+    assert driver.constant_steps(march) and not driver.constant_steps(certified)
+    assert driver.smallest_level(march, st) == driver.LAST_CONSTANT > driver.smallest_level(certified, st) == driver.LAST
+    one = driver.MaskedSettings(last=st.chunk)
+    assert driver.smallest_level(march, one) == driver.smallest_level(certified, one) == st.chunk
+    assert driver.MaskedSettings(last_constant=16).record()["last_constant"] == 16
+
+    seen = []
+    b = JaxBackend("cpu")
+    orig = driver.run_loop
+    try:
+        driver.run_loop = lambda alg, o, d, ev, **kw: seen.append(kw["last"])
+        b.run_loop(march, None, None, None)
+        b.run_loop(certified, None, None, None)
+    finally:
+        driver.run_loop = orig
+    assert seen == [driver.LAST_CONSTANT, driver.LAST]

@@ -405,4 +405,5 @@ class JaxBackend(ArrayBackend):
 
     def run_loop(self, alg, o, d, ev):
         st = self.settings
-        return driver.run_loop(alg, o, d, ev, chunk=st.chunk, ratio=st.ratio, last=st.last, tail_cap=st.tail_cap)
+        return driver.run_loop(alg, o, d, ev, chunk=st.chunk, ratio=st.ratio, last=driver.smallest_level(alg, st),
+                               tail_cap=st.tail_cap)

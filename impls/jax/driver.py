@@ -34,6 +34,11 @@ CHUNK = 1 << 16
 RATIO = 4
 LAST = 64
 TAIL_CAP = 128
+# The smallest level of a constant-step march (the march_* methods), whose rays take at most
+# (t_max − t_min)/step steps: no heavy tail for a 64-row level to serve.  Measured side by side
+# on the quick suite's 1,024- and 256-ray cases (docs/performance.md): 256 against 64, compile
+# CPU −29 %, run ×0.86–1.07; the certified methods keep LAST (at 256, ×1.25–1.89 slower).
+LAST_CONSTANT = 256
 # Ladder steps (impls.core.rootfind.MarchRefine.step_ladder) where the knob leaves the choice to
 # the driver: none.  The masked levels already run the stragglers in small batches, and there a
 # ladder iteration's K samples per row cost more than the loop steps they save: torus ∪ box,
@@ -56,8 +61,9 @@ class MaskedSettings:
     except ``ladder``, which is part of the algorithm.
 
     chunk:    rays per ``lax.map`` chunk;  ratio: batch shrink factor from level to level;
-    last:     the smallest level's batch;  tail_cap: steps of a chunk's last level before its
-              stragglers join those of every chunk;
+    last:     the smallest level's batch;  last_constant: the smallest level's batch of a
+              constant-step march (:func:`constant_steps`; at least ``last``);
+    tail_cap: steps of a chunk's last level before its stragglers join those of every chunk;
     ladder:   samples per ladder step where the knob ``ladder`` is -1 (the driver's choice);
     pad:      a batch of n rays runs as :func:`padded_size` ``(n, pad)`` rows, the next power of two
               of at least ``pad`` (copies of the first ray, their results dropped), so that ray sets
@@ -67,6 +73,7 @@ class MaskedSettings:
     chunk: int = CHUNK
     ratio: int = RATIO
     last: int = LAST
+    last_constant: int = LAST_CONSTANT
     tail_cap: int = TAIL_CAP
     ladder: int = LADDER
     pad: int = PAD
@@ -81,6 +88,17 @@ class MaskedSettings:
     def record(self) -> dict:
         """The settings as recorded with a result: ``{"driver": kind, field: value, …}``."""
         return {"driver": self.kind, **dataclasses.asdict(self)}
+
+
+def constant_steps(alg) -> bool:
+    """Whether ``alg`` marches with constant steps (:class:`impls.core.rootfind.ConstantStep`)."""
+    return isinstance(getattr(alg, "rule", None), rootfind.ConstantStep)
+
+
+def smallest_level(alg, settings: MaskedSettings) -> int:
+    """The smallest level's batch for ``alg``: ``settings.last``, or for a constant-step march
+    the larger of it and ``settings.last_constant``."""
+    return max(settings.last, settings.last_constant) if constant_steps(alg) else settings.last
 
 
 def padded_size(n: int, pad: int = PAD) -> int:
