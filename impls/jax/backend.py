@@ -7,8 +7,6 @@ are placed on the backend's device explicitly, so the global default device does
 from __future__ import annotations
 
 import collections
-import contextlib
-import math
 import time
 
 import jax
@@ -34,22 +32,6 @@ def _persistent_cache() -> bool:
 
 
 PERSISTENT_CACHE = _persistent_cache()
-
-
-def _no_persistent_cache_write():
-    """A context in which jax reads its persistent cache but writes no entry (its minimum
-    compile time to write one raised to ∞, for this thread only), for a kernel the kernel store
-    keeps (:mod:`impls.jax.executables`): a warm run loads it from the store, without tracing, so
-    jax's own entry of the same executable would only cost a second serialization, compression
-    and write (docs/performance.md).  A kernel the store refuses, or one it cannot keep (a user's
-    scene, a host call), is compiled outside it and cached by jax; one whose save fails is in
-    neither, and the next run compiles it again."""
-    from jax._src import config as jax_config  # the thread-local override; jax.config.update is global
-
-    state = getattr(jax_config, "persistent_cache_min_compile_time_secs", None)
-    return contextlib.nullcontext() if state is None else state(math.inf)
-
-
 _cache_hits = [0]
 
 
@@ -365,14 +347,13 @@ class JaxBackend(ArrayBackend):
                         _TRACED_FAILED.add(key)
                         spent += time.perf_counter() - t0
                         continue
+                    # jax's persistent cache writes its own copy too: keyed by the program, it still
+                    # answers after an edit of isobench changed every store key (docs/performance.md)
+                    compiled = self._compile_traced(trace)
                     # stored: a kernel XLA compiled here (one jax loaded from its persistent cache
                     # serializes into bytes that do not run: impls.jax.executables), without a call
                     # back into Python (a mesh's φ: its trace registers the call's target)
-                    storable = (stored is not None and traced_calls() == host_calls
-                                and not self._store.refuses(stored))
-                    with _no_persistent_cache_write() if storable else contextlib.nullcontext():
-                        compiled = self._compile_traced(trace)
-                    if storable and self.last_compile_cache != "reused":
+                    if stored is not None and traced_calls() == host_calls and self.last_compile_cache != "reused":
                         self._store.save(stored, compiled, (o, d, th, traced), self.jax_device)
                 # the scene and colour objects are kept alive with the kernel: their ids are in the key
                 self._kernels[key] = kept = (compiled, scene, extra)
