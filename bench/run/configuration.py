@@ -29,10 +29,15 @@ def closed_form_time(case: Case, policy: TimingPolicy) -> float:
     """Median time of the exact closed-form ray–sphere intersection of ``case.n_rays`` rays in
     numpy float64 (:func:`reference.quadric.ray_sphere_roots`, unit sphere at the origin, whatever
     the case's scene): the run's unit of time, measured with the same policy as the methods."""
-    o, d = case.origins, case.directions
     pol = dataclasses.replace(policy, accuracy_only=False)
-    timing, _ = measure(lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0), lambda _: None, pol)
+    timing, _ = measure(closed_form_unit(case), lambda _: None, pol)
     return timing.median_s
+
+
+def closed_form_unit(case: Case) -> Callable[[], Any]:
+    """One call of the run's unit on ``case``'s rays (:func:`closed_form_time`)."""
+    o, d = case.origins, case.directions
+    return lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0)
 
 
 def _device(cfg: Config, backend: Any) -> str:
@@ -129,10 +134,9 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     if not takes_one_argument(sync):
         raise BackendFault("backend.synchronize must take the output of Prepared.run(): synchronize(out) "
                            "(docs/backends.md); it cannot be called with one argument")
-    o, d = case.origins, case.directions
     timing, out = measure(lambda: backend_call(backend, "Prepared.run()", prep.run),
                           lambda o: backend_call(backend, "backend.synchronize(out)", lambda: sync(o)),
-                          warmup_policy(backend, policy), unit=lambda: ray_sphere_roots(o, d, (0.0, 0.0, 0.0), 1.0))
+                          warmup_policy(backend, policy), unit=closed_form_unit(case))
     return prep, timing, out
 
 

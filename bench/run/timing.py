@@ -85,15 +85,20 @@ class TimingPolicy:
                 raise ValueError(f"TimingPolicy.{name}={v} must be a finite number ≥ 0")
 
 
-def median_time(fn: Callable[[], Any], k: int) -> float:
-    """Median wall time in seconds of ``k`` calls of ``fn`` (perf_counter; no synchronisation:
-    for host-side work such as the closed-form unit)."""
+def call_times(fn: Callable[[], Any], k: int) -> list[float]:
+    """Wall times in seconds of ``k`` calls of ``fn`` (perf_counter; no synchronisation: for
+    host-side work such as the closed-form unit)."""
     ts = []
     for _ in range(k):
         t0 = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+    return ts
+
+
+def median_time(fn: Callable[[], Any], k: int) -> float:
+    """Median of :func:`call_times`."""
+    return float(np.median(call_times(fn, k)))
 
 
 def times_against_unit(call: Callable[[], Any], unit_fn: Callable[[], Any], repeats: int):
@@ -126,15 +131,6 @@ def _timed(run: Callable[[], Any], sync: Callable[[Any], None], loops: int) -> t
 UNIT_CALLS = 3
 
 
-def _unit_times(unit: Callable[[], Any]) -> list[float]:
-    ts = []
-    for _ in range(UNIT_CALLS):
-        t0 = time.perf_counter()
-        unit()
-        ts.append(time.perf_counter() - t0)
-    return ts
-
-
 def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingPolicy = TimingPolicy(),
             unit: Callable[[], Any] | None = None) -> tuple[Timing, Any]:
     """Time ``run`` (each call followed by ``sync(out)``); returns the timing and the first call's
@@ -149,7 +145,7 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
     first, out = _timed(run, sync, 1)
     if policy.accuracy_only:
         return Timing(first_call_s=first, samples_s=[first], loops=1), out
-    before = _unit_times(unit) if unit is not None else []
+    before = call_times(unit, UNIT_CALLS) if unit is not None else []
     loops = 1
     if not policy.warmup and first >= max(policy.min_sample_s, policy.min_time_s / policy.min_repeats):
         samples, total = [first], first  # a long first call of a backend warm after it: the first sample
@@ -168,7 +164,7 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
         dt, _ = _timed(run, sync, loops)
         samples.append(dt / loops)
         total += dt
-    unit_s = float(np.median(before + _unit_times(unit))) if unit is not None else None
+    unit_s = float(np.median(before + call_times(unit, UNIT_CALLS))) if unit is not None else None
     return Timing(first_call_s=first, samples_s=samples, loops=loops, unit_s=unit_s), out
 
 
