@@ -16,8 +16,9 @@ import pytest
 from impls.protocol import Status
 from reference import rays
 from reference.cases import get_case
-from reference.csg import Difference, Union
-from reference.primitives import Box, Sphere, Torus
+from reference.csg import Complement, Difference, Intersection, Union
+from reference.implicits import Scaled
+from reference.primitives import Box, Capsule, Plane, Sphere, Torus
 from reference.transform import Transform
 
 TOL = 1e-9  # depth agreement of a CONVERGED ray with the crossing it reports
@@ -218,3 +219,48 @@ def test_an_uncertified_step_makes_the_miss_uncertified():
     tight = _solve(b, "hybrid_secant", Sphere(), o, d, 10.0, bounds=0, min_step=1e-6)
     assert loose.status[0] == Status.UNCERTIFIED and np.isinf(loose.t[0])
     assert tight.status[0] == Status.MISS
+
+
+def grazed_shell_rays():
+    """Three rays of a seeded 256² camera (not a catalog case) whose certified answers were a later
+    crossing: a union of a rotated thin box, a rotated torus, a thin spherical shell (Scaled), a
+    capsule and a half-space, less a small ball, searched from t_min = 0.422.  Each ray grazes the
+    shell's inner sphere, crossing the shell's wall twice (chords ≈ 0.002, 0.014 and 0.009) before
+    the wall behind; the hybrid's crossing step brackets them all, and its secant refinement landed
+    on φ = 0 exactly at the later wall, which the certification then covered only up to the
+    bracket's old start (MarchRefine._refine_step: an exact zero now closes the bracket at
+    itself).  Found by a probe of such scenes on numpy, torch, jax, numba and warp alike."""
+    parts = Union(
+        Transform.from_rotvec(Box((0.016490052627416846, 0.5231763158945975, 0.40613022441685676)),
+                              (0.4204452380655215, 1.1360465324896427, 0.10970639932180819),
+                              (-0.07322143566400108, -0.3637798448780439, -0.3609938314182656)),
+        Transform.from_rotvec(Torus(0.4997528345195214, 0.06627980382403481),
+                              (-1.2333286640307717, -0.9582652054360887, 1.6000190889991115),
+                              (0.3976776081085488, 0.34423103760874096, -0.10759533566522184)),
+        Scaled(Difference(Sphere((0, 0, 0), 0.5 + 0.0009683805041674317), Sphere((0, 0, 0), 0.5)), 0.9090204166479594),
+        Capsule((-0.5270367444503327, 0.06671534030486814, -0.27425807456387813),
+                (0.4555814080019066, -0.5229426752253707, 0.21501783962563792), 0.017531681544222563),
+        Plane((-0.32860467428113543, 0.9486539747269012, -0.19614947120880252), -1.1907413911648945))
+    scene = Intersection(parts, Complement(Sphere((0.08299822693487091, -0.19952012656526855, 0.0013455862214657999),
+                                                  0.15)))
+    o = np.tile([-0.1521688754792445, -0.5239632525601231, 2.3019048347634534], (3, 1))
+    d = np.array([[-0.05797252574442046, 0.3645718607063099, -0.9293688958857788],
+                  [-0.14469425244301412, 0.2543855089058197, -0.9562173320792111],
+                  [-0.02514377964980788, 0.03168635645629901, -0.9991815476475966]])
+    return scene, o, d, 0.42212207428780335
+
+
+@pytest.mark.parametrize("method", ["hybrid_secant", "hybrid_chandrupatla", "sphere_trace"])
+def test_a_refinement_landing_on_an_exact_zero_is_not_a_later_crossing(backend, method):
+    _offered(backend, method)
+    scene, o, d, t_min = grazed_shell_rays()
+    p = backend.prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=t_min, t_max=6.0)
+    res = p.result(p.run())
+    first = [float(iv[iv > t_min].min()) for iv in scene.ray_intervals(o, d)]
+    assert first == pytest.approx([2.111846054, 2.271558922, 2.253286054], abs=1e-8)  # the shell's near wall
+    for i, t0 in enumerate(first):
+        # the first crossing (to the method's allowance) or no claim: never the wall behind
+        if res.status[i] == Status.CONVERGED:
+            assert abs(float(res.t[i]) - t0) <= max(allowance(method, {}), TOL), (i, float(res.t[i]), t0)
+        else:
+            assert res.status[i] in (Status.UNCERTIFIED, Status.MAX_ITER), (i, Status(int(res.status[i])).name)

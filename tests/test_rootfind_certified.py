@@ -333,3 +333,39 @@ def test_float32_hybrid_ends_every_ray_of_a_1024_squared_fin_camera(backend_id):
     assert np.isfinite(ref).sum() > 1000
     assert not np.any((st == Status.CONVERGED) & ~np.isfinite(ref))
     assert not np.any((st == Status.MISS) & np.isfinite(ref))
+
+
+def test_an_exact_zero_closes_the_bracket_at_itself_and_is_certified_as_first_from_there():
+    """Refinement that lands on φ = 0 exactly closes the bracket at that point, [c, c], and the
+    certification stage must then cover the stretch up to c.  The bracket's far end used to stay
+    where it was (here a = 1, before a thin slab), and certification, which covers the stretch up
+    to the bracket's start, called c the first crossing with the slab [1.995, 2.005] unseen: a
+    later crossing CONVERGED (found at 256² rays on all five array backends, a thin shell grazed
+    before a wall).  φ(t) = min(|t − 2| − 0.005, 2.25 − t) along x; the state is that of a
+    secant refinement of [1, 2.375] whose last two iterates, 2.5 and 2.375, put its next one at
+    2.25 exactly (dyadic arithmetic), where φ = 0; the march's frontier ends at the slab."""
+    from impls.core.rootfind import CertifiedStep, MarchRefine, Secant
+
+    def ev(o, d, t, deriv):
+        x = o[:, 0] + t * d[:, 0]
+        return np.minimum(np.abs(x - 2.0) - 0.005, 2.25 - x), None, 1
+
+    alg = MarchRefine(rule=CertifiedStep(inv_lip=1.0, min_step=1e-4, overstep=1e-4), refiner=Secant(), xtol=1e-12,
+                      max_steps=256, t_min=0.0, t_max=3.0, resolve=True)
+    o, d = np.array([[0.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]])
+    s = alg.init(np, o, d, ev)
+    one = np.ones(1)
+    s.update(t=2.375 * one, f=-0.125 * one, p=2.5 * one, fp=-0.25 * one, a=1.0 * one, fa=0.995 * one,
+             b=2.375 * one, wq=np.inf * one, u=1.995 * one, cp=1.0 * one, fcp=0.995 * one,
+             iterations=np.ones(1, np.int32), phase=np.full(1, alg.stages.index("step_refine"), np.int32))
+    s = alg.step_refine(np, s, o, d, ev)
+    assert s["t"][0] == 2.25 and s["a"][0] == s["b"][0] == 2.25  # closed at the exact zero, [c, c]
+    steps = 0
+    while s["status"][0] == Status.IN_PROGRESS and steps < 256:
+        s = getattr(alg, alg.stages[int(s["phase"][0])])(np, s, o, d, ev)
+        steps += 1
+    status, t = Status(int(s["status"][0])), float(s["t"][0])
+    # the first crossing, or no claim: never the wall behind the slab
+    assert status in (Status.CONVERGED, Status.UNCERTIFIED), (status.name, t)
+    if status == Status.CONVERGED:
+        assert abs(t - 1.995) <= 1e-9, t

@@ -1033,8 +1033,13 @@ class MarchRefine(_Search):
         # fa is φ at the bracket's first end when it was formed: a moves only to points of φ's sign
         # there, so that sign (all that is used) never changes and fa, fb need no updates
         same_a = (f_c > 0) == (s["fa"] > 0)
-        na = xp.where(same_a, c, a)
-        nb = xp.where(same_a, b, c)
+        # φ(c) = 0 exactly closes the bracket at c itself, [c, c]: left at [a, c] (or [c, b]), its
+        # far end could lie before other crossings of the bracket, and the certification stage
+        # (_certify), which covers the stretch up to the bracket's start, would then pass them and
+        # call c the first (hybrid_secant, 256² rays: a thin slab skipped, CONVERGED at the wall behind)
+        exact = f_c == 0
+        na = xp.where(same_a | exact, c, a)
+        nb = xp.where(same_a & ~exact, b, c)
         # closed: a root found exactly, a sign-change bracket no wider than xtol, or one whose ends
         # are adjacent floats (the midpoint rounds to an end: no float lies between them)
         nmid = 0.5 * (na + nb)
