@@ -579,9 +579,10 @@ class CertifiedStep:
             # (within reach) crosses and leaves uncertified the stretch from the sphere's end t + r
             # to the crossing, x₀ − r, which the certification stage must then cover (_certify),
             # so it is taken once that is within GATE·min_step.
+            rs = r if rc is None else rc  # the spheres judge() overlaps: less φ's rounding
             with _quiet(xp):
                 sig = xp.minimum((self.radius(xp, s["fp"]) - r) / (t - s["p"]), 1.0)
-                over = xp.where(sig > -1.0, r + OVER_RELAX * (2.0 * r / (1.0 + xp.maximum(sig, 0.0)) - r), r0)
+                over = xp.where(sig > -1.0, r + OVER_RELAX * (2.0 * rs / (1.0 + xp.maximum(sig, 0.0)) - r), r0)
                 x0 = r / sig
                 x = xp.minimum(self.extrapolate * x0, self.reach)
                 base = xp.where(sig > PASSING_SLOPE, over, xp.maximum(h, over))
