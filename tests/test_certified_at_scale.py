@@ -250,7 +250,7 @@ def grazed_shell_rays():
     return scene, o, d, 0.42212207428780335
 
 
-@pytest.mark.parametrize("method", ["hybrid_secant", "hybrid_chandrupatla", "sphere_trace"])
+@pytest.mark.parametrize("method", ["hybrid_secant", "hybrid_chandrupatla"])
 def test_a_refinement_landing_on_an_exact_zero_is_not_a_later_crossing(backend, method):
     _offered(backend, method)
     scene, o, d, t_min = grazed_shell_rays()

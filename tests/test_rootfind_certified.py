@@ -378,7 +378,7 @@ def test_float32_hybrid_certifies_an_oblique_floor(backend):
     rejected, the crossing step never came, and the forced step of ``min_step`` stood uncertified
     before the crossing, so 1,234 of this floor's 3,008 float32 hits (41 %) were UNCERTIFIED
     (numpy; float64: none).  Now 274; every CONVERGED ray is on the exact hit to float32's
-    resolution, and float64 is unchanged (every hit CONVERGED)."""
+    resolution, and float64 is unchanged (every hit CONVERGED, numpy)."""
     require_method(backend, "hybrid_secant")
     if "float32" not in backend.capabilities.dtypes:
         pytest.skip(f"{backend.id} runs no float32")
@@ -386,7 +386,9 @@ def test_float32_hybrid_certifies_an_oblique_floor(backend):
     o, d = rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, -1.0, 0.0), fov_deg=50, width=64, height=64)
     exact = scene.first_hit(o, d, 0.0)
     hits = np.isfinite(exact) & (exact <= 10.0)
-    for dtype in ("float32", "float64"):
+    # (float64 on numpy only: a compiling backend would pay a second kernel for what the float64
+    # tests of the certified methods already hold on every backend)
+    for dtype in ("float32", "float64") if backend.id == "numpy" else ("float32",):
         try:
             prep = backend.prepare("hybrid_secant", scene, o.copy(), d.copy(), dtype=dtype, t_min=0.0, t_max=10.0)
         except Declined as e:
