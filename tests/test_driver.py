@@ -156,7 +156,7 @@ def test_steps_read_only_what_they_declare(method):
     assert seen == set(alg.stages)
 
 
-def test_jax_constant_step_marches_keep_a_larger_smallest_level():
+def test_jax_constant_step_marches_keep_a_larger_smallest_level(monkeypatch):
     """A constant-step march (the march_* methods, whose rays take at most (t_max − t_min)/step
     steps) runs its smallest level at ``last_constant`` rows, the certified methods at ``last``;
     a runner's larger ``last`` (one level for a run that times nothing) wins for both.  The levels
@@ -178,11 +178,7 @@ def test_jax_constant_step_marches_keep_a_larger_smallest_level():
 
     seen = []
     b = JaxBackend("cpu")
-    orig = driver.run_loop
-    try:
-        driver.run_loop = lambda alg, o, d, ev, **kw: seen.append(kw["last"])
-        b.run_loop(march, None, None, None)
-        b.run_loop(certified, None, None, None)
-    finally:
-        driver.run_loop = orig
+    monkeypatch.setattr(driver, "run_loop", lambda alg, o, d, ev, **kw: seen.append(kw["last"]))
+    b.run_loop(march, None, None, None)
+    b.run_loop(certified, None, None, None)
     assert seen == [driver.LAST_CONSTANT, driver.LAST]
