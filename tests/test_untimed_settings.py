@@ -112,32 +112,47 @@ def test_jax_runs_untimed_with_one_level_and_the_same_results(tmp_path):
 
 @pytest.mark.slow  # compiles numba kernels
 @pytest.mark.parametrize("case_id", ["csg.union.camera.32x32", "mlp.camera.32x32"])
-def test_numba_runs_untimed_without_the_lanes_kernel_and_the_same_results(case_id):
-    """numba's untimed settings run the constant-step marchers in ``march_one`` (one kernel per
-    scene with Newton's) instead of the lanes kernel: every ray's depth, status and counts are the
-    same, bit for bit, for each refiner the lanes kernel runs, at the default knobs and at another
-    step and tolerance."""
+def test_numba_runs_untimed_without_the_marcher_kernels_and_the_same_results(case_id, monkeypatch):
+    """numba's untimed settings run the constant-step marchers by the core array algorithm on the
+    compiled φ kernel (with dφ/dt for Newton's), as the certified methods, instead of the per-ray
+    marcher kernels (``march_one``, the lanes kernel): no marcher kernel is called, and every
+    ray's depth, status and counts are the same, bit for bit, for each refiner, at the default
+    knobs and at another step and tolerance (the MLP's φ sums its layers in the same order in
+    both: the same compiled φ)."""
     pytest.importorskip("numba")
+    from impls.numba import driver as nb_driver
     from reference.cases import get_case
 
     b = registry.resolve("numba")
     if isinstance(b, registry.Unavailable):
         pytest.skip(b.reason)
     u = untimed_backend(b)
-    assert u.settings.lanes is False and b.settings.lanes is True
+    assert u.settings.per_ray is False and b.settings.per_ray is True
     assert json.loads(driver_record(u))["lanes"] == 0 and json.loads(driver_record(b))["lanes"] > 1
-    for bad in (0, 1, "no"):
-        with pytest.raises(ValueError, match="lanes"):
-            u.configure(lanes=bad)
+    for field in ("lanes", "per_ray"):
+        for bad in (0, 1, "no"):
+            with pytest.raises(ValueError, match=field):
+                u.configure(**{field: bad})
     case = get_case(case_id)
-    for method in ("march_bisect", "march_secant"):
+    kernels = nb_driver.kernels
+
+    def array_path_only(key, parallel=True):  # the untimed runs must not call a per-ray marcher kernel
+        ks = dict(kernels(key, parallel))
+        for name in ("march", "lanes"):
+            ks[name] = None
+        return ks
+
+    for method in ("march_bisect", "march_secant", "march_newton"):
         for knobs in ({}, {"step": 0.37, "xtol": 1e-11}):
             got = []
             for backend in (b, u):
+                if backend is u:
+                    monkeypatch.setattr(nb_driver, "kernels", array_path_only)
                 p = backend.prepare(method, case.scene, case.origins, case.directions, t_min=case.t_min,
                                     t_max=case.t_max, **knobs)
                 got.append(p.result(p.run()))
-            lanes, one = got
-            assert (lanes.status == Status.CONVERGED).sum() > 50  # rays that hit: the refiners ran
+                monkeypatch.setattr(nb_driver, "kernels", kernels)
+            per_ray, array = got
+            assert (per_ray.status == Status.CONVERGED).sum() > 50  # rays that hit: the refiners ran
             for k in ("t", "status", "iterations", "evals"):
-                np.testing.assert_array_equal(getattr(one, k), getattr(lanes, k), err_msg=f"{method} {knobs} {k}")
+                np.testing.assert_array_equal(getattr(array, k), getattr(per_ray, k), err_msg=f"{method} {knobs} {k}")

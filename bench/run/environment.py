@@ -77,7 +77,7 @@ def untimed_backend(backend):
     stage, ``--accuracy-only``): a copy configured with the driver settings its optional hook
     ``untimed_settings() -> dict`` names, settings that give the same per-ray results at less
     compile cost (jax: one compaction level, :meth:`impls.jax.backend.JaxBackend.untimed_settings`;
-    numba: no lanes kernel, :meth:`impls.numba.backend.NumbaBackend.untimed_settings`),
+    numba: no per-ray marcher kernels, :meth:`impls.numba.backend.NumbaBackend.untimed_settings`),
     recorded with every row as any settings are.  The backend itself where it has no such hook,
     or where the hook or the settings it names fail: a plug-in's fault costs it the saving, not
     its rows."""

@@ -94,10 +94,11 @@ class NumbaBackend(HostArrayBackend):
 
     def untimed_settings(self) -> dict:
         """Driver settings for a run that times nothing (:func:`bench.run.environment.untimed_backend`):
-        no lanes kernel (``NumbaSettings.lanes``), so that the constant-step marchers share
-        ``march_one`` with Newton's, one compilation per scene structure instead of two; the
-        per-ray results are the same."""
-        return {"lanes": False}
+        no per-ray marcher kernels (``NumbaSettings.per_ray``): the constant-step marchers run the
+        core array algorithm on the φ kernel the certified methods compile anyway, so a scene
+        structure compiles that kernel (and φ with dφ/dt for Newton's) instead of ``march_one``
+        and the lanes kernel; the per-ray results are the same."""
+        return {"per_ray": False}
 
     def compile(self, fn, o, d, th):
         """Compile by running ``fn`` on the first ray (numba compiles a kernel on its first call)."""

@@ -9,7 +9,7 @@ optional ladder stage), built by the method catalog from the validated knobs
 The certified methods (``SphereTrace``, and ``MarchRefine`` with a ``CertifiedStep`` rule: their
 first-crossing certification, certified MISS and φ's resolution) run the array algorithm of
 :mod:`impls.core.rootfind` itself with numpy's compacting driver, each φ evaluation one compiled
-parallel kernel over the rays (:func:`_run_certified`).
+parallel kernel over the rays (:func:`_run_array`).
 
 The constant-step marchers run in compiled kernels generated from one template of each step
 (:mod:`impls.numba.template`): the array step of :mod:`impls.core.rootfind` written for one ray,
@@ -60,11 +60,21 @@ class NumbaSettings:
              time, as Newton's.  The two give the same per-ray results (the same step templates,
              :mod:`impls.numba.template`); the lanes kernel runs faster and is a compilation of
              its own per scene structure, which a run that times nothing skips
-             (:meth:`impls.numba.backend.NumbaBackend.untimed_settings`)."""
+             (:meth:`impls.numba.backend.NumbaBackend.untimed_settings`);
+    per_ray: run the constant-step marchers in the per-ray kernels (``march_one``, and the lanes
+             kernel where ``lanes``); False: as the certified methods, the core array algorithm
+             with numpy's compacting driver, each φ evaluation (with dφ/dt for Newton's, the
+             kernels' own central difference) one compiled kernel over the rays
+             (:func:`_run_array`).  The per-ray results are the same, bit for bit: the template
+             is the array step written for one ray (:mod:`impls.numba.template`), and the
+             evaluations are the kernels' own compiled φ.  Slower per step (numpy's per-step
+             overhead; no ladder), but no marcher kernel to compile: ~3 s of numba's pipeline per
+             scene structure, which a run that times nothing skips."""
 
     threads: int = 1
     ladder: int = LADDER
     lanes: bool = True
+    per_ray: bool = True
 
     kind = "per-ray"
 
@@ -74,6 +84,9 @@ class NumbaSettings:
         if not isinstance(self.lanes, bool):
             raise ValueError(f"{type(self).__name__}: lanes must be True or False (the lanes kernel on or off); got "
                              f"{self.lanes!r}")
+        if not isinstance(self.per_ray, bool):
+            raise ValueError(f"{type(self).__name__}: per_ray must be True or False (the per-ray marcher kernels on "
+                             f"or off); got {self.per_ray!r}")
         import numba
 
         most = numba.config.NUMBA_NUM_THREADS
@@ -86,7 +99,8 @@ class NumbaSettings:
         ``lanes`` the rays stepped in turn per thread by the lanes kernel (0: that kernel is not used)."""
         from .template import LANES
 
-        return {"driver": self.kind, **dataclasses.asdict(self), "lanes": LANES if self.lanes else 0}
+        return {"driver": self.kind, **dataclasses.asdict(self),
+                "lanes": LANES if self.lanes and self.per_ray else 0}
 
 
 # -- the algorithm's numbers, as the kernels take them -------------------------------------------
@@ -118,7 +132,7 @@ def compiled_refiner(alg) -> int:
         raise NotImplementedError(
             f"the numba kernels compile MarchRefine with a ConstantStep rule (refiners {compiled}); got "
             f"{type(alg).__name__} with {type(getattr(alg, 'rule', None)).__name__} (the certified methods run "
-            "the core algorithm: _run_certified)")
+            "the core algorithm: _run_array)")
     ref = type(alg.refiner)
     if ref not in REFINERS:
         raise NotImplementedError(f"the numba kernels compile the refiners {compiled}; {ref.__module__}."
@@ -160,7 +174,7 @@ _KERNELS: dict = {}
 
 
 def kernels(key: str, parallel: bool = True):
-    """``{"march": …, "lanes": …, "phi_rays": …}`` kernels for the scene source ``key``
+    """``{"march": …, "lanes": …, "phi_rays": …, "phi_rays_d": …}`` kernels for the scene source ``key``
     (:class:`impls.numba.fields.CompiledScene`), made once per key and ``parallel`` (the cache
     lives as long as the process); numba compiles each on its first call.  ``parallel``: the rays'
     loops are numba's ``prange`` over threads; False, plain loops, for one thread (:func:`run_loop`:
@@ -175,7 +189,7 @@ def kernels(key: str, parallel: bool = True):
         where = subdir("numba")
         if where is not None:
             mod = _cached_module(key, where, parallel)
-            k = {"march": mod.run_march, "lanes": mod.run_lanes, "phi_rays": mod.phi_rays}
+            k = {"march": mod.run_march, "lanes": mod.run_lanes, "phi_rays": mod.phi_rays, "phi_rays_d": mod.phi_rays_d}
         else:
             from .fields import CompiledScene, scene_functions
 
@@ -231,7 +245,7 @@ def kernels_source(key: str, parallel: bool = True) -> str:
         "",
         template.source(parallel),
         "",
-        "for _k in (run_march, run_lanes, phi_rays):",
+        "for _k in (run_march, run_lanes, phi_rays, phi_rays_d):",
         "    lock_numba_cache(_k)",
         "",
     ])
@@ -343,6 +357,13 @@ def _make_kernels(phi, bounds, parallel=True):
         for i in prange(T.shape[0]):
             F[i] = ev(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], T[i])
 
+    @njit(parallel=parallel, error_model="numpy")
+    def phi_rays_d(O, D, T, p, F, DF):
+        """φ and dφ/dt at o_i + t_i d_i for every ray i, as ``march_one`` evaluates them for Newton's
+        refinement (``ev_d``: the central difference of :mod:`impls.numba.derivatives`)."""
+        for i in prange(T.shape[0]):
+            F[i], DF[i] = ev_d(p, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], T[i])
+
     from . import template
 
     # the generated kernels' globals: what the cached module (kernels_source) defines at its top level
@@ -353,7 +374,7 @@ def _make_kernels(phi, bounds, parallel=True):
     exec(compile(template.source(parallel), "<isobench numba kernels>", "exec"), ns)  # noqa: S102 - our own generated source
     run_march, run_lanes = ns["run_march"], ns["run_lanes"]
 
-    return {"march": run_march, "lanes": run_lanes, "phi_rays": phi_rays}
+    return {"march": run_march, "lanes": run_lanes, "phi_rays": phi_rays, "phi_rays_d": phi_rays_d}
 
 
 def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, settings: NumbaSettings) -> dict:
@@ -365,13 +386,15 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     kind, fc, ic = configuration(alg, o.dtype)
     global LAST_COMPILE
     numba.set_num_threads(settings.threads)
-    if kind == "sphere" or ic[I_CERT]:
-        kernel = kernels(key, settings.threads > 1)["phi_rays"]
+    if kind == "sphere" or ic[I_CERT] or not settings.per_ray:
+        ks = kernels(key, settings.threads > 1)
+        newton = kind == "march" and ic[I_REFINER] == 2
+        kernel = ks["phi_rays_d" if newton else "phi_rays"]
         before = compile_state(kernel)
         # compiled here, whether or not these rays evaluate φ (a run's first call compiles: prepare)
         z = np.zeros((1, 3), o.dtype)
-        kernel(z, z, np.zeros(1, o.dtype), params, np.empty(1, o.dtype))
-        out = _run_certified(kernel, params, alg, o, d)
+        kernel(z, z, np.zeros(1, o.dtype), params, *(np.empty(1, o.dtype) for _ in range(1 + newton)))
+        out = _run_array(ks, params, alg, o, d, newton)
     else:
         if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1 and settings.lanes:
             kind = "lanes"  # (no derivatives, no ladder stage: impls.numba.template)
@@ -386,22 +409,32 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     return out
 
 
-def _run_certified(phi_rays, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray) -> dict:
-    """The certified root finders (``SphereTrace``, ``MarchRefine`` with a ``CertifiedStep``
-    rule) run by the array algorithm of :mod:`impls.core.rootfind` itself, on numpy arrays with
-    the numpy backend's compacting driver, each of its φ evaluations one compiled parallel kernel
-    over the rays (``phi_rays``).  Their per-ray certification (the first-crossing check, the
-    certified MISS, φ's resolution) is written once, there: a per-ray copy here would be a second
-    implementation of it to keep in step."""
+def _run_array(ks: dict, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, newton: bool = False) -> dict:
+    """A root finder run by the array algorithm of :mod:`impls.core.rootfind` itself, on numpy
+    arrays with the numpy backend's compacting driver, each of its evaluations one compiled
+    parallel kernel over the rays: φ (``phi_rays``), or φ and dφ/dt (``phi_rays_d``, the per-ray
+    kernels' central difference) where ``newton``.  The certified root finders (``SphereTrace``,
+    ``MarchRefine`` with a ``CertifiedStep`` rule) always run so: their per-ray certification (the
+    first-crossing check, the certified MISS, φ's resolution) is written once, there, and a
+    per-ray copy here would be a second implementation of it to keep in step.  The constant-step
+    marchers run so where ``NumbaSettings.per_ray`` is False (the same per-ray results as the
+    per-ray kernels, without compiling them)."""
     from ..core.driver import CompactingSettings
     from ..numpy.driver import run_loop as run_compacted_numpy
 
+    phi_rays, phi_rays_d = ks["phi_rays"], ks["phi_rays_d"]
+
     def ev(oo, dd, t, deriv):
-        if deriv:
-            raise NotImplementedError("the certified methods evaluate φ only (no dφ/dt)")
-        f = np.empty_like(t)
         # (contiguous copies: one compiled specialisation, whatever view the compacting driver passes)
-        phi_rays(np.ascontiguousarray(oo), np.ascontiguousarray(dd), np.ascontiguousarray(t), params, f)
+        oo, dd, t = np.ascontiguousarray(oo), np.ascontiguousarray(dd), np.ascontiguousarray(t)
+        f = np.empty_like(t)
+        if deriv:
+            if not newton:
+                raise NotImplementedError("dφ/dt is evaluated for Newton's refinement only")
+            df = np.empty_like(t)
+            phi_rays_d(oo, dd, t, params, f, df)
+            return f, df, 3
+        phi_rays(oo, dd, t, params, f)
         return f, None, 1
 
     return run_compacted_numpy(alg, o, d, ev, CompactingSettings(threads=1))
