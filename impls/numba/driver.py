@@ -388,13 +388,13 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     numba.set_num_threads(settings.threads)
     if kind == "sphere" or ic[I_CERT] or not settings.per_ray:
         ks = kernels(key, settings.threads > 1)
-        newton = kind == "march" and ic[I_REFINER] == 2
-        kernel = ks["phi_rays_d" if newton else "phi_rays"]
+        deriv = bool(getattr(alg, "deriv", False))  # Newton's refinement: φ and dφ/dt
+        kernel = ks["phi_rays_d" if deriv else "phi_rays"]
         before = compile_state(kernel)
         # compiled here, whether or not these rays evaluate φ (a run's first call compiles: prepare)
         z = np.zeros((1, 3), o.dtype)
-        kernel(z, z, np.zeros(1, o.dtype), params, *(np.empty(1, o.dtype) for _ in range(1 + newton)))
-        out = _run_array(ks, params, alg, o, d, newton)
+        kernel(z, z, np.zeros(1, o.dtype), params, *(np.empty(1, o.dtype) for _ in range(1 + deriv)))
+        out = _run_array(ks, params, alg, o, d, deriv)
     else:
         if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1 and settings.lanes:
             kind = "lanes"  # (no derivatives, no ladder stage: impls.numba.template)
@@ -409,28 +409,28 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
     return out
 
 
-def _run_array(ks: dict, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, newton: bool = False) -> dict:
+def _run_array(ks: dict, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, deriv: bool = False) -> dict:
     """A root finder run by the array algorithm of :mod:`impls.core.rootfind` itself, on numpy
     arrays with the numpy backend's compacting driver, each of its evaluations one compiled
     parallel kernel over the rays: φ (``phi_rays``), or φ and dφ/dt (``phi_rays_d``, the per-ray
-    kernels' central difference) where ``newton``.  The certified root finders (``SphereTrace``,
-    ``MarchRefine`` with a ``CertifiedStep`` rule) always run so: their per-ray certification (the
-    first-crossing check, the certified MISS, φ's resolution) is written once, there, and a
-    per-ray copy here would be a second implementation of it to keep in step.  The constant-step
-    marchers run so where ``NumbaSettings.per_ray`` is False (the same per-ray results as the
-    per-ray kernels, without compiling them)."""
+    kernels' central difference) where ``deriv`` (``alg.deriv``: Newton's refinement).  The
+    certified root finders (``SphereTrace``, ``MarchRefine`` with a ``CertifiedStep`` rule) always
+    run so: their per-ray certification (the first-crossing check, the certified MISS, φ's
+    resolution) is written once, there, and a per-ray copy here would be a second implementation
+    of it to keep in step.  The constant-step marchers run so where ``NumbaSettings.per_ray`` is
+    False (the same per-ray results as the per-ray kernels, without compiling them)."""
     from ..core.driver import CompactingSettings
     from ..numpy.driver import run_loop as run_compacted_numpy
 
     phi_rays, phi_rays_d = ks["phi_rays"], ks["phi_rays_d"]
 
-    def ev(oo, dd, t, deriv):
+    def ev(oo, dd, t, want_df):
         # (contiguous copies: one compiled specialisation, whatever view the compacting driver passes)
         oo, dd, t = np.ascontiguousarray(oo), np.ascontiguousarray(dd), np.ascontiguousarray(t)
         f = np.empty_like(t)
-        if deriv:
-            if not newton:
-                raise NotImplementedError("dφ/dt is evaluated for Newton's refinement only")
+        if want_df:
+            if not deriv:
+                raise NotImplementedError("dφ/dt asked of an algorithm that declares no derivative (alg.deriv)")
             df = np.empty_like(t)
             phi_rays_d(oo, dd, t, params, f, df)
             return f, df, 3
