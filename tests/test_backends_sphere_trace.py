@@ -38,6 +38,31 @@ def test_depth_within_1e9_of_exact_at_tight_tolerance(backend):
     assert np.all(res.evals[outside] == 0) and np.all(res.iterations[outside] == 0)
 
 
+def test_float32_converges_on_a_field_that_is_not_a_distance_bound(backend):
+    """The algebraic sphere |x|² − 1 (L = 13 on its domain, not a distance bound: its rounding is not
+    modelled, rg = 0) in float32, whose float spacing at the hits (~2.4e-7) exceeds tol/L: a probe
+    near the surface reaches at least two spacings past the sphere, so the rays converge.  (They
+    stalled where t + |φ|/L rounds to t and ended MAX_ITER, every hit, with 378 evaluations a ray.)
+    Every hit CONVERGED within a few float32 spacings of the exact depth, every other ray a MISS."""
+    require_method(backend, "sphere_trace")
+    if "float32" not in backend.capabilities.dtypes:
+        pytest.skip(f"{backend.id} has no float32")
+    case = get_case("algsphere.camera.32x32")
+    prep = backend.prepare("sphere_trace", case.scene, case.origins, case.directions, dtype="float32",
+                           t_min=case.t_min, t_max=case.t_max)
+    out = prep.run()
+    backend.synchronize(out)
+    res = prep.result(out)
+    exact = case.exact_t
+    hit = np.isfinite(exact)
+    assert hit.sum() > 500
+    assert np.all(res.status[hit] == Status.CONVERGED), np.unique(res.status[hit], return_counts=True)
+    assert np.all(res.status[~hit] == Status.MISS)
+    eps = float(np.finfo(np.float32).eps)
+    assert np.max(np.abs(res.t[hit] - exact[hit]) / np.abs(exact[hit])) <= 8 * eps
+    assert np.mean(res.evals[hit]) < 60  # converging, not creeping to max_steps
+
+
 def test_budget_exhaustion_is_reported_not_hidden(backend):
     case = get_case(CASE)
     res = trace(backend, case, tol=1e-12, max_steps=3)

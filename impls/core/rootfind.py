@@ -362,8 +362,12 @@ class SphereTrace(_Search):
         rb = xp.where(fail, r_prev, r)
         om = xp.where(fail, xp.ones_like(om), om)
         # near the surface (|φ| ≤ tol, or within a few roundings of 0) the step is a probe: it reaches
-        # past the base's sphere by δ, so that a crossing there shows as a sign change within δ
-        d0 = xp.maximum(4.0 * resolution(xp, tb, mag, self.rg), self.tol * self.inv_lip)
+        # past the base's sphere by δ, so that a crossing there shows as a sign change within δ.  δ is
+        # at least 2ε|t|, two spacings of the floats at t: a shorter step leaves t where it is
+        # (t + r rounds to t), and a field whose rounding is not modelled (rg = 0: not a distance
+        # bound, e.g. an MLP) with tol/L below the spacing would stall there until max_steps
+        spacing = (2.0 * _eps(t)) * xp.abs(tb)
+        d0 = xp.maximum(xp.maximum(4.0 * resolution(xp, tb, mag, self.rg), self.tol * self.inv_lip), spacing)
         near = rb <= d0
         reach = s["pm"] * d0
         # a relaxed step that would leave the range where a plain one does not is taken plain: the
@@ -396,7 +400,7 @@ class SphereTrace(_Search):
         # (the generic rounding model, without a mesh's gain: a depth known to a few of those is
         # what the dtype resolves; a probe repeated across an unresolved stretch widens it)
         res0 = 4.0 * resolution(xp, tb, mag, 1.0 if self.resolve else 0.0)
-        allow = s["pm"] * xp.maximum(self.tol * self.inv_lip, res0) + slack
+        allow = s["pm"] * xp.maximum(xp.maximum(self.tol * self.inv_lip, res0), spacing) + slack
         conv = cross & (gap <= allow)
         coarse = cross & ~conv & near
         # a probe landing within φ's rounding says nothing: the ray stays and probes twice as far
