@@ -117,8 +117,8 @@ def test_numba_runs_untimed_without_the_marcher_kernels_and_the_same_results(cas
     compiled φ kernel (with dφ/dt for Newton's), as the certified methods, instead of the per-ray
     marcher kernels (``march_one``, the lanes kernel): no marcher kernel is called, and every
     ray's depth, status and counts are the same, bit for bit, for each refiner, at the default
-    knobs and at another step and tolerance (the MLP's φ sums its layers in the same order in
-    both: the same compiled φ)."""
+    knobs, at another step and tolerance and with ladder steps (the MLP's φ sums its layers in the
+    same order in both: the same compiled φ)."""
     pytest.importorskip("numba")
     from impls.numba import driver as nb_driver
     from reference.cases import get_case
@@ -143,7 +143,7 @@ def test_numba_runs_untimed_without_the_marcher_kernels_and_the_same_results(cas
         return ks
 
     for method in ("march_bisect", "march_secant", "march_newton"):
-        for knobs in ({}, {"step": 0.37, "xtol": 1e-11}):
+        for knobs in ({}, {"step": 0.37, "xtol": 1e-11}, {"ladder": 16, "ladder_after": 8}):
             got = []
             for backend in (b, u):
                 if backend is u:
