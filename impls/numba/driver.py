@@ -68,8 +68,8 @@ class NumbaSettings:
              (:func:`_run_array`).  The per-ray results are the same, bit for bit: the template
              is the array step written for one ray (:mod:`impls.numba.template`), and the
              evaluations are the kernels' own compiled φ.  Slower per step (numpy's per-step
-             overhead; no ladder), but no marcher kernel to compile: ~3 s of numba's pipeline per
-             scene structure, which a run that times nothing skips."""
+             overhead, which the per-ray kernels do not have), but no marcher kernel to compile:
+             ~3 s of numba's pipeline per scene structure, which a run that times nothing skips."""
 
     threads: int = 1
     ladder: int = LADDER
@@ -174,8 +174,8 @@ _KERNELS: dict = {}
 
 
 def kernels(key: str, parallel: bool = True):
-    """``{"march": …, "lanes": …, "phi_rays": …, "phi_rays_d": …}`` kernels for the scene source ``key``
-    (:class:`impls.numba.fields.CompiledScene`), made once per key and ``parallel`` (the cache
+    """``{"march": …, "lanes": …, "phi_rays": …, "phi_rays_d": …}`` kernels for the scene source
+    ``key`` (:class:`impls.numba.fields.CompiledScene`), made once per key and ``parallel`` (the cache
     lives as long as the process); numba compiles each on its first call.  ``parallel``: the rays'
     loops are numba's ``prange`` over threads; False, plain loops, for one thread (:func:`run_loop`:
     the same per-ray results; numba's parallel pipeline adds about a fifth to the compile time,
@@ -189,7 +189,8 @@ def kernels(key: str, parallel: bool = True):
         where = subdir("numba")
         if where is not None:
             mod = _cached_module(key, where, parallel)
-            k = {"march": mod.run_march, "lanes": mod.run_lanes, "phi_rays": mod.phi_rays, "phi_rays_d": mod.phi_rays_d}
+            k = {"march": mod.run_march, "lanes": mod.run_lanes, "phi_rays": mod.phi_rays,
+                 "phi_rays_d": mod.phi_rays_d}
         else:
             from .fields import CompiledScene, scene_functions
 
