@@ -146,12 +146,12 @@ def test_numba_runs_untimed_without_the_marcher_kernels_and_the_same_results(cas
         for knobs in ({}, {"step": 0.37, "xtol": 1e-11}, {"ladder": 16, "ladder_after": 8}):
             got = []
             for backend in (b, u):
-                if backend is u:
-                    monkeypatch.setattr(nb_driver, "kernels", array_path_only)
-                p = backend.prepare(method, case.scene, case.origins, case.directions, t_min=case.t_min,
-                                    t_max=case.t_max, **knobs)
-                got.append(p.result(p.run()))
-                monkeypatch.setattr(nb_driver, "kernels", kernels)
+                with monkeypatch.context() as patch:
+                    if backend is u:
+                        patch.setattr(nb_driver, "kernels", array_path_only)
+                    p = backend.prepare(method, case.scene, case.origins, case.directions, t_min=case.t_min,
+                                        t_max=case.t_max, **knobs)
+                    got.append(p.result(p.run()))
             per_ray, array = got
             assert (per_ray.status == Status.CONVERGED).sum() > 50  # rays that hit: the refiners ran
             for k in ("t", "status", "iterations", "evals"):
