@@ -180,6 +180,9 @@ def _finish(fig, ax, xlabel: str, ylabel: str, unit: str, title: str):
     """Log y axis, labels with units, grid, the legend outside the axes (never over the data)."""
     ax.set_yscale("log")
     _plain_log_labels(ax)
+    # minor labels (2×10ⁿ, 3×10ⁿ, … on an axis spanning about a decade) at a smaller size: at the
+    # major labels' size neighbours such as 3×10⁻² and 4×10⁻² ran into each other
+    ax.tick_params(which="minor", labelsize=7)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(f"{ylabel} [{unit}]" if unit else ylabel)
     ax.set_title(title, fontsize=10)
