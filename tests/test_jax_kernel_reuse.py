@@ -68,6 +68,37 @@ def test_a_different_structure_compiles_its_own_kernel():
     assert len(b._kernels) == 4
 
 
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("method", ["hybrid_secant", "sphere_trace", "march_newton", "march_bisect"])
+def test_depth_ranges_share_a_kernel_with_the_results_of_their_own(method, dtype, monkeypatch):
+    """A root finder's depth range is a runtime argument (``RANGE_METHODS``): cases that differ in
+    it alone (the stability stage's unit spheres) run one kernel, and every range gives, bit for
+    bit, what a kernel with that range compiled in gives: a negative t_min (rays starting on the
+    surface), an infinite t_max, a t_min past the first hit (the exit is found), a t_max before
+    it (a miss)."""
+    from impls.jax import backend as jb
+
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+    o, d = _rays()
+    ranges = [(0.0, 10.0), (-1e-9, 10.0), (0.0, float("inf")), (3.0, 10.0), (0.0, 1.5), (1.0, 2e6)]
+    shared = resolve_or_skip("jax:cpu")
+    got = {}
+    for r in ranges:
+        prep = shared.prepare(method, scene, o, d, dtype=dtype, t_min=r[0], t_max=r[1])
+        got[r] = prep.result(prep.run())
+    assert len(shared._kernels) == 1, [k[4] for k in shared._kernels]
+    assert (got[(3.0, 10.0)].status == Status.CONVERGED).any() and (got[(0.0, 1.5)].status == Status.MISS).all()
+    monkeypatch.setattr(jb, "RANGE_METHODS", frozenset())  # each range compiled in
+    own = resolve_or_skip("jax:cpu")
+    for r in ranges:
+        prep = own.prepare(method, scene, o, d, dtype=dtype, t_min=r[0], t_max=r[1])
+        want = prep.result(prep.run())
+        for k in ("t", "status", "iterations", "evals"):
+            np.testing.assert_array_equal(getattr(got[r], k), getattr(want, k), err_msg=f"{r} {k}")
+    assert len(own._kernels) == len(ranges)
+
+
 def test_padded_sizes_are_powers_of_two_of_at_least_pad():
     from impls.jax.driver import padded_size
 
@@ -145,6 +176,7 @@ def test_the_declared_traceable_knobs_are_exactly_those_that_trace(monkeypatch):
         spec = METHODS[method]
         kw = {"t_hit": np.full(len(o), 2.0)} if spec.needs_t_hit else {}
         nums = [k.name for k in spec.knobs if isinstance(k.default, (int, float)) and not isinstance(k.default, bool)]
+        nums += list(jb.RANGE_KNOBS) if method in jb.RANGE_METHODS else []  # the depth range, as two knobs
         alone = tuple(sorted(k for k in nums if traces(method, (k,), kw)))
         assert alone == tuple(sorted(jb.TRACEABLE_KNOBS[method])), method
         assert traces(method, alone, kw), method

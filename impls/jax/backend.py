@@ -62,6 +62,16 @@ KEEP_KERNELS = 64
 _TRACED_FAILED: set = set()
 
 
+#: the depth range [t_min, t_max] as two knobs of a kernel (:meth:`JaxBackend.compile_configuration`)
+RANGE_KNOBS = ("t_min", "t_max")
+#: the methods whose kernels take the depth range as an argument, not as constants: the root
+#: finders, whose code uses it in array arithmetic only (the stability stage's four unit-sphere
+#: cases differ in their range alone and share one kernel per method).  The volume renderers
+#: check the range in Python (a finite far end) and size nothing by it, but gain nothing: no two
+#: of their cases share a scene.
+RANGE_METHODS = frozenset(("hybrid_secant", "sphere_trace", "march_bisect", "march_newton", "march_secant"))
+
+
 #: the number knobs of the catalog's methods that their code takes as traced values (a loop
 #: bound, a tolerance, a step), found by tracing each on its own, and checked jointly and one by
 #: one by tests/test_jax_kernel_reuse.py; the others size arrays (samples per ray), switch code
@@ -69,9 +79,10 @@ _TRACED_FAILED: set = set()
 #: first for a listed method (:func:`_traced_sets`): a sweep over a listed knob runs one kernel, and
 #: no kernel is first traced with knobs that fail.  A method not listed (a user's) gets the generic sets.
 TRACEABLE_KNOBS = {
-    **{m: ("ladder_after", "max_steps", "reach", "xtol") for m in ("hybrid_secant", "render_surface")},
-    **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") for m in ("bisect", "newton", "secant")},
-    "sphere_trace": ("max_steps", "omega", "tol"),
+    "hybrid_secant": ("ladder_after", "max_steps", "reach", "xtol") + RANGE_KNOBS,
+    "render_surface": ("ladder_after", "max_steps", "reach", "xtol"),
+    **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") + RANGE_KNOBS for m in ("bisect", "newton", "secant")},
+    "sphere_trace": ("max_steps", "omega", "tol") + RANGE_KNOBS,
     "curvature": (), "normal": (),
     # the parts of the volume renderers that fix their bins up front (compile_configuration)
     "volume_samples_band": ("delta",), "volume_samples_stratified": (), "volume_samples_uniform": (),
@@ -221,7 +232,8 @@ class JaxBackend(ArrayBackend):
         method's code allows it (:func:`_traced_sets`), so configurations that differ only in
         those knobs run one compiled kernel (the backend object keeps the last ``KEEP_KERNELS``).
         The kernel is keyed by everything compiled into it: the method, the scene and colour
-        objects (their parameters are constants of the kernel), the depth range, the knobs compiled in,
+        objects (their parameters are constants of the kernel), the depth range (two knobs,
+        ``t_min`` and ``t_max``, of the root finders: :data:`RANGE_METHODS`), the knobs compiled in,
         the driver settings and the rays' shapes and dtype.  A kernel not in the table is looked up
         in the cache directory's kernel store by the same inputs taken by value
         (:mod:`impls.jax.executables`: no trace, no lowering), and else traced, lowered and compiled
@@ -252,11 +264,10 @@ class JaxBackend(ArrayBackend):
         t_min, t_max = t_range
         if hit_method is not None and th is None and hit_method in self._impl:
             root = self._impl[hit_method]
-
-            def hit_call(o, d, th, knobs):  # what prepare() runs for hit_method's own configurations
-                return root(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=th, **knobs)
-
-            first = dict(call=hit_call, knobs=knobs, method=hit_method, impl=root, scene=scene, extra={})
+            # what the hit method's own configurations run (the same kernel)
+            hit_call, hit_knobs, hit_range = self._ranged(root, hit_method, scene, {}, knobs, t_range)
+            first = dict(call=hit_call, knobs=hit_knobs, method=hit_method, impl=root, scene=scene, extra={},
+                         t_range=hit_range)
             second = dict(call=lambda o, d, hit, knobs: call(o, d, None, {**knobs, "hit": hit}), knobs=knobs,
                           method=method, impl=impl, scene=scene, extra=extra)
             return self._compile_chain(first, second, n, rows, given, padded, t_range)
@@ -274,11 +285,32 @@ class JaxBackend(ArrayBackend):
             second = dict(call=shade_call, knobs={k: v for k, v in knobs.items() if k in shade.knobs},
                           method=shade.__name__, impl=shade, scene=scene, extra=extra)
             return self._compile_chain(first, second, n, rows, given, padded, t_range)
+        if impl is not None:
+            call, knobs, t_range = self._ranged(impl, method, scene, extra, knobs, t_range, call)
         compiled, traced, spent = self._kernel(call, knobs, *padded, method=method, scene=scene, t_range=t_range,
                                                extra=extra)
         if rows == n:
             return (lambda o, d, th: compiled(o, d, th, traced)), spent
         return _padded_call(compiled, traced, n, rows, given, padded), spent
+
+    def _ranged(self, impl, method, scene, extra, knobs, t_range, call=None):
+        """``(call, knobs, t_range)`` for :meth:`_kernel`: for a method of :data:`RANGE_METHODS`,
+        a call of ``impl`` that takes the depth range from the knobs ``t_min`` and ``t_max`` (so
+        that they may be traced), the knobs with the range added, and no range of its own for the
+        key (it is in the knobs); else ``call`` (or ``impl`` bound to ``t_range``) as given."""
+        t_min, t_max = t_range
+        if method not in RANGE_METHODS:
+            if call is None:
+                def call(o, d, th, knobs):
+                    return impl(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=th, **extra, **knobs)
+            return call, knobs, t_range
+
+        def ranged(o, d, th, knobs):
+            knobs = dict(knobs)
+            lo, hi = knobs.pop("t_min"), knobs.pop("t_max")
+            return impl(self, scene, o, d, t_min=lo, t_max=hi, t_hit=th, **extra, **knobs)
+
+        return ranged, {**knobs, "t_min": t_min, "t_max": t_max}, None
 
     def _compile_chain(self, first: dict, second: dict, n, rows, given, padded, t_range):
         """``run(o, d, th)`` as two kernels (:meth:`compile_configuration`): ``first["call"](o, d,
@@ -286,8 +318,8 @@ class JaxBackend(ArrayBackend):
         ``last_compile_cache`` "reused" when both were."""
         o, d, th = padded
         k1, traced1, spent = self._kernel(first["call"], first["knobs"], o, d, th, method=first["method"],
-                                          impl=first["impl"], scene=first["scene"], t_range=t_range,
-                                          extra=first["extra"])
+                                          impl=first["impl"], scene=first["scene"],
+                                          t_range=first.get("t_range", t_range), extra=first["extra"])
         reused = self.last_compile_cache == "reused"
         t0 = time.perf_counter()
         example = k1(o, d, th, traced1)  # the second kernel's example input
