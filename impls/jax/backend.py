@@ -66,9 +66,9 @@ _TRACED_FAILED: set = set()
 RANGE_KNOBS = ("t_min", "t_max")
 #: the methods whose kernels take the depth range as an argument, not as constants: the root
 #: finders, whose code uses it in array arithmetic only (the stability stage's four unit-sphere
-#: cases differ in their range alone and share one kernel per method).  The volume renderers
-#: check the range in Python (a finite far end) and size nothing by it, but gain nothing: no two
-#: of their cases share a scene.
+#: cases differ in their range alone and share one kernel per method).  Not the volume renderers:
+#: they check in Python that the far end is finite (a trace with it traced fails, and would be
+#: retried with it compiled in), and no two of the suites' cases give them one scene.
 RANGE_METHODS = frozenset(("hybrid_secant", "sphere_trace", "march_bisect", "march_newton", "march_secant"))
 
 
