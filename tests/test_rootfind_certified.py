@@ -400,3 +400,52 @@ def test_float32_hybrid_certifies_an_oblique_floor(backend):
         assert not np.any((res.status == Status.MISS) & hits)
         flagged = np.mean(res.status[hits] == Status.UNCERTIFIED)
         assert flagged <= (0.15 if dtype == "float32" else 0.0), (dtype, flagged)
+
+
+def _scaled_floor_rays(n=256):
+    """Rays from 0.005–0.08 above the floor z = 0 at 18.5–24.5° from its normal: they approach it
+    at a slope of 0.91–0.95 of L, where the hybrid's crossing step 1.05·r neither reaches the floor
+    nor stands certified (r + r_n < 1.05·r)."""
+    rng = np.random.default_rng(0)
+    th = np.deg2rad(rng.uniform(18.5, 24.5, n))
+    ph = rng.uniform(0.0, 2.0 * np.pi, n)
+    d = np.column_stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)])
+    o = np.column_stack([rng.uniform(-1.0, 1.0, (n, 2)), rng.uniform(0.005, 0.08, n)])
+    return o, d
+
+
+@pytest.mark.parametrize("k", [0.37, 3.3])
+def test_the_first_march_step_has_no_slope_whatever_the_arithmetic_contracts(backend, k):
+    """With no last step (the start, or after a rejection: p = t) the hybrid's approach slope σ is
+    undefined.  It came out NaN from 0/0 only while |φ_p|/L − |φ|/L rounded to exactly 0; jax's
+    compiled kernels contract that difference into a fused multiply-add, whose numerator is the
+    product's rounding error, so σ = ±inf/… = 1 on about half the rays: a crossing step of 1.05·r
+    that, on a floor approached at a slope of 0.91–0.95 of L (a scaled plane, L = k ≠ 1), is
+    rejected and taken again from the same point until ``max_steps`` (jax: 128 and 120 of these
+    256 rays MAX_ITER at 4,096 steps; numpy, torch: none).  Every ray converges on the exact hit
+    within a few evaluations, on every backend."""
+    from reference import Scaled
+
+    require_method(backend, "hybrid_secant")
+    scene = Scaled(Plane((0.0, 0.0, 1.0), 0.0), k)
+    o, d = _scaled_floor_rays()
+    res = solve(backend, "hybrid_secant", scene, o, d)
+    exact = o[:, 2] / -d[:, 2]
+    assert (res.status == Status.CONVERGED).all(), np.unique(res.status, return_counts=True)
+    assert np.all(np.abs(res.t - exact) <= 1e-9)
+    assert res.evals.max() <= 16, res.evals.max()
+
+
+def test_the_certified_step_takes_no_crossing_step_without_a_last_step():
+    """The rule's step size at the start (p = t) is the certified march's, not the crossing step,
+    however the difference |φ_p|/L − |φ|/L rounds: here φ_p is φ one ulp up, as a fused
+    multiply-add leaves it (the numerator a rounding error, the denominator 0)."""
+    from impls.core.rootfind import CertifiedStep
+
+    rule = CertifiedStep(inv_lip=1.0 / 0.37, min_step=1e-4, overstep=1e-4, extrapolate=1.05, reach=0.1)
+    t = np.array([1.0, 1.0])
+    f = np.array([0.01, 0.01])
+    s = {**rule.init(np, t), "p": t.copy(), "fp": np.array([np.nextafter(0.01, 1.0), np.nextafter(0.01, 0.0)])}
+    r, h = rule.size(np, s, t, f, rc=rule.radius(np, f))
+    np.testing.assert_array_equal(r, rule.radius(np, f))
+    assert np.all(h <= r), (h, r)  # the plain certified step (over-relaxation needs a slope)

@@ -585,7 +585,13 @@ class CertifiedStep:
             # so it is taken once that is within GATE·min_step.
             rs = r if rc is None else rc  # the spheres judge() overlaps: less φ's rounding
             with _quiet(xp):
-                sig = xp.minimum((self.radius(xp, s["fp"]) - r) / (t - s["p"]), 1.0)
+                span = t - s["p"]
+                sig = xp.minimum((self.radius(xp, s["fp"]) - r) / span, 1.0)
+                # no slope without a last step (the start, a rejection: p = t) by definition, not by
+                # 0/0: a compiler that contracts |φ_p|/L − |φ|/L into a fused multiply-add leaves
+                # the product's rounding in the numerator (jax on the CPU: 4e-20/0 = inf, σ = 1, a
+                # crossing step that is rejected and taken again until max_steps)
+                sig = xp.where(span > 0, sig, xp.full_like(sig, math.nan))
                 over = xp.where(sig > -1.0, r + OVER_RELAX * (2.0 * rs / (1.0 + xp.maximum(sig, 0.0)) - r), r0)
                 x0 = r / sig
                 x = xp.minimum(self.extrapolate * x0, self.reach)
