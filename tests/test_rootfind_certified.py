@@ -449,3 +449,39 @@ def test_the_certified_step_takes_no_crossing_step_without_a_last_step():
     r, h = rule.size(np, s, t, f, rc=rule.radius(np, f))
     np.testing.assert_array_equal(r, rule.radius(np, f))
     assert np.all(h <= r), (h, r)  # the plain certified step (over-relaxation needs a slope)
+
+
+def test_a_refinement_step_below_the_float_spacing_is_lifted_past_it():
+    """Near a root secant and Newton close in from one side, so a step shorter than xtol/2 is
+    lengthened beyond the predicted root (Brent's "step at least tol").  With xtol = 1e-12 below
+    float32's spacing at t (3.7e-9 at t ≈ 0.04) that lift rounded to t itself: the same point was
+    evaluated again, and only the safeguard's bisections closed the bracket (jax, float32, the
+    scaled floor below: 43 evaluations a ray).  The lift is at least two float spacings of t."""
+    from impls.core.rootfind import Secant
+
+    t = np.array([0.0392969], np.float32)
+    s = {"p": t - np.float32(1e-3), "fp": np.array([1e-3], np.float32), "wq": np.array([1.0], np.float32)}
+    f = np.array([-2.5e-11], np.float32)  # the secant's zero is 2.5e-11 before t: t itself in float32
+    a, b = t - np.float32(6e-5), t.copy()
+    c = Secant().propose(np, s, t, f, a, b, 0.5 * (a + b), np.array([False]), 1e-12)
+    assert c.dtype == np.float32 and a[0] <= c[0] < t[0], (c, t)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_the_hybrid_brackets_a_scaled_floor_in_a_few_evaluations(backend, dtype):
+    """The scaled floor of the test above, in both dtypes where the backend has them: every ray
+    CONVERGED on the exact hit, within a few evaluations (no repeated point, no repeated step)."""
+    from reference import Scaled
+
+    require_method(backend, "hybrid_secant")
+    if dtype not in backend.capabilities.dtypes:
+        pytest.skip(f"{backend.id} runs no {dtype}")
+    scene = Scaled(Plane((0.0, 0.0, 1.0), 0.0), 0.37)
+    o, d = _scaled_floor_rays()
+    prep = backend.prepare("hybrid_secant", scene, o, d, dtype=dtype, t_min=0.0, t_max=10.0)
+    res = prep.result(prep.run())
+    exact = o[:, 2] / -d[:, 2]
+    tol = float(np.sqrt(np.finfo(dtype).eps)) if dtype == "float32" else 1e-9
+    assert (res.status == Status.CONVERGED).all(), np.unique(res.status, return_counts=True)
+    assert np.all(np.abs(res.t - exact) <= tol)
+    assert res.evals.max() <= 16, (res.evals.max(), res.evals.mean())

@@ -677,7 +677,10 @@ class _OneSided:
         # far end stays put, so no bracket would ever certify them: a step shorter than xtol/2 is
         # lengthened by xtol/4 beyond the predicted root, whose evaluation then closes the bracket
         # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise)
-        h = 0.5 * xtol
+        # (at least two float spacings of t: with xtol below the spacing, as 1e-12 is in float32, a
+        # lift of xtol/4 rounds to t itself, the same point is evaluated again, and only the
+        # safeguard's bisections every third step close the bracket, to adjacent floats)
+        h = xp.maximum(0.5 * xtol, (2.0 * _eps(t)) * xp.abs(t))
         step = xp.abs(c - t)
         lift = step + 0.5 * h  # (both branches arrays: a where on two Python floats would be float64)
         c = xp.where(step < h, xp.where(t - a <= b - t, t + lift, t - lift), c)

@@ -52,6 +52,7 @@ max_steps, use_bounds = ic[I_MAXSTEPS], ic[I_BOUNDS] != 0
 step, check = fc[F_STEP], fc[F_CHECK]
 ladder, ladder_after = ic[I_LADDER], ic[I_LADDER_AFTER]
 hh = 0.5 * xtol
+sp2 = 2.0 * 2.220446049250313e-16  # two float64 spacings per unit of |t| (the kernels run float64)
 """
 
 #: a ray's state (typed before the loop)
@@ -87,8 +88,9 @@ else:
         else:
             te_K = t_K - f_K * (t_K - tp_K) / (f_K - fp_K)
         stp_K = abs(te_K - t_K)
-        lift_K = stp_K + 0.5 * hh
-        if stp_K < hh:
+        hh_K = _max(hh, sp2 * abs(t_K))
+        lift_K = stp_K + 0.5 * hh_K
+        if stp_K < hh_K:
             te_K = t_K + lift_K if t_K - a_K <= b_K - t_K else t_K - lift_K
         slow_K = i2_K and (b_K - a_K > 0.5 * wq_K)
         if not ((te_K >= a_K) and (te_K <= b_K) and not slow_K):
