@@ -674,12 +674,12 @@ class _OneSided:
         with _quiet(xp):  # f = fp or φ' = 0 give inf/NaN: replaced by the midpoint below
             c = self._iterate(xp, s, t, f)
         # t is an end of the bracket.  Near a root secant and Newton close in from one side and the
-        # far end stays put, so no bracket would ever certify them: a step shorter than xtol/2 is
-        # lengthened by xtol/4 beyond the predicted root, whose evaluation then closes the bracket
-        # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise)
-        # (at least two float spacings of t: with xtol below the spacing, as 1e-12 is in float32, a
+        # far end stays put, so no bracket would ever certify them: a step shorter than h = xtol/2 is
+        # lengthened by h/2 beyond the predicted root, whose evaluation then closes the bracket
+        # to < xtol (Brent's "step at least tol" rule, scipy's Chandrupatla likewise).  h is at
+        # least two float spacings of t: with xtol below the spacing, as 1e-12 is in float32, a
         # lift of xtol/4 rounds to t itself, the same point is evaluated again, and only the
-        # safeguard's bisections every third step close the bracket, to adjacent floats)
+        # safeguard's bisections every third step close the bracket, to adjacent floats
         h = xp.maximum(0.5 * xtol, (2.0 * _eps(t)) * xp.abs(t))
         step = xp.abs(c - t)
         lift = step + 0.5 * h  # (both branches arrays: a where on two Python floats would be float64)

@@ -6,7 +6,7 @@ The algorithm is :class:`impls.core.rootfind.MarchRefine` with a ``ConstantStep`
 proposal c in the bracket [a, b], φ(c), the bracket update and the reported depth), with the
 refiners ``Bisect`` (c = (a + b)/2), ``Secant`` (c = t − φ(t)(t − p)/(φ(t) − φ(p))) and ``Newton``
 (c = t − φ(t)/φ'(t)), the last two safeguarded as ``_OneSided.propose`` (a step shorter than
-xtol/2 lengthened, after Brent, *Algorithms for Minimization without Derivatives*, 1973, ch. 4;
+max(xtol/2, two float spacings of t) lengthened, after Brent, *Algorithms for Minimization without Derivatives*, 1973, ch. 4;
 bisection where the iterate leaves the bracket or the bracket stalls, after rtsafe, Press et al.,
 *Numerical Recipes*, 3rd ed. 2007, §9.4).
 Each step is written here once, for one ray, with the same operations in the same order as the
