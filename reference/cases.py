@@ -424,6 +424,7 @@ class DeclaredLipschitz(Field):
     child: Field = None
     declared: float = 1.0
     kind = "understated"
+    declares_lipschitz = True
 
     def __post_init__(self):
         if not isinstance(self.child, Field):

@@ -261,6 +261,7 @@ class CallableField(Field):
     :class:`reference.scene.FieldError` (a ValueError) naming the field (:func:`check_field_output`)."""
 
     kind = "callable"
+    declares_lipschitz = True
 
     def __init__(self, fn: Callable[[Any, Any], Any], lipschitz: float | None = None, exact_sdf: bool = False,
                  name: str | None = None, domain: str | None = None, bounds=None):

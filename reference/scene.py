@@ -108,6 +108,10 @@ class Field:
 
     #: short lowercase name used in case ids and reports
     kind: str = "field"
+    #: whether ``info.lipschitz`` is a claim the node takes on trust (a user's field, a declared
+    #: bound) rather than one its construction proves; a node class defined outside ``reference``
+    #: counts as declaring whatever this says (:func:`impls.core.methods_root.checks_start`)
+    declares_lipschitz: bool = False
 
     # -- structure -------------------------------------------------------------------------
     def own_params(self) -> dict[str, np.ndarray]:

@@ -78,6 +78,78 @@ def test_understated_lipschitz_bound_is_flagged_never_a_silent_miss(backend, met
     assert np.all(np.isnan(res.t[res.status == Status.LIPSCHITZ_VIOLATED]))
 
 
+def steep_sphere(x, xp):
+    """3·(|x| − 0.7): the sphere of radius 0.7 with slope 3 everywhere."""
+    return 3.0 * (_norm(x, xp) - 0.7)
+
+
+class ThinSlab:
+    """A user's own ``Field`` subclass (defined outside ``reference``): a slab 0.01 thick at z = 0
+    whose φ is 2× steeper than the L = 1 it states."""
+
+    def __new__(cls):
+        from reference.scene import Field, SceneInfo
+
+        class Slab(Field):
+            kind = "slab"
+
+            @property
+            def info(self):
+                return SceneInfo(exact_sdf=False, lipschitz=1.0, distance_bound=False, smooth=True,
+                                 exact_hits=False, exact_normals=False, exact_curvature=False,
+                                 exact_hit_param_grad=False)
+
+            def _eval(self, x, xp, cursor):
+                return 2.0 * (xp.abs(x[..., 2]) - 0.005)
+
+        return Slab()
+
+
+@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant"])
+@pytest.mark.parametrize("lie", ["steep_sphere", "thin_slab"])
+def test_a_step_that_jumps_everything_under_an_understated_bound_is_flagged(backend, method, lie):
+    """A declared bound is checked inside every step, not only at its ends.  From 2.8 units away a
+    field 3× steeper than its declared L = 1 (no bounding ball given) makes the first step jump the
+    whole ray, and both of its ends agree with L: the old code certified every ray a MISS.  A
+    user's ``Field`` subclass is a declaration too (a slab 0.01 thick, 2× steeper than stated,
+    which the ray crosses obliquely).  Every ray whose first crossing exists now ends
+    LIPSCHITZ_VIOLATED or at that crossing, never MISS; and the check costs nothing on the
+    library's own scenes, whose bounds their construction proves."""
+    from impls.core.methods_root import checks_inside
+
+    if lie == "steep_sphere":
+        scene = CallableField(steep_sphere, lipschitz=1.0, name="tests.steep_sphere")
+        o, d = rays.pinhole(eye=(0.3, 0.9, 2.6), look_at=(0.0, 0.0, 0.0), fov_deg=45.0, width=16, height=16)
+        b = np.linalg.norm(np.cross(o, d), axis=1)
+        hits = b < 0.7
+        exact = np.where(hits, -np.sum(o * d, axis=1) - np.sqrt(np.maximum(0.49 - b ** 2, 0.0)), np.inf)
+    else:
+        scene = ThinSlab()
+        o, d = rays.pinhole(eye=(0.4, 0.2, 2.5), look_at=(1.5, 0.0, 0.0), fov_deg=40.0, width=16, height=16)
+        hits = d[:, 2] < 0
+        exact = np.where(hits, (o[:, 2] - 0.005) / np.maximum(-d[:, 2], 1e-300), np.inf)
+        hits &= exact <= 6.0
+    assert checks_inside(scene) and hits.sum() >= 40
+    res = solve(backend, method, scene, o, d, t_max=6.0)
+    st = res.status[hits]
+    assert not np.any(st == Status.MISS), f"{int(np.sum(st == Status.MISS))} hits certified as misses"
+    good = (st == Status.CONVERGED) & (np.abs(res.t[hits] - exact[hits]) <= 1e-6)
+    assert np.all(good | (st == Status.LIPSCHITZ_VIOLATED)), res.status_counts()
+    assert np.any(st == Status.LIPSCHITZ_VIOLATED)
+
+
+def test_only_bounds_taken_on_trust_are_checked_inside_every_step():
+    """The midpoint check costs an evaluation per step: it runs where a node's bound is a
+    declaration (a user's field, a ``Field`` subclass of the user's, the catalog's deliberately
+    understated cases), not on the library's scenes, whose bounds their construction proves."""
+    from impls.core.methods_root import checks_inside
+    from reference.cases import DeclaredLipschitz
+
+    assert checks_inside(CallableField(steep_sphere, lipschitz=1.0)) and checks_inside(ThinSlab())
+    assert checks_inside(DeclaredLipschitz(Sphere(radius=1.0), 0.5))
+    assert not any(checks_inside(case.scene) for case in catalog("torus.camera.32x32") + catalog("csg.union.camera.32x32"))
+
+
 def test_the_numerical_reference_flags_an_understated_bound():
     from reference import first_hit_numeric
 

@@ -56,6 +56,19 @@ def resolves(scene) -> bool:
     return bool(getattr(scene.info, "distance_bound", False) or getattr(scene.info, "exact_sdf", False))
 
 
+def checks_inside(scene) -> bool:
+    """Whether the certified root finders check the scene's Lipschitz bound inside every marching
+    step (:func:`impls.core.rootfind.mid_probe`, one more evaluation per step): where some node
+    takes its bound on trust (:attr:`reference.scene.Field.declares_lipschitz`: a user's
+    :class:`reference.numerical.CallableField`, a :class:`reference.cases.DeclaredLipschitz`) or
+    is a ``Field`` subclass defined outside ``reference``.  The library's own nodes (primitives,
+    CSG, transforms, meshes, grids, the MLPs' spectral bounds) carry bounds proved by their
+    construction and tested (tests/test_reference_bounds.py): their steps pay nothing for it."""
+    nodes = scene.walk() if hasattr(scene, "walk") else (scene,)
+    return any(getattr(n, "declares_lipschitz", False) or not type(n).__module__.startswith("reference.")
+               for n in nodes)
+
+
 def marching_check(scene, bounds, theta) -> float | None:
     """1/L for constant-step marching to check on its steps, or None: the scene declares a bound
     L, φ is evaluated at the stored parameters (the bound is theirs) and, for a bound stated on
@@ -77,7 +90,7 @@ def build_sphere_trace(scene, t_min: float, t_max: float, knobs: dict, theta=Non
     return SphereTrace(inv_lip=lipschitz_step(scene), tol=knobs["tol"], max_steps=knobs["max_steps"],
                        omega=knobs["omega"], t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
                        probe=getattr(scene.info, "domain", None) is None, scale=rounding_scale(scene), gain=rounding_gain(scene),
-                       resolve=resolves(scene))
+                       resolve=resolves(scene), check_inside=checks_inside(scene))
 
 
 def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int,
@@ -97,7 +110,7 @@ def build_hybrid(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, 
                        t_min=t_min, t_max=t_max, bounds=search_bounds(scene, knobs, theta),
                        ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
                        scale=rounding_scale(scene), gain=rounding_gain(scene),
-                       resolve=resolves(scene))
+                       resolve=resolves(scene), check_inside=checks_inside(scene))
 
 
 def build_hybrid_chandrupatla(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int):

@@ -177,6 +177,28 @@ def lipschitz_violated(xp, f0, f1, t0, t1, inv_lip, mag, gain: float = 1.0):
     return xp.abs(f1 - f0) > xp.abs(t1 - t0) + eps * (a0 + a1 + at)
 
 
+def mid_probe(xp, alg, o, d, ev, t0, f0, t1, f1, inv_lip, mag):
+    """(rays whose declared Lipschitz bound L = 1/``inv_lip`` is false inside the step from
+    (t0, f0) to (t1, f1), evaluations per ray): φ evaluated once more at the step's midpoint, and
+    the slope checked on both halves (:func:`lipschitz_violated`).
+
+    The certified root finders run it on every marching step where the scene's bound is a
+    declaration taken on trust (``alg.check_inside``, :func:`impls.core.methods_root.checks_inside`).
+    A step's two ends alone cannot show an understated L where φ recovers past what the step
+    jumped: from a start far from a field k× steeper than declared, the first step claims the
+    whole ray empty, and both of its ends are consistent with L.  Along a ray meeting a surface at
+    angle θ to its normal, a step of an understated bound overshoots only where the slope along the
+    ray, k·cos θ, exceeds L, and the midpoint sees that slope on its way (a crossing inside a
+    certified sphere is a slope above L, too).  A slope hidden between the three samples (a thin
+    spike of φ) is left unseen (docs/methods.md, "What each root finder can miss").  It costs one
+    evaluation per step on those scenes only."""
+    t_m = t0 + 0.5 * (t1 - t0)
+    t_m = xp.where(xp.isfinite(t_m), t_m, t0)
+    f_m, _, cost = ev(o, d, t_m, False)
+    return (lipschitz_violated(xp, f0, f_m, t0, t_m, inv_lip, mag, alg.gain)
+            | lipschitz_violated(xp, f_m, f1, t_m, t1, inv_lip, mag, alg.gain)), cost
+
+
 def _magnitude(xp, o, scale: float):
     """|o|₁ + ``scale`` per ray: the magnitude of the points φ is evaluated at beyond |t|, for the
     rounding slack of :func:`lipschitz_violated`."""
@@ -328,6 +350,7 @@ class SphereTrace(_Search):
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
     gain: float = 1.0  # the scene's rounding gain, on that slack (lipschitz_violated)
     resolve: bool = False  # φ is a distance bound: its rounding near the surface is L·(point's rounding) (resolution)
+    check_inside: bool = False  # L is a declaration taken on trust: check it inside every step (mid_probe)
 
     stages = ("step",)
 
@@ -417,6 +440,9 @@ class SphereTrace(_Search):
         unc_miss = miss & (unc | ~covered)
         # the step's two ends are evaluated: a slope above L shows the declared bound is false
         lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, mag, self.gain) & ~beyond
+        if self.check_inside:
+            inside, extra = mid_probe(xp, self, o, d, ev, tb, fb, t_eval, f_new, self.inv_lip, mag)
+            lipv, cost = lipv | (inside & ~beyond), cost + extra
         # (a ray that left has no depth to lose to a non-finite φ: it is a MISS, or flagged)
         stay = retry & ~give_up
         status = _verdict(xp, ~fin & ~out, conv, iters >= self.max_steps, miss=miss & ~unc_miss, lipv=lipv,
@@ -807,6 +833,7 @@ class MarchRefine(_Search):
     scale: float = 0.0  # the scene's offset and extent, for the check's rounding slack (lipschitz_violated)
     gain: float = 1.0  # the scene's rounding gain, on that slack (lipschitz_violated)
     resolve: bool = False  # φ is a distance bound: its rounding near the surface is L·(point's rounding) (resolution)
+    check_inside: bool = False  # L is a declaration taken on trust: check it inside every step (mid_probe)
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -891,6 +918,9 @@ class MarchRefine(_Search):
         nonf = ~fin & xp.isfinite(t_n) & ~beyond
         # the step's two ends are evaluated: a slope above the declared L shows it is false here
         lipv = None if rule.check is None else lipschitz_violated(xp, f, f_n, t, t_n, rule.check, mag, self.gain) & ~beyond
+        if self.check_inside and rule.certifies:
+            inside, extra = mid_probe(xp, self, o, d, ev, t, f, t_n, f_n, rule.inv_lip, mag)
+            lipv, cost = lipv | (inside & ~beyond), cost + extra
         t_land = t_n
         ok, new, loose = rule.judge(xp, s, cross, rc, rc_n, h, t_n)
         if rule.certifies:  # a landing to probe past: the ray stays
