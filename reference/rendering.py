@@ -212,7 +212,11 @@ def render_exact(scene: Field, color, model: str, sharpness: float, o, d, t_min:
         raise ValueError(f"need finite t_min < t_max, got t_min={t_min}, t_max={t_max}")
     n = o.shape[0]
     cross = _crossings(scene, o, d, t_min, t_max)
-    kinks = _slope_sign_changes(scene, o, d, t_min, t_max) if model == "neus" else [()] * n
+    try:  # (the first of the NeuS density's reads of ∂φ/∂t, the field's jet: say so before any quadrature)
+        kinks = _slope_sign_changes(scene, o, d, t_min, t_max) if model == "neus" else [()] * n
+    except NotImplementedError:
+        raise ValueError(f"the NeuS density max(−(d/dt)Φ(φ)/Φ(φ), 0) needs ∂φ/∂t in closed form (Field.jet), "
+                         f"which {type(scene).__name__} does not give") from None
     breaks = []
     for c, kk in zip(cross, kinks):
         b = [t_min, t_max, *kk] + [t + k / s * sgn for t in c for k in (0.0, 1.0, 4.0, 16.0) for sgn in (-1.0, 1.0)]

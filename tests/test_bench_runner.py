@@ -170,6 +170,16 @@ def test_bad_selection_is_a_clear_error(fake_methods):
         runner.plan(suite(["fake_root"]), ["a"], None, None, ["float63"])
 
 
+def test_method_globs_select_as_case_globs_do(fake_methods):
+    """``--method`` takes globs as ``--case`` does ('volume_*'); a glob that matches no method is
+    the same clear error as an unknown name."""
+    s = suite(["fake_root", "fake_normal", "fake_dt"])
+    got = {c.method for c in runner.plan(s, ["a"], None, ["fake_n*", "fake_dt"], None)}
+    assert got == {"fake_normal", "fake_dt"}
+    with pytest.raises(ValueError, match=r"--method: unknown method\(s\) \['fake_zz\*'\]"):
+        runner.plan(s, ["a"], None, ["fake_root", "fake_zz*"], None)
+
+
 def test_default_sweep_derives_from_knobs():
     spec = MethodSpec("m", "render", (Knob("tol", 1e-8, float, 0.0, "t", role="tolerance"), Knob("n_samples", 64, int, 1, "n", role="budget"),
                                       Knob("sharpness", 50.0, float, 0.0, "s", role="setting")), (), "")

@@ -50,6 +50,22 @@ def test_flagged_reference_rays_are_not_judged():
     assert row["reference_error_bound"] == 0.0 and np.isnan(row["error_max"])  # nothing checked, not "error 0"
 
 
+def test_a_surface_colour_on_flagged_rays_is_not_judged_either():
+    """The renderers' ``color_vs_surface`` (ρ(x*) on the rays that hit) counts the rays the
+    reference flags as root rows do, so a case whose every hit is flagged reads 'not judged' in
+    "which to pick", not 'none reached' (a user's field 10× steeper than declared)."""
+    from bench.run.metrics import render_metrics
+    from impls.methods import get_method
+
+    case = understated_user_case()
+    res = exact_sphere_result(case)
+    res = RayResult(t=res.t, status=res.status, iterations=res.iterations, evals=res.evals,
+                    outputs={"color": np.zeros((case.n_rays, 3))})
+    rows = render_metrics(res, case, "float64", {}, {}, get_method("render_surface"))
+    (row,) = [r for r in rows if r["quantity"] == "color_vs_surface"]
+    assert row["n_not_judged"] == case.n_rays and row["n_checked"] == 0
+
+
 def test_a_wrong_answer_on_a_judged_ray_still_counts():
     """Judged rays are judged as before: a false hit and a false miss there count."""
     case = types.SimpleNamespace(exact_t=np.array([1.0, np.inf, 2.0, np.nan]),

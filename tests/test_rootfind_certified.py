@@ -545,3 +545,25 @@ def test_the_hybrid_brackets_a_scaled_floor_in_a_few_evaluations(backend, k, dty
     assert (res.status == Status.CONVERGED).all(), np.unique(res.status, return_counts=True)
     assert np.all(np.abs(res.t - exact) <= tol)
     assert res.evals.max() <= 16, (res.evals.max(), res.evals.mean())
+
+
+def test_a_certification_sample_checks_the_bound_between_its_ends():
+    """The certification stage extends the frontier with samples stepped from the last certified
+    one, cp, on the strength of L, as the march does: its two ends check the bound the same way.
+    Here a plane crossed at slope 3 declared with L = 1, a row in certification mode at cp = 0
+    (φ = 6) whose sample lands at the bracket's start a = 1.99 (φ = 0.03): the slope between them
+    is 3, LIPSCHITZ_VIOLATED (before, the sample was taken on trust)."""
+    from impls.core.methods_root import build_hybrid
+    from impls.methods import get_method
+
+    scene = CallableField(lambda x, xp: 3.0 * (x[..., 2] - 1.0), lipschitz=1.0, name="tests.steep_plane")
+    knobs = get_method("hybrid_secant").validate({})
+    alg = build_hybrid(scene, 0.0, 10.0, knobs, ladder=0)
+    o, d = np.array([[0.0, 0.0, 3.0]]), np.array([[0.0, 0.0, -1.0]])
+    ev = resolve_or_skip("numpy").ray_eval(scene)
+    s = alg.init(np, o, d, ev)
+    one = np.ones(1)
+    s.update(t=2.0 * one, f=0.0 * one, p=1.99 * one, fp=0.03 * one, a=1.99 * one, fa=0.03 * one, b=2.0 * one,
+             u=0.0 * one, cp=0.0 * one, fcp=6.0 * one, kap=one, cm=np.array([True]), phase=np.array([2], np.int32))
+    out = alg.step_certify(np, s, o, d, ev)
+    assert out["status"][0] == Status.LIPSCHITZ_VIOLATED, Status(int(out["status"][0]))

@@ -34,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="quick (CI, the showcase), full (every method on 3 cases, sweeps, float32, every workload "
                    "case) or workloads (the mesh, grid and neural cases only, default knobs)")
     p.add_argument("--backend", action="append", help="backend ids, comma-separated or repeated (default: all available)")
-    p.add_argument("--method", action="append", help="methods to run (default: all in the suite)")
+    p.add_argument("--method", action="append", help="methods to run, names or globs such as 'volume_*' "
+                   "(default: all in the suite)")
     p.add_argument("--case", help="glob(s) on case ids, comma-separated (default: the suite's); the matching cases run "
                    "each method with its whole knob sweep; '*' (the catalog sweep) still leaves out what the suite "
                    "excludes for cost, a glob that names cases runs them too")

@@ -297,7 +297,10 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
         if name == "color_vs_integral":
             rays = rays & np.all(np.isfinite(ex), axis=1)  # the rays the integral was computed on
         e, mag = _per_ray(Quantity(name, "colour units", got, ex, rays))
-        rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype),
+        # ρ(x*) is judged where the hit is: not on the rays the reference flags (counted, as root rows do,
+        # so that a case whose every hit is flagged reads 'not judged' rather than 'none reached')
+        judged = {"n_not_judged": int(np.sum(~judged_rays(case)))} if name == "color_vs_surface" else {}
+        rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype), **judged,
                      "reference_error_bound": bound,
                      "reference_s": cache.pop(("reference_s", case.id, density_model(spec, knobs),
                                                float(knobs.get("sharpness", 0) or 0)), 0.0)})

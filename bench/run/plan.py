@@ -70,10 +70,11 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
     interleave in time and none is always first.  ``reference_disk``: where numerical first hits
     are kept between runs (:func:`bench.run.references.load_numerical_hits`)."""
-    if methods:
-        unknown = [m for m in methods if m not in METHODS]
+    if methods:  # names or globs ('volume_*'), as --case takes; a name or glob that matches nothing is an error
+        unknown = [m for m in methods if not any(fnmatch.fnmatchcase(n, m) for n in METHODS)]
         if unknown:
             raise ValueError(f"--method: unknown method(s) {unknown}; known: {sorted(METHODS)}")
+        methods = [n for n in METHODS if any(fnmatch.fnmatchcase(n, m) for m in methods)]
     names = [m for m in (suite.methods or tuple(METHODS)) if not methods or m in methods]
     for dt in dtypes or ():
         if dt not in ("float64", "float32", "float16", "bfloat16"):

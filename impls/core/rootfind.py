@@ -1121,7 +1121,14 @@ class MarchRefine(_Search):
         new, c, f_c, same_a, closed = self._refine_step(
             xp, s, o, d, ev, c=lambda prop: xp.where(cm, self._certify_sample(xp, s, s["a"], mag), prop))
         conv, unc = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
-        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
+        # a certification sample is a step from the last certified sample cp: its two ends check the
+        # bound as every marching step's do (and, for a bound taken on trust, its midpoint too)
+        lipv = cm & lipschitz_violated(xp, s["fcp"], f_c, s["cp"], c, self.rule.inv_lip, mag, self.gain)
+        if self.check_inside:
+            inside, extra = mid_probe(xp, self, o, d, ev, s["cp"], s["fcp"], c, f_c, self.rule.inv_lip, mag)
+            lipv = lipv | (cm & inside)
+            new["evals"] = new["evals"] + xp.astype(cm, xp.int32) * extra
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, lipv=lipv, unc=unc)
         return _typed(xp, dict(s, **new), s)
 
     def _certify_sample(self, xp, s, a, mag):
