@@ -44,6 +44,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import depthbound as _depthbound
+from .code_digest import function_digest
 from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label
 
 
@@ -250,7 +251,9 @@ class CallableField(Field):
 
     It states only what the user tells it: ``lipschitz`` (a valid bound, or None), whether it
     is an ``exact_sdf``; hits come from :func:`first_hit_numeric`.  ``name`` identifies it in
-    case ids and hashes (a function has no stable content hash).  ``bounds = (centre, radius)``
+    case ids and messages; the content hash holds the name and :func:`function_digest` of ``fn``
+    (its code, file, defaults and closure), so an edited function is another scene to every kept
+    reference answer, ``--resume`` and ``bench compare``.  ``bounds = (centre, radius)``
     is an optional ball the user asserts contains every point where φ ≤ 0
     (:meth:`Field.bounding_sphere`); a wrong ball makes the root finders miss surface outside it.
 
@@ -271,6 +274,7 @@ class CallableField(Field):
             raise ValueError(f"lipschitz must be a finite number > 0 or None, got {lipschitz!r}")
         self.fn, self.lipschitz, self.exact_sdf = fn, None if lipschitz is None else float(lipschitz), bool(exact_sdf)
         self.name = name or f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}"
+        self.fn_digest = function_digest(fn)  # (in the content hash: a changed body is another scene)
         self.domain = domain
         self.bounds = None
         if bounds is not None:
@@ -293,7 +297,8 @@ class CallableField(Field):
 
     def spec(self):
         s = super().spec()
-        s["static"] = {"name": self.name, "lipschitz": self.lipschitz, "exact_sdf": self.exact_sdf}
+        s["static"] = {"name": self.name, "lipschitz": self.lipschitz, "exact_sdf": self.exact_sdf,
+                       "fn": self.fn_digest}
         if self.bounds is not None:
             s["static"]["bounds"] = [self.bounds[0].tolist(), self.bounds[1]]
         return s

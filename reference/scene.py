@@ -327,6 +327,8 @@ class Field:
             "params": {k: np.asarray(v, np.float64).tolist() for k, v in self.own_params().items()},
             "children": [c.spec() for c in self.children],
             **({"static": st} if (st := self._static_spec()) else {}),
+            # a user's node class: its code, which the package's source digests do not cover
+            **({} if type(self).__module__.startswith("reference.") else {"code": _class_digest(type(self))}),
         }
 
     def _static_spec(self) -> dict:
@@ -343,6 +345,12 @@ class Field:
 
     def content_hash(self) -> str:
         return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _class_digest(cls) -> str:
+    from .code_digest import function_digest  # (imported here: it is needed only for users' classes)
+
+    return function_digest(cls)
 
 
 class FieldError(ValueError):

@@ -185,3 +185,87 @@ def test_every_declared_tag_set_is_the_built_cases(full):
     assert len(declared) >= (4 if full else 20)
     for cid, tags in declared.items():
         assert set(get_case(cid).tags) == tags, cid
+
+
+def test_an_edited_user_field_is_another_scene_to_the_kept_references(tmp_path):
+    """A ``CallableField``'s content hash holds what its function computes, not only its ``name``:
+    a user who edits the function and keeps the name (and the case id) gets the new field's
+    reference answers, not the old ones kept on disk (before, the numerical first hits were read
+    back from the cache directory for the old body: every correct answer then judged wrong), and
+    the same function hashes alike in another process (the kept answers are reused)."""
+    from bench.run.references import load_numerical_hits
+    from reference import CallableField, rays
+
+    src = textwrap.dedent('''
+        R = {r}
+
+        def ball(x, xp):
+            return xp.sqrt(xp.sum(x * x, axis=-1)) - R
+    ''')
+    o, d = rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=30.0, width=4, height=4)
+    disk = tmp_path / "kept"
+    disk.mkdir()
+    hits, hashes = {}, {}
+    for r in (0.5, 0.6, 0.5):
+        mod = tmp_path / f"edited_{str(r).replace('.', '_')}"
+        mod.mkdir(exist_ok=True)
+        (mod / "user_ball.py").write_text(src.format(r=r))
+        sys.path.insert(0, str(mod))
+        sys.modules.pop("user_ball", None)
+        try:
+            import user_ball
+        finally:
+            sys.path.remove(str(mod))
+        scene = CallableField(user_ball.ball, lipschitz=1.0, name="user_ball.ball")
+        case = Case(id="user.edited.ball", scene=scene, origins=o, directions=d, t_min=0.0, t_max=6.0)
+        load_numerical_hits(case, disk)
+        hits[r], hashes[r] = np.asarray(case.exact_t), scene.content_hash()
+        np.testing.assert_allclose(hits[r], Sphere(radius=r).first_hit(o, d, 0.0), atol=1e-9)
+    assert hashes[0.5] != hashes[0.6]
+    sys.modules.pop("user_ball", None)
+    out = subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); import user_ball; "
+                          "from reference import CallableField; "
+                          "print(CallableField(user_ball.ball, lipschitz=1.0, name='user_ball.ball').content_hash())",
+                          str(tmp_path / "edited_0_5")], capture_output=True, text=True, timeout=HANG_GUARD_S, check=True)
+    assert out.stdout.strip() == hashes[0.5]
+
+
+def test_an_edited_user_field_class_is_another_scene(tmp_path):
+    """The same for a user's own ``Field`` subclass: its content hash holds its class's code (the
+    file that defines it), which the package's source digests do not cover; the library's nodes
+    keep theirs (the committed baseline's case versions)."""
+    src = textwrap.dedent('''
+        from reference.scene import Field, SceneInfo
+
+        class Slab(Field):
+            kind = "slab"
+
+            @property
+            def info(self):
+                return SceneInfo(exact_sdf=True, lipschitz=1.0, distance_bound=True, smooth=True, exact_hits=False,
+                                 exact_normals=False, exact_curvature=False, exact_hit_param_grad=False)
+
+            def _eval(self, x, xp, cursor):
+                return xp.abs(x[..., 2]) - {w}
+    ''')
+    got = []
+    for i, w in enumerate((0.1, 0.2, 0.1)):
+        mod = tmp_path / f"v{i}"
+        mod.mkdir()
+        (mod / "user_slab.py").write_text(src.format(w=w))
+        sys.path.insert(0, str(mod))
+        sys.modules.pop("user_slab", None)
+        try:
+            import user_slab
+        finally:
+            sys.path.remove(str(mod))
+        got.append(user_slab.Slab().content_hash())
+    sys.modules.pop("user_slab", None)
+    assert got[0] == got[2] != got[1]
+    import pandas as pd
+    from pathlib import Path
+
+    base = pd.read_csv(Path(__file__).resolve().parents[1] / "reports" / "baseline" / "results.csv",
+                       usecols=["case_id", "case_version"], dtype=str).drop_duplicates()
+    for cid, version in base.itertuples(index=False):
+        assert get_case(cid).version == version, cid
