@@ -85,8 +85,14 @@ def function_digest(fn: Callable, depth: int = 0) -> str:
         for v in (*(getattr(func, "__defaults__", None) or ()), *cells,
                   *sorted((getattr(func, "__kwdefaults__", None) or {}).items()), *reads):
             h.update(_value_digest(v, depth))
-    elif isinstance(fn, type):  # a class it reads (its file is in already)
+    elif isinstance(fn, type):  # a class: its name and the code and values of what it defines
         h.update(f"{fn.__module__}.{fn.__qualname__}".encode())
+        for key, v in sorted(vars(fn).items()):
+            if key.startswith("__") and key not in ("__call__", "__init__"):
+                continue
+            v = getattr(v, "__func__", None) or getattr(v, "fget", None) or v  # static/class methods, properties
+            if depth < 4:
+                h.update(key.encode() + _value_digest(v, depth + 1))
     else:  # a callable object: its state
         try:
             h.update(pickle.dumps(fn, protocol=5))

@@ -187,6 +187,21 @@ def test_every_declared_tag_set_is_the_built_cases(full):
         assert set(get_case(cid).tags) == tags, cid
 
 
+def _import_fresh(folder, name: str, source: str):
+    """Module ``name`` with ``source``, written to ``folder`` and imported afresh (a user's edit)."""
+    import importlib
+
+    folder.mkdir(exist_ok=True)
+    (folder / f"{name}.py").write_text(source)
+    sys.modules.pop(name, None)
+    sys.path.insert(0, str(folder))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(folder))
+        sys.modules.pop(name, None)
+
+
 def test_an_edited_user_field_is_another_scene_to_the_kept_references(tmp_path):
     """A ``CallableField``'s content hash holds what its function computes, not only its ``name``:
     a user who edits the function and keeps the name (and the case id) gets the new field's
@@ -207,22 +222,13 @@ def test_an_edited_user_field_is_another_scene_to_the_kept_references(tmp_path):
     disk.mkdir()
     hits, hashes = {}, {}
     for r in (0.5, 0.6, 0.5):
-        mod = tmp_path / f"edited_{str(r).replace('.', '_')}"
-        mod.mkdir(exist_ok=True)
-        (mod / "user_ball.py").write_text(src.format(r=r))
-        sys.path.insert(0, str(mod))
-        sys.modules.pop("user_ball", None)
-        try:
-            import user_ball
-        finally:
-            sys.path.remove(str(mod))
+        user_ball = _import_fresh(tmp_path / f"edited_{str(r).replace('.', '_')}", "user_ball", src.format(r=r))
         scene = CallableField(user_ball.ball, lipschitz=1.0, name="user_ball.ball")
         case = Case(id="user.edited.ball", scene=scene, origins=o, directions=d, t_min=0.0, t_max=6.0)
         load_numerical_hits(case, disk)
         hits[r], hashes[r] = np.asarray(case.exact_t), scene.content_hash()
         np.testing.assert_allclose(hits[r], Sphere(radius=r).first_hit(o, d, 0.0), atol=1e-9)
     assert hashes[0.5] != hashes[0.6]
-    sys.modules.pop("user_ball", None)
     out = subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); import user_ball; "
                           "from reference import CallableField; "
                           "print(CallableField(user_ball.ball, lipschitz=1.0, name='user_ball.ball').content_hash())",
@@ -250,17 +256,7 @@ def test_an_edited_user_field_class_is_another_scene(tmp_path):
     ''')
     got = []
     for i, w in enumerate((0.1, 0.2, 0.1)):
-        mod = tmp_path / f"v{i}"
-        mod.mkdir()
-        (mod / "user_slab.py").write_text(src.format(w=w))
-        sys.path.insert(0, str(mod))
-        sys.modules.pop("user_slab", None)
-        try:
-            import user_slab
-        finally:
-            sys.path.remove(str(mod))
-        got.append(user_slab.Slab().content_hash())
-    sys.modules.pop("user_slab", None)
+        got.append(_import_fresh(tmp_path / f"v{i}", "user_slab", src.format(w=w)).Slab().content_hash())
     assert got[0] == got[2] != got[1]
     import pandas as pd
     from pathlib import Path
