@@ -291,3 +291,28 @@ def test_a_claims_integral_is_kept_by_all_of_its_inputs(tmp_path, monkeypatch):
     render_exact_kept(tmp_path, scene, rho, "neus", 60.0, o, d, 1.5, 2.5)
     render_exact_kept(tmp_path, scene, rho, "neus", 50.0, o, d * -1.0, 1.5, 2.5)
     assert len(list(tmp_path.glob("render_exact-kept-*.npz"))) == 3
+
+
+def test_a_cases_kept_rendering_integral_is_keyed_by_its_colour_field_too(tmp_path):
+    """The run's rendering integral (``exact_color``) is kept by the case's version, which holds
+    the scene and rays but not the colour field: a case given another ``color_frequency`` (same
+    id, scene and rays) read the old field's colours back.  The field's repr is in the key."""
+    import dataclasses
+
+    from bench.run.references import ReferenceOptions, exact_color
+    from impls.methods import get_method
+    from reference import Sphere, rays
+    from reference.cases import Case
+
+    o, d = rays.pinhole(eye=(0.0, 0.0, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=20.0, width=2, height=2)
+    case = Case(id="tests.colour.kept", scene=Sphere(), origins=o, directions=d, t_min=0.0, t_max=6.0)
+    spec = get_method("volume_nerf_uniform")
+    knobs = spec.validate({})
+    opts = {"_options": ReferenceOptions(expensive=True, disk=tmp_path)}
+    two = exact_color(case, spec, knobs, dict(opts))[0]
+    five_case = dataclasses.replace(case, color_frequency=5.0)
+    five = exact_color(five_case, spec, knobs, dict(opts))[0]
+    fresh = exact_color(five_case, spec, knobs, {"_options": ReferenceOptions(expensive=True, disk=None)})[0]
+    np.testing.assert_array_equal(five, fresh)
+    assert not np.allclose(two, five)
+    assert len(list(tmp_path.glob("render_exact-*.npz"))) == 2

@@ -194,7 +194,9 @@ def exact_color(case, spec, knobs: dict, cache: dict) -> tuple[np.ndarray, float
     if key not in cache:
         rendering = _rendering_module()
         idx = reference_rays(case.n_rays, opts.max_rays)
-        path = opts.disk / f"render_exact-{_disk_key(case, (model, s, opts.max_rays), rendering)}.npz" if opts.disk else None
+        # (the colour field is not part of the case's version: its repr, with its frequency, keys the file)
+        parts = (model, s, opts.max_rays, repr(color_field(case)))
+        path = opts.disk / f"render_exact-{_disk_key(case, parts, rendering)}.npz" if opts.disk else None
         def compute():
             t0 = time.perf_counter()
             with time_limit(opts.timeout_s):
