@@ -110,7 +110,7 @@ class Field:
     kind: str = "field"
     #: whether ``info.lipschitz`` is a claim the node takes on trust (a user's field, a declared
     #: bound) rather than one its construction proves; a node class defined outside ``reference``
-    #: counts as declaring whatever this says (:func:`impls.core.methods_root.checks_start`)
+    #: counts as declaring whatever this says (:func:`impls.core.methods_root.checks_inside`)
     declares_lipschitz: bool = False
 
     # -- structure -------------------------------------------------------------------------
