@@ -74,3 +74,29 @@ def test_claim_lines_are_cut_between_words_and_say_so():
     assert lines.set_index("id").loc["9", "statement"] == "short"
     assert len(lines.set_index("id").loc["9", "holds on / counterexample"]) == 160  # one word: cut inside it
     assert summary.clip_words("a b c", 5) == "a b c" and summary.clip_words("alpha beta", 8) == "alpha…"
+
+
+def test_where_no_configuration_answers_every_ray_a_few_flagged_rays_are_picked_and_counted():
+    """At 1024² a certified root finder flags a few grazing rays (UNCERTIFIED): with "every ray
+    answered" as the only rule no configuration is picked, and the table answers nothing.  Where
+    none answers every ray, the fastest whose only misses are rays it flagged — at most
+    FLAGGED_SHARE of them, no silent wrong answer, its answered rays at the target — is picked,
+    with the count; a configuration answering every ray still wins, and a silent miss or too many
+    flags still disqualify."""
+    n = 1 << 20
+
+    def flagged(backend, declined, silent=0, err=1e-10, ratio=1.0):
+        r = _row(backend=backend, err=math.inf, ratio=ratio, fm=declined + silent)
+        return {**r, "n_miss_declined": declined, "n_rays": n, "error_max_finite": err}
+
+    df = pd.DataFrame([flagged("numpy", 2, ratio=3.0), flagged("jax:cpu", 2, silent=1, ratio=1.0),
+                       flagged("torch:cpu", int(2e-3 * n), ratio=0.5), flagged("numba", 2, err=1e-6, ratio=0.1)])
+    p = summary.which_to_pick(df, targets=(1e-4, 1e-8)).set_index("target")
+    assert p.loc[1e-8, "pick"] == "hybrid_secant · numpy · float64" and p.loc[1e-8, "flagged"] == 2
+    assert p.loc[1e-4, "pick"] == "hybrid_secant · numba · float64"  # its answered rays reach 1e-4
+    grid = summary.pick_grid(p.reset_index())
+    assert "2 ray(s) flagged" in grid.iloc[0]["≤ 1e-08"]
+    assert "2 ray(s) flagged" in summary.headline(p.reset_index())[0]
+    clean = pd.DataFrame([*df.to_dict("records"), {**_row(backend="warp", ratio=9.0), "n_rays": n}])
+    q = summary.which_to_pick(clean, targets=(1e-8,))
+    assert q["pick"].iloc[0] == "hybrid_secant · warp · float64" and not (q.get("flagged", pd.Series([0])) > 0).any()

@@ -8,7 +8,9 @@ error target, the fastest configuration (method × backend × dtype × knob sett
 error over every ray of the case, on the family's primary quantity (depth, normal angle, dt/dθ,
 colour against the rendering integral), is at or below the target, with no false hit or miss and
 no ray the reference flags (a row with ``n_not_judged`` > 0 was not fully checked and is never
-picked; a case without another candidate reads ``not judged``).  "Fastest" is the median time in
+picked; a case without another candidate reads ``not judged``); where no configuration answers
+every ray, a root finder that flagged at most 0.1 % of them and answered the rest to the target,
+with the number it flagged (:data:`FLAGGED_SHARE`).  "Fastest" is the median time in
 units of the closed-form ray–sphere intersection of the same rays measured beside its samples
 (``time_ratio_cf``), so that cases of different sizes read alike; in an accuracy-only run (no
 timing) the cheapest in field evaluations per ray is taken instead, and the table says so.
@@ -27,12 +29,19 @@ CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 PICK_NOTE = ("Per method family and case, for each error target: the fastest configuration (method · backend · "
              "dtype @ knobs) whose max error over every ray is at or below the target, with no false hit or miss "
              "and no ray the reference flags ('not judged': some rays have no certified reference answer); "
+             "where none answers every ray, the fastest root finder whose only misses are rays it flagged "
+             "(at most 0.1 % of them; its error over the rays it answered), with the count of flagged rays; "
              "its time as a multiple of the closed-form ray–sphere intersection of the same rays (× closed form) "
              "and its field evaluations per ray. 'untimed': an accuracy-only run, ranked by evaluations.")
 #: the pick of a case some of whose rays the reference flags (``n_not_judged``, bench.run.metrics)
 NOT_JUDGED = "not judged"
 #: the error targets every "fastest to target" table uses
 TARGETS = (1e-4, 1e-8, 1e-12)
+#: where no configuration of a case answers every ray, a root finder whose only misses are rays
+#: it flagged (declined: UNCERTIFIED, MAX_ITER, …; none silently wrong) may still be picked when
+#: it flagged at most this share of the case's rays (at 1024² a certified method flags a few
+#: grazing rays, and a table of "none reached" would answer nothing); the pick says how many
+FLAGGED_SHARE = 1e-3
 
 
 def ok_rows(df: pd.DataFrame) -> pd.DataFrame:
@@ -120,7 +129,11 @@ def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
     ``candidates`` (configurations that reached the target).  A target no configuration reached
     is a row with pick ``none reached`` and the best error seen.  Rows with rays the reference flags
 (``n_not_judged`` > 0, :func:`bench.run.metrics.judged_rays`) are never candidates; a case with such
-rows and no other candidate gets pick ``not judged`` and the number of flagged rays."""
+rows and no other candidate gets pick ``not judged`` and the number of flagged rays.  Where no
+configuration answers every ray, a root finder whose only misses are rays it flagged itself
+(``n_false_miss`` = ``n_miss_declined``, at most :data:`FLAGGED_SHARE` of the rays, no false hit)
+and whose answered rays reach the target (``error_max_finite``) is picked, column ``flagged``
+giving the count."""
     ok = ok_rows(df)
     if ok.empty:
         return pd.DataFrame(columns=["family", "case", "target", "pick", "knob", "× closed form", "time [ms]",
@@ -128,9 +141,16 @@ rows and no other candidate gets pick ``not judged`` and the number of flagged r
     ok = _primary(ok)
     for c in ("n_false_hit", "n_false_miss", "n_not_judged"):
         ok[c] = pd.to_numeric(ok[c], errors="coerce").fillna(0) if c in ok else 0
+    for c in ("n_miss_declined", "n_rays", "error_max_finite"):
+        ok[c] = pd.to_numeric(ok[c], errors="coerce") if c in ok else np.nan
     # a row with rays the reference flags was not fully checked: never a pick (it could be wrong
     # exactly where nothing judged it); the table says so instead
     clean = ok[(ok["n_false_hit"] == 0) & (ok["n_false_miss"] == 0) & (ok["n_not_judged"] == 0)]
+    # the fallback (FLAGGED_SHARE): every wrong-looking miss is a ray the method flagged, few of them;
+    # its error is then the one over the rays it answered (error_max_finite)
+    flagging = ok[(ok["n_false_hit"] == 0) & (ok["n_not_judged"] == 0) & (ok["n_miss_declined"] > 0)
+                  & (ok["n_false_miss"] == ok["n_miss_declined"])
+                  & (ok["n_miss_declined"] <= FLAGGED_SHARE * ok["n_rays"])]
     rows = []
     for (fam, cid), g in ok.groupby(["family", "case_id"], sort=True):
         gc = clean[(clean["family"] == fam) & (clean["case_id"] == cid)]
@@ -142,7 +162,17 @@ rows and no other candidate gets pick ``not judged`` and the number of flagged r
             hit = hit[np.isfinite(hit[by])] if timed else hit
             row = {"family": fam, "case": cid, "target": tgt, "by": "time" if timed else "evals",
                    "candidates": int(len(hit))}
-            if hit.empty and unjudged:
+            fb = flagging[(flagging["family"] == fam) & (flagging["case_id"] == cid)] if hit.empty else flagging[:0]
+            fb = fb[fb["error_max_finite"] <= tgt]
+            fb = fb[np.isfinite(fb[by])] if timed else fb
+            if hit.empty and not fb.empty:
+                r = fb.sort_values([by, "evals_per_ray", "time_median_s"], na_position="last").iloc[0]
+                row.update({"pick": f"{r['method']} · {r['backend']} · {r['dtype']}",
+                            "knob": knob_label(r["method"], r["knob"]),
+                            "× closed form": r["time_ratio_cf"], "time [ms]": 1e3 * r["time_median_s"],
+                            "evals/ray": r["evals_per_ray"], "flagged": int(r["n_miss_declined"]),
+                            "candidates": int(len(fb))})
+            elif hit.empty and unjudged:
                 row.update({"pick": NOT_JUDGED, "knob": f"{unjudged} ray(s) the reference flags: no configuration "
                                                         "is fully checked"})
             elif hit.empty:
@@ -159,6 +189,12 @@ rows and no other candidate gets pick ``not judged`` and the number of flagged r
     return pd.DataFrame(rows)
 
 
+def _flagged_text(d: dict) -> str:
+    """``; N ray(s) flagged`` for a pick made among configurations that flagged rays (FLAGGED_SHARE)."""
+    n = d.get("flagged")
+    return f"; {int(n)} ray(s) flagged" if n is not None and np.isfinite(n) and n > 0 else ""
+
+
 def headline(picks: pd.DataFrame, target: float = 1e-8) -> list[str]:
     """One line per family at ``target``: the pick on each case, e.g.
     ``root ≤ 1e-08: sphere.camera.64x64 → hybrid_secant · jax:cpu · float64 (×7.1, 3.6 evals/ray)``."""
@@ -172,7 +208,7 @@ def headline(picks: pd.DataFrame, target: float = 1e-8) -> list[str]:
                 parts.append(f"{d['case']} → {d['pick']}")
                 continue
             cost = (f"×{d['× closed form']:.3g}, " if d["by"] == "time" else "untimed, ") + f"{d['evals/ray']:.3g} evals/ray"
-            parts.append(f"{d['case']} → {d['pick']} ({cost})")
+            parts.append(f"{d['case']} → {d['pick']} ({cost}{_flagged_text(d)})")
         lines.append(f"{fam} ≤ {target:.0e}: " + "; ".join(parts))
     return lines
 
@@ -199,7 +235,7 @@ def pick_grid(picks: pd.DataFrame) -> pd.DataFrame:
         else:
             cost = f"×{d['× closed form']:.3g}" if d["by"] == "time" else "untimed"
             knob = f" @ {d['knob']}" if d["knob"] and d["knob"] != "defaults" else ""
-            cell = f"{d['pick']}{knob} ({cost}, {d['evals/ray']:.3g} evals/ray)"
+            cell = f"{d['pick']}{knob} ({cost}, {d['evals/ray']:.3g} evals/ray{_flagged_text(d)})"
         row[f"≤ {d['target']:.0e}"] = cell
     return pd.DataFrame(list(rows.values()))
 
