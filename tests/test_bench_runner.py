@@ -539,11 +539,16 @@ def test_a_method_with_its_own_dtypes_is_planned_in_them():
 
 
 @pytest.mark.slow  # plans the full suite over the whole catalog, cameras at scale built
-def test_full_plans_the_cameras_at_scale_quick_does_not():
+def test_full_plans_the_cameras_at_scale_quick_does_not(monkeypatch):
     """Every scene kind's camera at scale runs in ``full`` (1024² analytic, CSG and grid; the mesh at
     256² for the root finders), in float64 at default knobs; ``quick`` and ``workloads`` plan none;
-    the neural SDF at scale (hours of reference) only when ``--case`` names it."""
+    the neural SDF at scale (minutes of numerical reference) only when ``--case`` names it.  (The
+    planner reads each case's first hits; the neural camera's numerical ones, 4 minutes at 256²
+    here, are stood in for: what is tested is the plan.)"""
     from bench.run.suites import get_suite
+    from reference.cases import Case
+
+    monkeypatch.setattr(Case, "numerical_hits", lambda self: (np.full(self.n_rays, np.inf), np.zeros(self.n_rays)))
 
     def at_scale(cfgs):
         return {(c.case.id, c.method, c.dtype) for c in cfgs if "256x256" in c.case.id or "1024x1024" in c.case.id}
