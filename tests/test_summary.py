@@ -93,6 +93,7 @@ def test_where_no_configuration_answers_every_ray_a_few_flagged_rays_are_picked_
                        flagged("torch:cpu", int(2e-3 * n), ratio=0.5), flagged("numba", 2, err=1e-6, ratio=0.1)])
     p = summary.which_to_pick(df, targets=(1e-4, 1e-8)).set_index("target")
     assert p.loc[1e-8, "pick"] == "hybrid_secant · numpy · float64" and p.loc[1e-8, "flagged"] == 2
+    assert set(p["by"]) == {"time"}  # ranked by time although no row answers every ray
     assert p.loc[1e-4, "pick"] == "hybrid_secant · numba · float64"  # its answered rays reach 1e-4
     grid = summary.pick_grid(p.reset_index())
     assert "2 ray(s) flagged" in grid.iloc[0]["≤ 1e-08"]

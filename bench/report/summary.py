@@ -154,37 +154,31 @@ giving the count."""
     rows = []
     for (fam, cid), g in ok.groupby(["family", "case_id"], sort=True):
         gc = clean[(clean["family"] == fam) & (clean["case_id"] == cid)]
+        gf = flagging[(flagging["family"] == fam) & (flagging["case_id"] == cid)]
         unjudged = int(g["n_not_judged"].max())
-        timed = bool(np.isfinite(gc["time_ratio_cf"]).any())
+        # (of every measured row of the case: where no row answers every ray, the fallback's are timed too)
+        timed = bool(np.isfinite(g["time_ratio_cf"]).any())
         by = "time_ratio_cf" if timed else "evals_per_ray"
         for tgt in targets:
-            hit = gc[gc["error_max"] <= tgt]
-            hit = hit[np.isfinite(hit[by])] if timed else hit
+            cands, flagged = gc[gc["error_max"] <= tgt], False
+            if cands.empty:  # the fallback: few flagged rays, the answered ones at the target
+                cands, flagged = gf[gf["error_max_finite"] <= tgt], True
+            cands = cands[np.isfinite(cands[by])] if timed else cands
             row = {"family": fam, "case": cid, "target": tgt, "by": "time" if timed else "evals",
-                   "candidates": int(len(hit))}
-            fb = flagging[(flagging["family"] == fam) & (flagging["case_id"] == cid)] if hit.empty else flagging[:0]
-            fb = fb[fb["error_max_finite"] <= tgt]
-            fb = fb[np.isfinite(fb[by])] if timed else fb
-            if hit.empty and not fb.empty:
-                r = fb.sort_values([by, "evals_per_ray", "time_median_s"], na_position="last").iloc[0]
+                   "candidates": int(len(cands))}
+            if not cands.empty:
+                r = cands.sort_values([by, "evals_per_ray", "time_median_s"], na_position="last").iloc[0]
                 row.update({"pick": f"{r['method']} · {r['backend']} · {r['dtype']}",
                             "knob": knob_label(r["method"], r["knob"]),
                             "× closed form": r["time_ratio_cf"], "time [ms]": 1e3 * r["time_median_s"],
-                            "evals/ray": r["evals_per_ray"], "flagged": int(r["n_miss_declined"]),
-                            "candidates": int(len(fb))})
-            elif hit.empty and unjudged:
+                            "evals/ray": r["evals_per_ray"], **({"flagged": int(r["n_miss_declined"])} if flagged else {})})
+            elif unjudged:
                 row.update({"pick": NOT_JUDGED, "knob": f"{unjudged} ray(s) the reference flags: no configuration "
                                                         "is fully checked"})
-            elif hit.empty:
+            else:
                 best = g["error_max"].min()
                 row.update({"pick": "none reached", "knob": f"best error {best:.2g}" if np.isfinite(best) else
                             "every configuration had a false hit/miss or infinite error"})
-            else:
-                r = hit.sort_values([by, "evals_per_ray", "time_median_s"], na_position="last").iloc[0]
-                row.update({"pick": f"{r['method']} · {r['backend']} · {r['dtype']}",
-                            "knob": knob_label(r["method"], r["knob"]),
-                            "× closed form": r["time_ratio_cf"], "time [ms]": 1e3 * r["time_median_s"],
-                            "evals/ray": r["evals_per_ray"]})
             rows.append(row)
     return pd.DataFrame(rows)
 
