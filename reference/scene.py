@@ -43,6 +43,7 @@ from .arrays import (  # noqa: F401  (re-exported: the names' old home, still im
     sum_last,
     unit,
 )
+from .code_digest import function_digest
 from .raybounds import ball_chord, unbounded_like
 
 
@@ -328,7 +329,7 @@ class Field:
             "children": [c.spec() for c in self.children],
             **({"static": st} if (st := self._static_spec()) else {}),
             # a user's node class: its code, which the package's source digests do not cover
-            **({} if type(self).__module__.startswith("reference.") else {"code": _class_digest(type(self))}),
+            **({"code": function_digest(type(self))} if user_defined(self) else {}),
         }
 
     def _static_spec(self) -> dict:
@@ -347,10 +348,10 @@ class Field:
         return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:12]
 
 
-def _class_digest(cls) -> str:
-    from .code_digest import function_digest  # (imported here: it is needed only for users' classes)
-
-    return function_digest(cls)
+def user_defined(node: Any) -> bool:
+    """Whether scene node ``node`` is of a class defined outside ``reference`` (a user's ``Field``
+    subclass): code whose bound and content isobench cannot vouch for."""
+    return not type(node).__module__.startswith("reference.")
 
 
 class FieldError(ValueError):

@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from reference.scene import user_defined
+
 from .chandrupatla import MarchChandrupatla
 from .rootfind import REFINERS, Bisect, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
 
@@ -65,8 +67,7 @@ def checks_inside(scene) -> bool:
     CSG, transforms, meshes, grids, the MLPs' spectral bounds) carry bounds proved by their
     construction and tested (tests/test_reference_bounds.py): their steps pay nothing for it."""
     nodes = scene.walk() if hasattr(scene, "walk") else (scene,)
-    return any(getattr(n, "declares_lipschitz", False) or not type(n).__module__.startswith("reference.")
-               for n in nodes)
+    return any(getattr(n, "declares_lipschitz", False) or user_defined(n) for n in nodes)
 
 
 def marching_check(scene, bounds, theta) -> float | None:
