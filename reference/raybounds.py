@@ -12,22 +12,55 @@ pad each shape so that rounding never cuts a crossing away: a shape of size s (i
 radius) grows by 1e-6·s + 32ε(|o| + s) in position, ε of the working dtype and |o| the
 distance of the ray's origin from the shape's frame.  The computed end points are off by a few
 ε(|o| + s) in position (the chord of a ball or slab through points of that magnitude), so the
-padded bound still contains every point of the solid.  (The pad assumes a shape is not smaller
-than about 1e-9 times its distance from the origin of the scene's frame; no case comes near.)
+padded bound still contains every point of the solid.
+
+In a dtype narrower than float64 the rays themselves are rounded: the harness's rays are float64
+and a float32 run sees o rounded by up to ε|o|/2 per component in the *scene's* frame, and a
+transform's change of frame rounds by ε(|o| + |translation|).  Neither is seen by a leaf, whose
+|o| is its own frame's (a unit sphere centred at (1e7, 0, 0) and seen from 3 units away: the
+origin moves by 0.3, the leaf's pad is 2e-5, and 192 of 2,304 hitting rays were MISSes at once
+in float32).  So while :func:`scene_rays` is in force (the root finders' :func:`impls.core.rootfind.clip_to_bounds`
+puts it there), every pad in such a dtype grows by 32ε·max|o|₁ over the rays given in the scene's
+frame.  float64 runs take their rays unrounded, and there the 1e-6·s term covers a change of
+frame for shapes not smaller than about 1e-9 times their distance from the scene's origin.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from typing import Any
 
 from .arrays import const, norm, sum_last
 
 
+#: max |o|₁ of the rays in the scene's frame, while :func:`scene_rays` is in force in a dtype
+#: narrower than float64 (a scalar of the rays' namespace: traced under jit), else None
+_SCENE_FRAME: contextvars.ContextVar = contextvars.ContextVar("isobench_raybounds_scene_frame", default=None)
+
+
+@contextlib.contextmanager
+def scene_rays(xp: Any, o: Any):
+    """Compute a scene's bounds for rays whose origins ``o`` are in the scene's frame: in a dtype
+    narrower than float64, every :func:`pad` inside grows by the rounding of those origins and
+    of the changes of frame below them (the module's docstring).  A context variable, not an
+    argument, so that every node's ``ray_bounds`` (a user's too) keeps its signature."""
+    narrow = float(xp.finfo(o.dtype).eps) > 1e-10
+    token = _SCENE_FRAME.set(xp.max(sum_last(xp, xp.abs(o))) if narrow else None)
+    try:
+        yield
+    finally:
+        _SCENE_FRAME.reset(token)
+
+
 def pad(xp: Any, o: Any, size: float) -> Any:
-    """Per-ray padding, in position, of a shape of size ``size`` seen from origins ``o``."""
+    """Per-ray padding, in position, of a shape of size ``size`` seen from origins ``o`` (in the
+    shape's frame), with the scene frame's rounding under :func:`scene_rays`."""
     eps = float(xp.finfo(o.dtype).eps)
-    return 1e-6 * size + 32 * eps * (norm(xp, o) + size)
+    out = 1e-6 * size + 32 * eps * (norm(xp, o) + size)
+    frame = _SCENE_FRAME.get()
+    return out if frame is None else out + 32 * eps * frame
 
 
 def unbounded_like(xp: Any, o: Any) -> tuple[Any, Any]:

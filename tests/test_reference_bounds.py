@@ -251,3 +251,29 @@ def test_ray_bounds_keep_the_working_dtype(cid):
     for dt in (np.float32, np.float64):
         lo, hi = case.scene.ray_bounds(np, case.origins.astype(dt), case.directions.astype(dt))
         assert lo.dtype == dt and hi.dtype == dt
+
+
+@pytest.mark.parametrize("c", [1e3, 1e5, 1e7])
+def test_float32_bounds_cover_the_rounding_of_the_rays_themselves(c):
+    """A scene far from the origin of its frame, seen from close by: in float32 the rays' origins
+    round by up to ε·c/2 in the scene's frame, which no leaf's own pad sees (its |o| is small).
+    Under ``raybounds.scene_rays`` (as the root finders compute them) the float32 bounds of the
+    rounded rays contain every exact crossing of the float64 rays, for a sphere centred there, a
+    translated and rotated torus and a box; float64 bounds are unchanged by it."""
+    from reference import Box, Torus, raybounds, rays
+
+    scenes = [Sphere(center=(c, 0.0, 0.0), radius=1.0),
+              Transform.from_rotvec(Torus(1.0, 0.2), (0.4, 0.3, 0.0), (c, 0.0, 0.0)),
+              Transform(Box((0.5, 0.7, 0.3)), translation=(c, 0.0, 0.0))]
+    o, d = rays.pinhole(eye=(c + 0.3, 0.2, 3.0), look_at=(c, 0.0, 0.0), fov_deg=60, width=64, height=64)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    for scene in scenes:
+        with raybounds.scene_rays(np, o32):
+            lo, hi = (np.asarray(v, np.float64) for v in scene.ray_bounds(np, o32, d32))
+        for i, bnd in enumerate(scene.ray_intervals(o, d)):
+            bnd = bnd[np.isfinite(bnd)]
+            assert np.all((bnd >= lo[i]) & (bnd <= hi[i])), (type(scene).__name__, i, bnd, lo[i], hi[i])
+        with raybounds.scene_rays(np, o):
+            inside = scene.ray_bounds(np, o, d)
+        for a, b in zip(inside, scene.ray_bounds(np, o, d)):
+            np.testing.assert_array_equal(a, b)

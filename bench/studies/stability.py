@@ -9,10 +9,14 @@ status histogram, and one verdict:
 
 * **survived** (✓) — no wrong answer and no flagged ray: no false hit, no hitting ray reported
   MISS, no CONVERGED ray with a non-finite t, and every CONVERGED ray within the depth tolerance
-  ``tol = √ε(dtype) · max(1, T)`` (T the largest exact depth of the case: the error scales with
-  the depth's magnitude).  √ε is the accuracy a certified answer reaches at a double root (the
-  tangent family): |φ| at rounding level ε moves a double root by O(√ε).  float64: 1.5e-8 · T,
-  float32: 3.5e-4 · T.
+  ``tol = √ε(dtype) · max(1, T)``, T the case's largest magnitude: of its exact depths and of
+  its hitting rays' origins.  The error scales with the magnitude of the points a depth is
+  computed from: o + t·d rounds by ε(|o| + |t|).  In the catalog the two are alike, but a scene
+  far from the origin of its frame, seen from close by, has small depths and large coordinates.
+  A unit sphere at (1e4, 0, 0) seen from 3 units away has depths of about 2.6. In float32 its
+  points are known only to about 1e-3, which is √ε·2.6.  √ε is the accuracy a certified answer
+  reaches at a double root (the tangent family): |φ| at rounding level ε moves a double root by
+  O(√ε).  float64: 1.5e-8 · T, float32: 3.5e-4 · T.
 * **flagged** (⚑) — no wrong answer, but some rays carry a failure status (anything other than
   CONVERGED and MISS: MAX_ITER, NON_FINITE, BAD_INPUT, ILL_CONDITIONED, LIPSCHITZ_VIOLATED,
   UNCERTIFIED).  A flagged ray says "I could not answer", which is not a silent wrong answer: a
@@ -73,15 +77,19 @@ def catalog_family(case_id: str) -> str | None:
 
 @functools.cache
 def catalog_scale(case_id: str) -> float:
-    """T: the largest finite |exact depth| of a catalog case (1 for an unknown id or no hit)."""
+    """T: the largest |exact depth| or origin norm ‖o‖ over a catalog case's hitting rays
+    (1 for an unknown id or no hit)."""
     from reference.cases import get_case
 
     try:
-        t = np.asarray(get_case(case_id).exact_t, np.float64)
+        case = get_case(case_id)
     except KeyError:
         return 1.0
-    t = np.abs(t[np.isfinite(t)])
-    return float(t.max()) if t.size else 1.0
+    t = np.asarray(case.exact_t, np.float64)
+    hit = np.isfinite(t)
+    if not hit.any():
+        return 1.0
+    return float(max(np.abs(t[hit]).max(), np.linalg.norm(np.asarray(case.origins, np.float64)[hit], axis=1).max()))
 
 
 def depth_tolerance(dtype: str, scale: float) -> float:
