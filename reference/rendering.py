@@ -119,14 +119,18 @@ def neus_alpha(phi_start: Any, phi_end: Any, sharpness: float, xp: Any = np) -> 
     Evaluated as −expm1(log Φ_s(φ_b) − log Φ_s(φ_a)) with log Φ(z) = min(z, 0) − log1p(e^{−|z|}):
     the plain ratio is 0/0 = NaN once Φ_s underflows (sφ < −745 in float64, −104 in float32,
     deep inside the surface), and loses digits to cancellation where both ends are far outside.
+    The exponent is clamped at 0 before expm1 rather than α after it: on a section where φ rises
+    from deep inside (s·φ from −5,000 to −1,000 at s = 1e4) the exponent is +4,000, expm1 overflows
+    to inf, and the clamp ``where(α > 0, α, 0·α)`` made 0·(−inf) = NaN of it (every ray leaving
+    the solid was NON_FINITE at sharpness ≥ 1e4, float64 too); and where's untaken inf branch
+    would give NaN gradients under autodiff.
     """
     s = _check_model("neus", sharpness)
 
     def log_sigmoid(z):
-        return xp.minimum(z, 0.0 * z) - xp.log1p(xp.exp(-xp.abs(z)))
+        return xp.minimum(z, xp.zeros_like(z)) - xp.log1p(xp.exp(-xp.abs(z)))
 
-    a = -xp.expm1(log_sigmoid(s * phi_end) - log_sigmoid(s * phi_start))
-    return xp.where(a > 0, a, 0.0 * a)
+    return -xp.expm1(xp.minimum(log_sigmoid(s * phi_end) - log_sigmoid(s * phi_start), xp.zeros_like(phi_end)))
 
 
 def alpha_from_density(sigma: Any, delta: Any, xp: Any = np) -> Any:
