@@ -232,6 +232,9 @@ class ArrayBackend:
         if reason:
             raise ValueError(reason)
         t_min, t_max = check_range(t_min, t_max)
+        if spec.finite_range and not math.isfinite(t_max):
+            raise ValueError(f"{method} samples the whole interval [t_min, t_max] and t_max={t_max!r}: pass a finite "
+                             "t_max (the far end of the rendered interval, e.g. where the scene's bounding ball ends)")
         knobs = spec.validate(knobs)
         extra = {"color": check_color(method, color)} if spec.needs_color else {}
         if color is not None and not spec.needs_color:

@@ -104,6 +104,9 @@ class MethodSpec:
               with ``value(x, xp) -> (..., 3)``; default :class:`reference.rendering.SineColor`).
               A runner passes ``color=case.color_field`` exactly when this is true; ``prepare``
               rejects ``color`` for a method without it.
+    finite_range: the method samples the whole interval [t_min, t_max] (volume rendering), so
+              ``prepare`` refuses t_max = inf (a ValueError naming it) and the runner plans no such
+              configuration (skipped, with the reason) on a case whose t_max is infinite.
     """
 
     name: str
@@ -114,6 +117,7 @@ class MethodSpec:
     needs_t_hit: bool = False
     outputs: tuple[str, ...] = ()
     needs_color: bool = False
+    finite_range: bool = False
     #: root family: ``build(scene, t_min, t_max, knobs, theta, *, ladder)`` → the algorithm
     #: (:mod:`impls.core.rootfind`) from the knobs ``validate`` returned; ``ladder`` is the loop
     #: driver's choice of ladder samples for the knob value -1 (:mod:`impls.core.methods_root`)
@@ -316,6 +320,7 @@ def _specs() -> list[MethodSpec]:
             specs.append(MethodSpec(
                 name=f"volume_{density}_{sampler}", family="render", knobs=tuple(knobs), requires=(),
                 needs_t_hit=sampler == "band", outputs=("color", "opacity", "samples_used", "work_saved"), needs_color=True,
+                finite_range=True,
                 description=f"volume rendering by alpha compositing C = Σ T_i α_i ρ(x_i), T_i = Π_{{j<i}}(1 − α_j) "
                 f"(lecture eq. 9–10); {ddoc}; samples: {sdoc}",
             ))

@@ -437,3 +437,24 @@ def test_malformed_fields_jax(kind, method):
     r = outcome(lambda: call(b, method, f, o, d), (f"field_{kind}",))
     if kind == "nan" and not isinstance(r, Exception):  # (φ = +inf is empty space: a valid, clear answer)
         assert not np.any(r.status == CONV)
+
+
+@pytest.mark.parametrize("bid", BACKENDS)
+def test_volume_rendering_refuses_an_infinite_t_max_at_prepare_and_bench_skips_it(bid):
+    """A volume renderer samples all of [t_min, t_max]: t_max = inf is a ValueError naming t_max
+    from ``prepare`` on every backend (numpy and torch raised it only in ``run``, which bench
+    recorded as a failed configuration: 288 failed rows for one user case with a ground plane),
+    and the planner skips such a configuration with the reason while the root finders run."""
+    from bench.run.metrics import family_skip_reason
+    from reference import Case, Plane
+
+    b = _backend(bid)
+    o, d = good_rays()
+    for method in ("volume_nerf_uniform", "volume_neus_importance", "volume_volsdf_band"):
+        kw = {"t_hit": np.full(4, 2.0)} if METHODS[method].needs_t_hit else {}
+        with pytest.raises(ValueError, match="t_max"):
+            b.prepare(method, Sphere(), o, d, t_min=0.0, t_max=math.inf, n_samples=8, **kw)
+    po, pd_ = pinhole((0.0, -3.0, 1.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), width=4, height=4, fov_deg=60.0)
+    case = Case(id="user.plane.inf", scene=Plane(), origins=po, directions=pd_, t_min=0.0, t_max=math.inf)
+    assert "t_max = inf" in family_skip_reason(METHODS["volume_nerf_uniform"], case)
+    assert family_skip_reason(METHODS["hybrid_secant"], case) is None

@@ -58,6 +58,7 @@ dt/dθ) are left out of the error and counted in ``n_declined`` and the status h
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable
 
 import numpy as np
@@ -356,6 +357,9 @@ def family_skip_reason(spec, case) -> str | None:
         exact_t = case.exact_t
     except NotImplementedError as exc:
         return f"{case.id} has no exact hits: {exc}"
+    if getattr(spec, "finite_range", False) and not math.isfinite(float(case.t_max)):
+        return (f"{spec.name} samples the whole interval [t_min, t_max] and {case.id} has t_max = inf "
+                "(give the case a finite t_max to render it)")
     if spec.needs_t_hit and not np.isfinite(np.asarray(exact_t)).any():
         return f"{spec.name} evaluates at exact hits and no ray of {case.id} hits"
     if spec.family in ("gradient", "param_grad") and spec.outputs:
