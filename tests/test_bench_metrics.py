@@ -68,3 +68,34 @@ def test_pareto_front():
     t = np.array([1.0, 2.0, 3.0, 0.5, 2.5])
     e = np.array([1e-2, 1e-4, 1e-3, 1e-1, 1e-6])
     assert list(pareto_front(t, e)) == [3, 0, 1, 4]
+
+
+def test_surface_colour_counts_the_background_at_misses():
+    """``color_vs_surface`` compares with the surface-rendered image: ρ(x*) where the exact answer
+    hits, the background 0 where it misses.  A renderer that paints a missing ray is off by that
+    colour (it used to be judged on the hits only, so it passed), and a case whose every ray
+    misses is checked on every ray (it read 'none reached': nothing was checked)."""
+    from bench.run.metrics import render_metrics
+    from impls.methods import get_method
+    from reference import Case, Sphere, rays
+
+    o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), fov_deg=60, width=8, height=8)
+    spec = get_method("render_surface")
+    for scene in (Sphere(), Sphere(center=(5.0, 0.0, 0.0), radius=0.5)):  # some hits; none
+        case = Case(id="c", scene=scene, origins=o, directions=d, t_min=0.0, t_max=6.0)
+        hit = case.hit_mask
+        good = np.where(hit[:, None], np.nan_to_num(case.exact_surface_colors), 0.0)
+        st = np.where(hit, Status.CONVERGED, Status.MISS).astype(np.int32)
+
+        def row(color):
+            res = RayResult(t=case.exact_t, status=st, iterations=np.ones(64, np.int32), evals=np.ones(64, np.int32),
+                            outputs={"color": color})
+            (r,) = [r for r in render_metrics(res, case, "float64", {}, {}, spec) if r["quantity"] == "color_vs_surface"]
+            return r
+
+        r = row(good)
+        assert r["n_checked"] == 64 and r["error_max"] == 0.0
+        painted = good.copy()
+        painted[~hit] = 0.25  # a halo on every missing ray
+        assert row(painted)["error_max"] == pytest.approx(0.25 * np.sqrt(3)) if (~hit).any() else True
+    assert not hit.any()  # the second scene: every ray misses, and it was checked

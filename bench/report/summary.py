@@ -105,8 +105,9 @@ def overview(df: pd.DataFrame, env: dict) -> dict[str, str]:
 
 def _primary(ok: pd.DataFrame) -> pd.DataFrame:
     """Rows of each method's primary quantity (the family's main answer), or, for a family and
-    case where that quantity was not measured (the quick suite checks renderers against ρ(x*),
-    not the costly rendering integral), of the quantity that was, named in the ``case`` column."""
+    case where that quantity was not measured (the quick suite checks renderers against the
+    surface image, ρ(x*) and 0 at misses, not the costly rendering integral), of the quantity that
+    was, named in the ``case`` column."""
     from impls.methods import METHODS
 
     from ..run.metrics import primary_quantity

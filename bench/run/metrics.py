@@ -23,7 +23,9 @@ output                 quantity (unit)                   reference
 ``dt_dtheta``          ``dt_dtheta`` (units per param)   exact dt/dθ (n, P) of the hit depth
 ``color``              ``color_vs_integral``             C = ∫ T σ ρ dt, ``render_exact`` with the
                                                          method's density model and sharpness
-``color``              ``color_vs_surface``              ρ(x*), the surface colour at the hit
+``color``              ``color_vs_surface``              the surface-rendered image: ρ(x*) at the
+                                                         exact hit, the background 0 where the
+                                                         exact answer misses
 =====================  ================================  =========================================
 
 Conventions (the reference's, ``reference/scene.py``): κ > 0 where the surface bends away
@@ -277,8 +279,12 @@ def pointwise_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict
 
 def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, spec) -> list[dict]:
     """``color_vs_integral`` (against the continuous rendering integral of the same density, on
-    the rays it is computed for: :func:`bench.run.references.reference_rays`) and ``color_vs_surface`` (against ρ(x*), rays that hit: the limit volume rendering is
-    meant to approach)."""
+    the rays it is computed for: :func:`bench.run.references.reference_rays`) and
+    ``color_vs_surface`` (against the surface-rendered image: ρ(x*) where the exact answer hits,
+    the background 0 where it misses; the limit volume rendering is meant to approach).  The
+    misses count: a renderer that paints them (a volume renderer's halo beside a silhouette, a
+    surface renderer's colour on a ray it wrongly calls a hit) is as far from the surface image
+    as one that misses a hit, and a case whose every ray misses is judged, not 'none reached'."""
     if "color" not in res.outputs:
         raise ValueError(f"render method returned no 'color' output (outputs: {sorted(res.outputs)})")
     got = np.asarray(res.outputs["color"], np.float64)
@@ -286,7 +292,8 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
     rows: list[dict] = []
     everywhere = ~_declined(res)
     refs = (("color_vs_integral", lambda: exact_color(case, spec, knobs, cache), everywhere),
-            ("color_vs_surface", lambda: (case.exact_surface_colors, 0.0), everywhere & case.hit_mask & judged_rays(case)))
+            ("color_vs_surface", lambda: (np.where(case.hit_mask[:, None], case.exact_surface_colors, 0.0), 0.0),
+             everywhere & judged_rays(case)))
     for name, exact_fn, rays in refs:
         try:
             ex, bound = exact_fn()
