@@ -99,7 +99,10 @@ def check_color(method: str, color: Any) -> Any:
     if not callable(getattr(color, "value", None)):
         raise ValueError(f"{method}: color must be a colour field with value(x, xp) -> (..., 3) (e.g. "
                          f"reference.rendering.SineColor() or case.color_field), got {type(color).__name__}")
-    return color
+    from reference.rendering import CheckedColor, SineColor
+
+    # the library's own field is trusted; a user's is checked on every output (CheckedColor)
+    return color if isinstance(color, (SineColor, CheckedColor)) else CheckedColor(color)
 
 
 class ArrayBackend:

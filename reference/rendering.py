@@ -76,6 +76,64 @@ class SineColor:
     __call__ = value
 
 
+class CheckedColor:
+    """A user's colour field ρ with every output checked (``prepare`` wraps the ``color`` it is
+    given): ``value(x, xp)`` must return an array of ``x``'s library of shape ``x.shape[:-1] + (3,)``
+    and a real floating dtype (another precision is converted to ``x``'s).  Anything else is a
+    :class:`reference.scene.FieldError` naming the field and the fix.  A field returning one value
+    per point, or four channels, was otherwise broadcast or carried through: a (16, 64) "colour"
+    from jax's volume renderer, a (16, 4) one from ``render_surface``, and elsewhere an AxisError
+    that named nothing.
+
+    Equal (and hashing) as the field it wraps, so a kernel compiled for a field is reused for it.
+    Cost: a few attribute comparisons per call; under ``jax.jit`` once, at trace time."""
+
+    __slots__ = ("field",)
+
+    def __init__(self, field):
+        self.field = field
+
+    def __eq__(self, other):
+        return isinstance(other, CheckedColor) and (other.field is self.field or other.field == self.field)
+
+    def __hash__(self):
+        try:
+            return hash(self.field)
+        except TypeError:
+            return id(self.field)
+
+    def __repr__(self):
+        return f"CheckedColor({self.field!r})"
+
+    def __getattr__(self, name):  # lipschitz and the like: the field's own
+        if name == "field":
+            raise AttributeError(name)
+        return getattr(self.field, name)
+
+    def value(self, x: Any, xp: Any = np) -> Any:
+        from .arrays import _array_lib, _is_real_floating
+        from .scene import FieldError
+
+        out = self.field.value(x, xp)
+        want = tuple(x.shape[:-1]) + (3,)
+        if type(out) is type(x) and tuple(out.shape) == want and out.dtype == x.dtype:
+            return out
+        where = (f"colour field {type(self.field).__name__} was given points x of shape {tuple(x.shape)} "
+                 f"({_array_lib(x)}, dtype {x.dtype})")
+        expected = f"expected ρ of shape x.shape[:-1] + (3,) = {want} (r, g, b per point), a real floating array like x"
+        if _array_lib(out) != _array_lib(x) or not hasattr(out, "shape"):
+            raise FieldError(f"{where} and returned a {type(out).__module__.split('.')[0]} {type(out).__name__}; "
+                             f"{expected}. Compute with the namespace xp the field is given")
+        if tuple(out.shape) != want:
+            raise FieldError(f"{where} and returned shape {tuple(out.shape)}; {expected}. Return three channels per "
+                             "point (e.g. xp.stack([r, g, b], axis=-1)), in [0, 1]")
+        if not _is_real_floating(out):
+            raise FieldError(f"{where} and returned dtype {out.dtype}; {expected} (cast with xp.astype(rho, x.dtype))")
+        return out.to(x.dtype) if _array_lib(x) == "torch" else out.astype(x.dtype)
+
+    __call__ = value
+
+
 # -- density models (array API) ---------------------------------------------------------------
 
 

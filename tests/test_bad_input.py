@@ -458,3 +458,40 @@ def test_volume_rendering_refuses_an_infinite_t_max_at_prepare_and_bench_skips_i
     case = Case(id="user.plane.inf", scene=Plane(), origins=po, directions=pd_, t_min=0.0, t_max=math.inf)
     assert "t_max = inf" in family_skip_reason(METHODS["volume_nerf_uniform"], case)
     assert family_skip_reason(METHODS["hybrid_secant"], case) is None
+
+
+class _OneChannel:
+    def value(self, x, xp=np):
+        return xp.sum(x, axis=-1)  # one value per point, not (r, g, b)
+
+
+class _FourChannels:
+    def value(self, x, xp=np):
+        return xp.concat([x, x[..., :1]], axis=-1)
+
+
+class _Grey32:
+    def value(self, x, xp=np):
+        return xp.astype(0.5 + 0.0 * x, xp.float32)  # another precision: converted, accepted
+
+
+@pytest.mark.parametrize("bid", BACKENDS)
+@pytest.mark.parametrize("method", ["render_surface", "volume_nerf_uniform"])
+def test_a_colour_field_of_the_wrong_shape_is_an_error_naming_it(bid, method):
+    """A user's colour field is checked on every output (reference.rendering.CheckedColor): one
+    channel or four is a FieldError naming the colour field and the fix, on every backend (jax's
+    volume renderer returned a (16, 64) 'colour', render_surface a (16, 4) one, numpy an AxisError
+    that named nothing); a float32 field under a float64 run is converted and accepted; the same
+    user field keeps one kernel (the wrapper is equal to, and hashes as, the field)."""
+    from reference.rendering import CheckedColor
+    from reference.scene import FieldError
+
+    b = _backend(bid)
+    o, d = good_rays()
+    for bad in (_OneChannel(), _FourChannels()):
+        with pytest.raises(FieldError, match=f"colour field {type(bad).__name__}.*returned shape"):
+            call(b, method, Sphere(), o, d, color=bad)
+    r = call(b, method, Sphere(), o, d, color=_Grey32())
+    assert r.outputs["color"].shape == (4, 3) and np.all(np.isfinite(r.outputs["color"]))
+    g = _Grey32()
+    assert CheckedColor(g) == CheckedColor(g) and hash(CheckedColor(g)) == hash(CheckedColor(g))
