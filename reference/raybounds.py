@@ -20,8 +20,11 @@ transform's change of frame rounds by ε(|o| + |translation|).  Neither is seen 
 |o| is its own frame's (a unit sphere centred at (1e7, 0, 0) and seen from 3 units away: the
 origin moves by 0.3, the leaf's pad is 2e-5, and 192 of 2,304 hitting rays were MISSes at once
 in float32).  So while :func:`scene_rays` is in force (the root finders' :func:`impls.core.rootfind.clip_to_bounds`
-puts it there), every pad in such a dtype grows by 32ε·max|o|₁ over the rays given in the scene's
-frame.  float64 runs take their rays unrounded, and there the 1e-6·s term covers a change of
+puts it there), every pad in such a dtype grows by 4ε·max|o|₁ over the rays given in the scene's
+frame: eight times the origins' rounding (ε/2 per component), which also covers a change of
+frame's ε(|o| + |translation|) for a shape near the rays.  (Not 32ε like the leaf's term: at
+|o| ≈ 3.5 that moved a float32 ray's start 1.3e-5 before a sphere, where its first samples fall
+within φ's rounding, and a ray at |cos| 0.19 that the hybrid had certified became UNCERTIFIED.)  float64 runs take their rays unrounded, and there the 1e-6·s term covers a change of
 frame for shapes not smaller than about 1e-9 times their distance from the scene's origin.
 """
 
@@ -60,7 +63,7 @@ def pad(xp: Any, o: Any, size: float) -> Any:
     eps = float(xp.finfo(o.dtype).eps)
     out = 1e-6 * size + 32 * eps * (norm(xp, o) + size)
     frame = _SCENE_FRAME.get()
-    return out if frame is None else out + 32 * eps * frame
+    return out if frame is None else out + 4 * eps * frame
 
 
 def unbounded_like(xp: Any, o: Any) -> tuple[Any, Any]:

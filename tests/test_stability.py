@@ -169,8 +169,11 @@ def test_catalog_families_and_scales():
     assert S.catalog_family("sphere.camera.64x64") is None
     assert S.catalog_family("no.such.case") is None
     assert S.catalog_scale("sphere.far.1e6") > 9e5
-    # the origins count too: box.parallel's rays start 3.29 from the origin, its depths reach 2.0
-    assert S.catalog_scale("box.parallel") == pytest.approx(3.288, abs=1e-3)
+    # the origins' magnitude counts too, as rounding: box.parallel's rays start 3.29 from the origin
+    assert S.catalog_scale("box.parallel") == pytest.approx(2.0)
+    assert S.catalog_origin_norm("box.parallel") == pytest.approx(3.288, abs=1e-3)
+    eps32 = float(np.finfo(np.float32).eps)
+    assert S.depth_tolerance("float32", 2.7, 1e4) == pytest.approx(np.sqrt(eps32) * 2.7 + 100 * eps32 * 1e4)
 
 
 def test_metrics_separate_declined_rays_from_reported_misses():

@@ -333,7 +333,9 @@ class SphereTrace(_Search):
     (× the probe's doublings) wide, the depth the chord's zero in it; a coarser one is
     UNCERTIFIED (the dtype cannot resolve the depth to tol).  MISS when the next t exceeds t_max
     (or leaves the scene's ray bounds, see :func:`clip_to_bounds`), if no probe stood without a
-    sign change on the way (each leaves up to its reach uncovered), else UNCERTIFIED; MAX_ITER
+    sign change on the way (each leaves up to its reach uncovered), else UNCERTIFIED; a crossing
+    found after a probe that left more than max(tol/L, 2ε|t|) uncovered is UNCERTIFIED too (with
+    its depth: it is not proved the first where a pair could hide in that stretch); MAX_ITER
     after ``max_steps`` steps; LIPSCHITZ_VIOLATED when a step's ends differ by more than L
     times its length (the declared bound is false on that ray: :func:`lipschitz_violated`).
     One φ evaluation at t_min (the start of the ray bounds, when that is later) plus one per
@@ -368,7 +370,8 @@ class SphereTrace(_Search):
         f, unres = _outside_start(xp, self, f, t, mag, self.inv_lip)
         # (mag and the previous point's certified radius r_prev ride in the state: each step would
         # otherwise recompute them, ~15 of its ~100 array operations, the same values)
-        s = {"t": t, "f": f, "pos": f > 0, "unc": xp.zeros_like(f, dtype=xp.bool), "t_prev": t, "f_prev": f,
+        s = {"t": t, "f": f, "pos": f > 0, "unc": xp.zeros_like(f, dtype=xp.bool),
+             "wide": xp.zeros_like(f, dtype=xp.bool), "t_prev": t, "f_prev": f,
              "r_prev": certified_radius(xp, f, t, self.inv_lip, mag, self.rg), "mag": mag,
              "pm": xp.ones_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
@@ -427,8 +430,8 @@ class SphereTrace(_Search):
         # what the dtype resolves; a probe repeated across an unresolved stretch widens it)
         res0 = 4.0 * resolution(xp, tb, mag, 1.0 if self.resolve else 0.0)
         allow = s["pm"] * xp.maximum(xp.maximum(self.tol * self.inv_lip, res0), spacing) + slack
-        conv = cross & (gap <= allow)
-        coarse = cross & ~conv & near
+        conv = cross & (gap <= allow) & ~s["wide"]
+        coarse = cross & ~conv & (near | s["wide"])
         # a probe landing within φ's rounding says nothing: the ray stays and probes twice as far
         retry = near & unres & ~out
         give_up = retry & (s["pm"] >= 2.0 ** self.PROBE_RETRIES)
@@ -437,6 +440,11 @@ class SphereTrace(_Search):
         # crossing pair may hide there, and the ray ends UNCERTIFIED
         stood = near & ~cross & ~unres & ~out & (gap > 0)
         unc = s["unc"] | stood
+        # a probe that stood leaving more than tol/L uncovered (its reach widened by φ's rounding or by
+        # retries: float32 far from the origin, where 4 roundings reach 0.08 at 1e4) may hide a crossing
+        # pair the user's tolerance would see: a crossing found after it is not proved the first
+        # (UNCERTIFIED, with its depth), as the hybrids' after a step that stood uncertified
+        wide = s["wide"] | (stood & (gap > xp.maximum(self.tol * self.inv_lip, spacing) + slack))
         give_up = give_up | (stood & (gap > allow)) | coarse
         miss = out & ~cross
         covered = (tb + rb >= hi) | (t_eval - r_new <= tb + rb)
@@ -456,7 +464,7 @@ class SphereTrace(_Search):
         z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
         t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(stay, t, xp.where(give_up, t_eval, t_new))))
         return _typed(xp, dict(s, t=t_out, f=xp.where(stay, f, f_new), t_prev=tb, f_prev=fb, r_prev=rb, omega=om,
-                               pm=xp.where(retry, 2.0 * s["pm"], s["pm"]), status=status, unc=unc,
+                               pm=xp.where(retry, 2.0 * s["pm"], s["pm"]), status=status, unc=unc, wide=wide,
                                iterations=iters, evals=s["evals"] + cost), s)
 
 

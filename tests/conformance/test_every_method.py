@@ -59,9 +59,13 @@ def test_every_method_runs_in_float32(any_backend, method):
     if METHODS[method].family == "root":
         cos_all = np.abs(np.einsum("ij,ij->i", SPHERE.normal_exact(x), d))
         # a hybrid cannot certify a grazing hit (here |cos| 0.094) to min_step in float32: near the
-        # crossing the spheres (σ × distance) fall under φ's float32 rounding, and the ray is UNCERTIFIED
+        # crossing the spheres (σ × distance) fall under φ's float32 rounding, and the ray is UNCERTIFIED;
+        # nor can sphere tracing certify a slanted one (|cos| 0.094, 0.186) to tol = 1e-5: its probes
+        # reach 4 roundings (2.8e-5) past their spheres, and a crossing found after a probe that left
+        # more than tol uncovered is not proved the first
         certifying = "min_step" in {k.name for k in METHODS[method].knobs}
-        grazing = hit & (cos_all < 0.1) & (r.status == Status.UNCERTIFIED) & certifying
+        slanted = 0.25 if method == "sphere_trace" else (0.1 if certifying else 0.0)
+        grazing = hit & (cos_all < slanted) & (r.status == Status.UNCERTIFIED)
         assert np.all((r.status == Status.CONVERGED) == (hit & ~grazing))
         hit = hit & ~grazing
         # |φ| ≤ tol bounds the depth error only by tol/|cos| (grazing); bracketing bounds it by xtol
