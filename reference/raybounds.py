@@ -17,15 +17,14 @@ padded bound still contains every point of the solid.
 In a dtype narrower than float64 the rays themselves are rounded: the harness's rays are float64
 and a float32 run sees o rounded by up to ε|o|/2 per component in the *scene's* frame, and a
 transform's change of frame rounds by ε(|o| + |translation|).  Neither is seen by a leaf, whose
-|o| is its own frame's (a unit sphere centred at (1e7, 0, 0) and seen from 3 units away: the
-origin moves by 0.3, the leaf's pad is 2e-5, and 192 of 2,304 hitting rays were MISSes at once
-in float32).  So while :func:`scene_rays` is in force (the root finders' :func:`impls.core.rootfind.clip_to_bounds`
-puts it there), every pad in such a dtype grows by 4ε·max|o|₁ over the rays given in the scene's
-frame: eight times the origins' rounding (ε/2 per component), which also covers a change of
-frame's ε(|o| + |translation|) for a shape near the rays.  (Not 32ε like the leaf's term: at
-|o| ≈ 3.5 that moved a float32 ray's start 1.3e-5 before a sphere, where its first samples fall
-within φ's rounding, and a ray at |cos| 0.19 that the hybrid had certified became UNCERTIFIED.)  float64 runs take their rays unrounded, and there the 1e-6·s term covers a change of
-frame for shapes not smaller than about 1e-9 times their distance from the scene's origin.
+|o| is its own frame's: a shape far from the scene's origin, seen from close by, has a small pad
+and large rounded coordinates.  So while :func:`scene_rays` is in force (the root finders'
+:func:`impls.core.rootfind.clip_to_bounds` puts it there), every pad in such a dtype grows by
+4ε·max|o|₁ over the rays given in the scene's frame: eight times the origins' rounding, which
+also covers a change of frame for a shape near the rays, and no more, since a start moved
+further before the surface than that lands where φ's rounding leaves a float32 ray unproved.
+float64 runs take their rays unrounded, and there the 1e-6·s term covers a change of frame for
+shapes not smaller than about 1e-9 times their distance from the scene's origin.
 """
 
 from __future__ import annotations

@@ -80,10 +80,9 @@ class CheckedColor:
     """A user's colour field ρ with every output checked (``prepare`` wraps the ``color`` it is
     given): ``value(x, xp)`` must return an array of ``x``'s library of shape ``x.shape[:-1] + (3,)``
     and a real floating dtype (another precision is converted to ``x``'s).  Anything else is a
-    :class:`reference.scene.FieldError` naming the field and the fix.  A field returning one value
-    per point, or four channels, was otherwise broadcast or carried through: a (16, 64) "colour"
-    from jax's volume renderer, a (16, 4) one from ``render_surface``, and elsewhere an AxisError
-    that named nothing.
+    :class:`reference.scene.FieldError` naming the field and the fix.  Unchecked, a field returning
+    one value per point, or four channels, is broadcast against the samples or carried into the
+    output, or fails deep inside a renderer with an error that names nothing.
 
     Equal (and hashing) as the field it wraps, so a kernel compiled for a field is reused for it.
     Cost: a few attribute comparisons per call; under ``jax.jit`` once, at trace time."""
@@ -178,10 +177,9 @@ def neus_alpha(phi_start: Any, phi_end: Any, sharpness: float, xp: Any = np) -> 
     the plain ratio is 0/0 = NaN once Φ_s underflows (sφ < −745 in float64, −104 in float32,
     deep inside the surface), and loses digits to cancellation where both ends are far outside.
     The exponent is clamped at 0 before expm1 rather than α after it: on a section where φ rises
-    from deep inside (s·φ from −5,000 to −1,000 at s = 1e4) the exponent is +4,000, expm1 overflows
-    to inf, and the clamp ``where(α > 0, α, 0·α)`` made 0·(−inf) = NaN of it (every ray leaving
-    the solid was NON_FINITE at sharpness ≥ 1e4, float64 too); and where's untaken inf branch
-    would give NaN gradients under autodiff.
+    from deep inside (s·φ from −5,000 to −1,000 at s = 1e4) the exponent is +4,000 and expm1
+    overflows, which a clamp after it turns into 0·(−inf) = NaN, and a ``where`` whose untaken
+    branch is inf gives NaN gradients under autodiff.
     """
     s = _check_model("neus", sharpness)
 
