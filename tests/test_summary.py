@@ -101,3 +101,22 @@ def test_where_no_configuration_answers_every_ray_a_few_flagged_rays_are_picked_
     clean = pd.DataFrame([*df.to_dict("records"), {**_row(backend="warp", ratio=9.0), "n_rays": n}])
     q = summary.which_to_pick(clean, targets=(1e-8,))
     assert q["pick"].iloc[0] == "hybrid_secant · warp · float64" and not (q.get("flagged", pd.Series([0])) > 0).any()
+
+
+def test_a_case_with_nothing_to_check_says_so_rather_than_none_reached():
+    """dt/dθ of a method that finds its own hits, on a case whose every ray misses: every row
+    checked 0 rays (error NaN).  That is not a failure to reach the target ('none reached', as it
+    read), it is 'nothing to check'; a row that checked rays and missed the target still reads
+    'none reached', and old rows without ``n_checked`` are judged as before."""
+    nothing = [dict(_row(method="dt_unrolled", err=math.nan, family="param_grad", quantity="dt_dtheta",
+                         case="user.all.miss"), n_checked=0, n_rays=256) for _ in range(2)]
+    missed = dict(_row(err=1e-3, case="sphere.camera.64x64"), n_checked=100, n_rays=256)
+    p = summary.which_to_pick(pd.DataFrame(nothing + [missed]))
+    by_case = {c: g.set_index("target") for c, g in p.groupby("case")}
+    assert set(by_case["user.all.miss"]["pick"]) == {summary.NOTHING_TO_CHECK}
+    assert by_case["sphere.camera.64x64"].loc[1e-8, "pick"] == "none reached"
+    grid = summary.pick_grid(p)
+    assert grid.set_index("case").loc["user.all.miss", "≤ 1e-08"].startswith("nothing to check (")
+    assert any("user.all.miss → nothing to check" in line for line in summary.headline(p))
+    old = summary.which_to_pick(pd.DataFrame([_row(err=math.nan, case="c")]))  # no n_checked column
+    assert set(old["pick"]) == {"none reached"}

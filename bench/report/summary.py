@@ -28,13 +28,20 @@ import pandas as pd
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
 PICK_NOTE = ("Per method family and case, for each error target: the fastest configuration (method · backend · "
              "dtype @ knobs) whose max error over every ray is at or below the target, with no false hit or miss "
-             "and no ray the reference flags ('not judged': some rays have no certified reference answer); "
+             "and no ray the reference flags ('not judged': some rays have no certified reference answer; "
+             "'nothing to check': no ray has a reference answer for the quantity, e.g. none hits); "
              "where none answers every ray, the fastest root finder whose only misses are rays it flagged "
              "(at most 0.1 % of them; its error over the rays it answered), with the count of flagged rays; "
              "its time as a multiple of the closed-form ray–sphere intersection of the same rays (× closed form) "
              "and its field evaluations per ray. 'untimed': an accuracy-only run, ranked by evaluations.")
 #: the pick of a case some of whose rays the reference flags (``n_not_judged``, bench.run.metrics)
 NOT_JUDGED = "not judged"
+#: the pick of a case where no ray has a reference answer for the family's quantity (every row
+#: ``n_checked`` = 0: e.g. dt/dθ of a method that finds its own hits, on a case whose every ray
+#: misses), which is not a failure to reach the target
+NOTHING_TO_CHECK = "nothing to check"
+#: picks that name no configuration
+NO_PICK = ("none reached", NOT_JUDGED, NOTHING_TO_CHECK)
 #: the error targets every "fastest to target" table uses
 TARGETS = (1e-4, 1e-8, 1e-12)
 #: where no configuration of a case answers every ray, a root finder whose only misses are rays
@@ -130,7 +137,9 @@ def which_to_pick(df: pd.DataFrame, targets=TARGETS) -> pd.DataFrame:
     ``candidates`` (configurations that reached the target).  A target no configuration reached
     is a row with pick ``none reached`` and the best error seen.  Rows with rays the reference flags
 (``n_not_judged`` > 0, :func:`bench.run.metrics.judged_rays`) are never candidates; a case with such
-rows and no other candidate gets pick ``not judged`` and the number of flagged rays.  Where no
+rows and no other candidate gets pick ``not judged`` and the number of flagged rays; a case
+where no row checked any ray (``n_checked`` 0: no ray has a reference answer for the quantity)
+gets ``nothing to check``.  Where no
 configuration answers every ray, a root finder whose only misses are rays it flagged itself
 (``n_false_miss`` = ``n_miss_declined``, at most :data:`FLAGGED_SHARE` of the rays, no false hit)
 and whose answered rays reach the target (``error_max_finite``) is picked, column ``flagged``
@@ -157,6 +166,8 @@ giving the count."""
         gc = clean[(clean["family"] == fam) & (clean["case_id"] == cid)]
         gf = flagging[(flagging["family"] == fam) & (flagging["case_id"] == cid)]
         unjudged = int(g["n_not_judged"].max())
+        checked = pd.to_numeric(g["n_checked"], errors="coerce") if "n_checked" in g else pd.Series([np.nan])
+        nothing = bool((checked == 0).all())
         # (of every measured row of the case: where no row answers every ray, the fallback's are timed too)
         timed = bool(np.isfinite(g["time_ratio_cf"]).any())
         by = "time_ratio_cf" if timed else "evals_per_ray"
@@ -176,6 +187,9 @@ giving the count."""
             elif unjudged:
                 row.update({"pick": NOT_JUDGED, "knob": f"{unjudged} ray(s) the reference flags: no configuration "
                                                         "is fully checked"})
+            elif nothing:
+                row.update({"pick": NOTHING_TO_CHECK, "knob": "no ray of the case has a reference answer for this "
+                                                              "quantity (e.g. no ray hits)"})
             else:
                 best = g["error_max"].min()
                 row.update({"pick": "none reached", "knob": f"best error {best:.2g}" if np.isfinite(best) else
@@ -199,7 +213,7 @@ def headline(picks: pd.DataFrame, target: float = 1e-8) -> list[str]:
     for fam, g in picks[picks["target"] == target].groupby("family", sort=True):
         parts = []
         for d in g.to_dict("records"):
-            if d["pick"] in ("none reached", NOT_JUDGED):
+            if d["pick"] in NO_PICK:
                 parts.append(f"{d['case']} → {d['pick']}")
                 continue
             cost = (f"×{d['× closed form']:.3g}, " if d["by"] == "time" else "untimed, ") + f"{d['evals/ray']:.3g} evals/ray"
@@ -225,7 +239,7 @@ def pick_grid(picks: pd.DataFrame) -> pd.DataFrame:
     rows: dict[tuple, dict] = {}
     for d in picks.to_dict("records"):
         row = rows.setdefault((d["family"], d["case"]), {"family": d["family"], "case": d["case"]})
-        if d["pick"] in ("none reached", NOT_JUDGED):
+        if d["pick"] in NO_PICK:
             cell = f"{d['pick']} ({d['knob']})"
         else:
             cost = f"×{d['× closed form']:.3g}" if d["by"] == "time" else "untimed"
