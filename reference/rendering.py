@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from .arrays import const
-from .scene import Field, _points
+from .scene import Field, _points, check_point_output
 
 MODELS = ("nerf", "unisurf", "neus", "volsdf")
 
@@ -76,6 +76,12 @@ class SineColor:
     __call__ = value
 
 
+#: what a colour field's output of the wrong kind is told to do (CheckedColor)
+_RHO_FIXES = {"lib": "(e.g. xp.sin, not np.sin)",
+              "shape": "Return three channels per point (e.g. xp.stack([r, g, b], axis=-1)), in [0, 1]",
+              "dtype": "Cast with xp.astype(rho, x.dtype)"}
+
+
 class CheckedColor:
     """A user's colour field ρ with every output checked (``prepare`` wraps the ``color`` it is
     given): ``value(x, xp)`` must return an array of ``x``'s library of shape ``x.shape[:-1] + (3,)``
@@ -110,25 +116,8 @@ class CheckedColor:
         return getattr(self.field, name)
 
     def value(self, x: Any, xp: Any = np) -> Any:
-        from .arrays import _array_lib, _is_real_floating
-        from .scene import FieldError
-
-        out = self.field.value(x, xp)
-        want = tuple(x.shape[:-1]) + (3,)
-        if type(out) is type(x) and tuple(out.shape) == want and out.dtype == x.dtype:
-            return out
-        where = (f"colour field {type(self.field).__name__} was given points x of shape {tuple(x.shape)} "
-                 f"({_array_lib(x)}, dtype {x.dtype})")
-        expected = f"expected ρ of shape x.shape[:-1] + (3,) = {want} (r, g, b per point), a real floating array like x"
-        if _array_lib(out) != _array_lib(x) or not hasattr(out, "shape"):
-            raise FieldError(f"{where} and returned a {type(out).__module__.split('.')[0]} {type(out).__name__}; "
-                             f"{expected}. Compute with the namespace xp the field is given")
-        if tuple(out.shape) != want:
-            raise FieldError(f"{where} and returned shape {tuple(out.shape)}; {expected}. Return three channels per "
-                             "point (e.g. xp.stack([r, g, b], axis=-1)), in [0, 1]")
-        if not _is_real_floating(out):
-            raise FieldError(f"{where} and returned dtype {out.dtype}; {expected} (cast with xp.astype(rho, x.dtype))")
-        return out.to(x.dtype) if _array_lib(x) == "torch" else out.astype(x.dtype)
+        return check_point_output(f"colour field {type(self.field).__name__}", x, self.field.value(x, xp), "ρ", (3,),
+                                  "r, g, b per point", _RHO_FIXES)
 
     __call__ = value
 

@@ -365,28 +365,47 @@ def field_label(field: Any) -> str:
     return f"scene field {name!r} ({type(field).__name__})" if name else f"scene field {type(field).__name__}"
 
 
+#: what a φ of the wrong kind is told to do (check_field_output)
+_PHI_FIXES = {
+    "lib": "(e.g. xp.sqrt(xp.sum(x * x, axis=-1)), not np.linalg.norm) and keep one value per point",
+    "shape": "A result of another shape would be broadcast against the rays (e.g. every ray given ray 0's value): "
+             "reduce over the last axis only, without keepdims or indexing such as [..., :1]",
+    "dtype": "φ must be real and floating (cast with xp.astype(phi, x.dtype); take the real part only if it is meant)",
+}
+
+
 def check_field_output(field: Any, x: Any, out: Any, xp: Any = None) -> Any:
     """``out`` if it is a valid φ of the points ``x`` (shape ``(..., 3)``): an array of ``x``'s
     library (numpy, torch, jax, …), shape ``x.shape[:-1]`` and ``x``'s dtype.  A real floating
     result of another precision is converted to ``x``'s dtype (the loops carry one dtype);
     anything else is a :class:`FieldError` naming the field, what it returned and what was
-    expected.
+    expected (:func:`check_point_output`)."""
+    return check_point_output(field_label(field), x, out, "φ", (), "one value per point", _PHI_FIXES)
+
+
+def check_point_output(label: str, x: Any, out: Any, what: str, tail: tuple, per_point: str, fixes: dict) -> Any:
+    """``out`` if it is a valid per-point output of the points ``x`` (shape ``(..., 3)``): an array
+    of ``x``'s library, shape ``x.shape[:-1] + tail`` and ``x``'s dtype; a real floating result of
+    another precision is converted to ``x``'s dtype.  Anything else is a :class:`FieldError`
+    naming ``label`` (the field: a scene's φ, a colour field's ρ), what it returned, what was
+    expected (``what`` of that shape, ``per_point``) and the fix (``fixes``: ``lib``, ``shape``,
+    ``dtype``).
 
     Cost: the common valid case is three attribute comparisons per call, no pass over the data;
     under ``jax.jit`` the check runs once, at trace time, where shapes and dtypes are static."""
     try:
-        if type(out) is type(x) and out.shape == x.shape[:-1] and out.dtype == x.dtype:
+        if type(out) is type(x) and out.shape == x.shape[:-1] + tail and out.dtype == x.dtype:
             return out
         xs, xd = tuple(x.shape), x.dtype
     except AttributeError:
         if not hasattr(x, "shape"):  # points that are not an array: nothing to compare against
             return out
         xs, xd = tuple(x.shape), x.dtype
-    want = xs[:-1]
+    want = xs[:-1] + tuple(tail)
     lib_x = _array_lib(x)
-    expected = (f"expected φ of shape x.shape[:-1] = {want} (one value per point), a real floating {lib_x} array "
-                f"like x (dtype {xd})")
-    where = f"{field_label(field)} was given points x of shape {xs} ({lib_x}, dtype {xd})"
+    shape = "x.shape[:-1]" + (f" + {tuple(tail)}" if tail else "")
+    expected = f"expected {what} of shape {shape} = {want} ({per_point}), a real floating {lib_x} array like x (dtype {xd})"
+    where = f"{label} was given points x of shape {xs} ({lib_x}, dtype {xd})"
     lib_out = _array_lib(out)
     if lib_out != lib_x or not hasattr(out, "shape"):
         if isinstance(out, (int, float, complex, bool)) or (lib_out == "numpy" and np.ndim(out) == 0 and lib_x != "numpy"):
@@ -394,16 +413,13 @@ def check_field_output(field: Any, x: Any, out: Any, xp: Any = None) -> Any:
         else:
             got = f"a {type(out).__module__.split('.')[0]} {type(out).__name__}"
         raise FieldError(f"{where} and returned {got}; {expected}. Compute with the namespace xp the field is given "
-                         "(e.g. xp.sqrt(xp.sum(x * x, axis=-1)), not np.linalg.norm) and keep one value per point")
+                         f"{fixes['lib']}")
     if tuple(out.shape) != want:
-        raise FieldError(f"{where} and returned shape {tuple(out.shape)}; {expected}. A result of another shape would "
-                         "be broadcast against the rays (e.g. every ray given ray 0's value): reduce over the last axis "
-                         "only, without keepdims or indexing such as [..., :1]")
+        raise FieldError(f"{where} and returned shape {tuple(out.shape)}; {expected}. {fixes['shape']}")
     if out.dtype == xd:
         return out
     if not _is_real_floating(out):
-        raise FieldError(f"{where} and returned dtype {out.dtype}; {expected}. φ must be real and floating "
-                         "(cast with xp.astype(phi, x.dtype); take the real part only if it is meant)")
+        raise FieldError(f"{where} and returned dtype {out.dtype}; {expected}. {fixes['dtype']}")
     return out.to(xd) if lib_x == "torch" else out.astype(xd)
 
 

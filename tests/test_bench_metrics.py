@@ -81,7 +81,7 @@ def test_surface_colour_counts_the_background_at_misses():
 
     o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), fov_deg=60, width=8, height=8)
     spec = get_method("render_surface")
-    for scene in (Sphere(), Sphere(center=(5.0, 0.0, 0.0), radius=0.5)):  # some hits; none
+    for scene, some_hit in ((Sphere(), True), (Sphere(center=(5.0, 0.0, 0.0), radius=0.5), False)):
         case = Case(id="c", scene=scene, origins=o, directions=d, t_min=0.0, t_max=6.0)
         hit = case.hit_mask
         good = np.where(hit[:, None], np.nan_to_num(case.exact_surface_colors), 0.0)
@@ -93,9 +93,9 @@ def test_surface_colour_counts_the_background_at_misses():
             (r,) = [r for r in render_metrics(res, case, "float64", {}, {}, spec) if r["quantity"] == "color_vs_surface"]
             return r
 
+        assert hit.any() == some_hit and (~hit).any()
         r = row(good)
-        assert r["n_checked"] == 64 and r["error_max"] == 0.0
+        assert r["n_checked"] == 64 and r["error_max"] == 0.0  # every ray checked, the all-miss case too
         painted = good.copy()
         painted[~hit] = 0.25  # a halo on every missing ray
-        assert row(painted)["error_max"] == pytest.approx(0.25 * np.sqrt(3)) if (~hit).any() else True
-    assert not hit.any()  # the second scene: every ray misses, and it was checked
+        assert row(painted)["error_max"] == pytest.approx(0.25 * np.sqrt(3))

@@ -51,7 +51,7 @@ def test_flagged_reference_rays_are_not_judged():
 
 
 def test_a_surface_colour_on_flagged_rays_is_not_judged_either():
-    """The renderers' ``color_vs_surface`` (ρ(x*) on the rays that hit) counts the rays the
+    """The renderers' ``color_vs_surface`` (against the surface image: ρ(x*) at hits, 0 at misses) counts the rays the
     reference flags as root rows do, so a case whose every hit is flagged reads 'not judged' in
     "which to pick", not 'none reached' (a user's field 10× steeper than declared)."""
     from bench.run.metrics import render_metrics

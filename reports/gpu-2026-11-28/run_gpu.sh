@@ -8,14 +8,7 @@ export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 # backend ids and scale (a dry run on a CPU: TORCH=torch:cpu JAX=jax:cpu MI=mitsuba:llvm SCALE=8 DRY=1)
 TORCH=${TORCH:-torch:cuda} JAX=${JAX:-jax:gpu} MI=${MI:-mitsuba:cuda} SCALE=${SCALE:-1} SIDE=${SIDE:-1024}
 D=reports/gpu-2026-11-28
-log() { echo "$*" | tee -a "$OUT/gpu.txt"; }
-stage() {  # stage NAME LIMIT_S OUTFILE CMD...
-  local name=$1 limit=$2 out=$3; shift 3
-  local t0=$(date +%s)
-  echo "== $name: $*" >> "$out"
-  timeout "$limit" "$@" >> "$out" 2>&1
-  log "$name rc $? wall $(( $(date +%s) - t0 )) s"
-}
+LOG=gpu.txt  # the log/stage helpers of setup_gpu.sh write here
 source reports/gpu-2026-11-28/setup_gpu.sh
 nvidia-smi -L | tee "$OUT/gpu.txt"
 log "$(git log -1 --format='%h %s' 2>/dev/null | cut -c1-100) (the device copy's git metadata)"

@@ -4,14 +4,7 @@
 set -u
 export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 D=reports/gpu-2026-11-28
-log() { echo "$*" | tee -a "$OUT/gpu2.txt"; }
-stage() {  # stage NAME LIMIT_S OUTFILE CMD...
-  local name=$1 limit=$2 out=$3; shift 3
-  local t0=$(date +%s)
-  echo "== $name: $*" >> "$out"
-  timeout "$limit" "$@" >> "$out" 2>&1
-  log "$name rc $? wall $(( $(date +%s) - t0 )) s"
-}
+LOG=gpu2.txt  # the log/stage helpers of setup_gpu.sh write here
 source $D/setup_gpu.sh
 nvidia-smi -L | tee "$OUT/gpu2.txt"
 python3 -c "import mitsuba, drjit; print('mitsuba', mitsuba.__version__, 'drjit', drjit.__version__)" 2>&1 | tail -2 | tee -a "$OUT/gpu2.txt"
