@@ -64,6 +64,11 @@ class _Combination(Field):
         return type(self)(*children)
 
 
+#: the fewest operands of a union (:meth:`Union.operands`) bounded by their balls in one computation
+#: (:meth:`Union.ray_bounds`)
+MANY_BOUNDS = 8
+
+
 class _NAry(_Combination):
     """min (union) or max (intersection) over the children."""
 
@@ -125,8 +130,30 @@ class Union(_NAry):
     def bounding_sphere(self):
         return enclosing_ball(c.bounding_sphere() for c in self._children)
 
+    def operands(self) -> tuple[Field, ...]:
+        """The children, with every child that is itself a union replaced by its operands: the
+        union's operands as one n-ary min (a union built pairwise, ``functools.reduce(Union, …)``,
+        has as many as one built at once)."""
+        out = []
+        for c in self._children:
+            out.extend(c.operands() if type(c) is Union else (c,))
+        return tuple(out)
+
     def ray_bounds(self, xp, o, d):
-        return raybounds.hull(xp, *(c.ray_bounds(xp, o, d) for c in self._children))
+        """The hull of the children's bounds; with :data:`MANY_BOUNDS` operands or more
+        (:meth:`operands`), those with a bounding ball are bounded by its chord, all in one
+        computation (:func:`reference.raybounds.balls_chord_hull`): looser for a box or a torus,
+        the same for a sphere, and one expression whatever the number of operands."""
+        kids = self.operands()
+        if len(kids) < MANY_BOUNDS:
+            return raybounds.hull(xp, *(c.ray_bounds(xp, o, d) for c in self._children))
+        balls = [c.bounding_sphere() for c in kids]
+        parts = [c.ray_bounds(xp, o, d) for c, b in zip(kids, balls) if b is None]
+        inside = [b for b in balls if b is not None]
+        if inside:
+            parts.append(raybounds.balls_chord_hull(xp, o, d, np.stack([np.asarray(b[0], np.float64) for b in inside]),
+                                                    np.array([float(b[1]) for b in inside])))
+        return raybounds.hull(xp, *parts) if len(parts) > 1 else parts[0]
 
 
 

@@ -34,6 +34,8 @@ import contextvars
 import math
 from typing import Any
 
+import numpy as np
+
 from .arrays import const, norm, sum_last
 
 
@@ -74,7 +76,12 @@ def ball_chord(xp: Any, o: Any, d: Any, centre, radius: float) -> tuple[Any, Any
     """Chord of the ray through the ball (centre, radius + pad): t_c ± √(R² − |p|²) with
     w = c − o, t_c = ⟨w, d⟩ and p = w − t_c d computed directly (|w|² − t_c² cancels for distant
     origins); empty when the ray misses."""
-    w = const(xp, o, centre) - o
+    return _chord(xp, const(xp, o, centre) - o, d, radius)
+
+
+def _chord(xp: Any, w: Any, d: Any, radius: Any) -> tuple[Any, Any]:
+    """:func:`ball_chord` from w = c − o (shape (..., 3), d broadcast against it) and the radius
+    (a number, or an array broadcast against w's rows)."""
     tc = sum_last(xp, w * d)
     p = w - tc[..., None] * d
     rad = radius + pad(xp, w, radius)
@@ -82,6 +89,31 @@ def ball_chord(xp: Any, o: Any, d: Any, centre, radius: float) -> tuple[Any, Any
     through = q >= 0
     half = xp.sqrt(xp.where(through, q, 0.0))
     return xp.where(through, tc - half, math.inf), xp.where(through, tc + half, -math.inf)
+
+
+def balls_chord_hull(xp: Any, o: Any, d: Any, centres, radii) -> tuple[Any, Any]:
+    """The hull of the chords of k balls (``centres`` (k, 3), ``radii`` (k,), numbers), each
+    computed and padded as :func:`ball_chord` computes one, as (n, k) computations: a union of
+    many children bounded by their balls costs one vectorized expression, not k of them (jax
+    inlined k chords into one fused loop per use: a union of 100 spheres compiled for 211 s).
+    Outside jit the balls go in blocks of at most :data:`BALLS_BLOCK` (n, k) entries (1024² rays
+    and 100 balls would be 2.5 GB per (n, k, 3) temporary); min and max are exact, so the blocks
+    change nothing."""
+    centres = np.asarray(centres, np.float64).reshape(-1, 3)
+    radii = np.asarray(radii, np.float64).reshape(-1)
+    n = int(np.prod(o.shape[:-1]))
+    step = len(radii) if getattr(xp, "__name__", "") == "jax.numpy" else max(1, BALLS_BLOCK // max(n, 1))
+    lo = hi = None
+    for i in range(0, len(radii), step):
+        a, b = _chord(xp, const(xp, o, centres[i:i + step]) - o[..., None, :], d[..., None, :],
+                      const(xp, o[..., 0], radii[i:i + step]))
+        a, b = xp.min(a, axis=-1), xp.max(b, axis=-1)
+        lo, hi = (a, b) if lo is None else (xp.minimum(lo, a), xp.maximum(hi, b))
+    return lo, hi
+
+
+#: (n, k) entries per block of :func:`balls_chord_hull` outside jit
+BALLS_BLOCK = 1 << 22
 
 
 def slab_chord(xp: Any, o: Any, d: Any, axis: int, half_width: float, size: float, padding: Any = None

@@ -145,6 +145,27 @@ def test_root_finders_agree_with_numpy(nb, name, method, ladder):
         np.testing.assert_array_equal(a.evals, b.evals)
 
 
+@pytest.mark.parametrize("method", ["march_secant", "march_bisect"])
+def test_a_union_of_many_children_agrees_with_numpy(nb, method):
+    """From ``csg.MANY_BOUNDS`` children on a union is bounded by its children's balls
+    (:meth:`reference.csg.Union.ray_bounds`); the marchers' generated bounds do the same (the
+    certified methods run numpy's driver, which takes the scene's own), so the two backends march
+    the same intervals: statuses, depths, evaluations equal."""
+    from reference import Box
+    from reference.csg import MANY_BOUNDS
+
+    rng = np.random.default_rng(3)
+    kids = [Sphere(center=tuple(rng.uniform(-1, 1, 3)), radius=0.2) if i % 2 else
+            Transform(Box((0.15, 0.1, 0.2)), translation=tuple(rng.uniform(-1, 1, 3))) for i in range(MANY_BOUNDS + 2)]
+    o, d = pinhole(eye=(0.4, -0.3, 3.5), look_at=(0, 0, 0), fov_deg=50, width=24, height=24)
+    kw = dict(t_max=10.0, ladder=0)  # the lanes kernel, with the generated bounds
+    a, b = run(nb, method, Union(*kids), o, d, **kw), run(registry.resolve("numpy"), method, Union(*kids), o, d, **kw)
+    assert (a.status == Status.MISS).any() and (a.status == Status.CONVERGED).sum() >= 40, a.status_counts()
+    np.testing.assert_array_equal(a.status, b.status)
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.evals, b.evals)
+
+
 def test_render_surface_agrees_with_numpy(nb):
     scene, o, d = _scene("torus∪box")
     a, b = run(nb, "render_surface", scene, o, d, ladder=16), run(registry.resolve("numpy"), "render_surface",

@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from ..protocol import Declined
+from reference.csg import MANY_BOUNDS
 
 EPS64 = float(np.finfo(np.float64).eps)
 INV_MAX64 = 1.0 / float(np.finfo(np.float64).max)
@@ -262,7 +263,13 @@ def _bounds(w: _Writer, node, o, d) -> tuple[str, str]:
     if kind in ("scaled", "declared"):
         return _bounds(w, node.child, o, d)
     if kind == "union":
-        return _hull(w, *(_bounds(w, c, o, d) for c in node.children))
+        kids = node.operands()
+        if len(kids) < MANY_BOUNDS:
+            return _hull(w, *(_bounds(w, c, o, d) for c in node.children))
+        # as reference.csg.Union.ray_bounds: many operands, those with a ball bounded by its chord
+        balls = [c.bounding_sphere() for c in kids]
+        return _hull(w, *(_bounds(w, c, o, d) for c, b in zip(kids, balls) if b is None),
+                     *(_ball(w, o, d, b[0], float(b[1])) for b in balls if b is not None))
     if kind == "intersection":
         return _meet(w, *(_bounds(w, c, o, d) for c in node.children))
     if kind == "difference":  # Intersection(a, Complement(b)): a's bound met with the whole line
