@@ -32,6 +32,7 @@ from ._common import (configure_process, make_console, reference_cache_dir, reso
                       split)
 from ..run.environment import usable_cores
 from ._run_stages import run_stability_into
+from ..run.supervise import die_with_parent
 
 #: environment.json's ``side_stages`` values
 CONCURRENT, SEQUENTIAL = "second process, beside the configurations", "after the configurations"
@@ -70,20 +71,6 @@ def stages_main(args: argparse.Namespace, out: str, stability_suite: str | None,
     return notes
 
 
-def _die_with_parent(parent: int) -> None:
-    """``prctl(PR_SET_PDEATHSIG, SIGTERM)`` where the C library has it (Linux; else nothing), and
-    exit at once if ``parent`` already died before it was set (this process was then adopted)."""
-    import ctypes
-    import signal
-
-    try:
-        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # 1: PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-    if os.getppid() != parent:
-        os._exit(1)
-
-
 def serve_main(args: argparse.Namespace, share) -> None:
     """The second process after its stages: the configurations it claims from the run's plan
     (:func:`bench.run.sharing.serve`), with the same backends as the first process."""
@@ -103,7 +90,7 @@ def _child(conn, target, arguments, parent: int, then=None) -> None:
     :func:`serve_main`).  On Linux it asks to be sent SIGTERM when the first process dies
     (``PR_SET_PDEATHSIG``), so a killed run leaves no stage writing its directory behind
     (``--resume`` may then take it over)."""
-    _die_with_parent(parent)
+    die_with_parent(parent)
     try:
         got = target(*arguments)
     except BaseException as exc:  # noqa: BLE001 - whatever happens here is a note, never the run's end
@@ -126,6 +113,7 @@ class SideStages:
         self.process = self.conn = None
         self.start_error = ""
         self.waited = False
+        self.restarts = 0  # how many processes before this one died inside the stability stage
 
     def start(self) -> "SideStages":
         ctx = multiprocessing.get_context("spawn")
@@ -162,7 +150,36 @@ class SideStages:
                 why = f"the second process raised {got.pop('error')}"
             elif not got:
                 why = f"the second process died (exit code {self.process.exitcode})"
+                again = self._resumed()
+                if again is not None:  # a backend killed it inside the stability stage: go on past that one
+                    print(f"{why} while running {again[1]} in the stability stage: that configuration is recorded as "
+                          "failed and the stages go on in a new process", flush=True)
+                    return again[0].wait()
         return {s: str(got[s]) if s in got else f"{s} failed: {why}" for s in self.stages}
+
+    def _resumed(self):
+        """After this process died inside a configuration of the stability stage (its runner's
+        in-flight note is there, :data:`bench.run.runner.INFLIGHT`): ``(the stages started again in
+        a new process, resuming the stability stage, which records that configuration as failed,
+        what it was)``; None otherwise, or after :data:`bench.run.supervise.MAX_RESTARTS` restarts."""
+        import json
+
+        from ..report.tables import STABILITY_DIR
+        from ..run.runner import INFLIGHT
+        from ..run.supervise import MAX_RESTARTS
+
+        if self.target is not stages_main or "stability" not in self.stages or self.restarts >= MAX_RESTARTS:
+            return None
+        note = Path(self.arguments[1]) / STABILITY_DIR / INFLIGHT
+        try:
+            what = json.loads(note.read_text()).get("what", "a configuration")
+        except (OSError, ValueError):
+            return None
+        args = argparse.Namespace(**{**vars(self.arguments[0]), "resume": True})
+        again = SideStages(self.stages, (args,) + tuple(self.arguments[1:]), target=self.target)
+        again.restarts = self.restarts + 1
+        self.close()
+        return again.start(), what
 
     def alive(self) -> bool:
         """Whether the second process is running."""

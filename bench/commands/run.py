@@ -209,6 +209,7 @@ def _policy(args, suite):
 def _run(args, held: list) -> int:
     from ..run import plan
     from ..run.rundir import claim_out
+    from ..run.supervise import note_out
 
     _check_options(args)
     cache_record = configure_process(args)
@@ -223,6 +224,7 @@ def _run(args, held: list) -> int:
         held.append(claim_out(out, resume=args.resume))
     except ValueError as exc:  # OutError, LockHeld
         raise UsageError(str(exc)) from None
+    note_out(out)  # for the supervising process, which resumes the run if this one dies (bench.run.supervise)
     live = console.is_terminal and not args.no_progress
     lines = ProgressLines(periodic=not live and not args.no_progress)
     # without a cluster, the second process starts now and loads its libraries while this one

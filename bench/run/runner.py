@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -33,6 +34,7 @@ from .results import OVER_BUDGET, knob_string, to_frame, write_json, write_resul
 from .resume import check_case_versions, kept_rows, load_previous, outcome_counts, outcome_of, record_elapsed
 from .sharing import SharingExecutor
 from .suites import Suite
+from .supervise import INFLIGHT
 from .timing import TimingPolicy
 
 __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "plan", "run"]
@@ -43,6 +45,10 @@ __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "p
 #: writing to 1/(1 + FLUSH_COST_FACTOR) of the wall time, at the price of redoing at most that
 #: interval's configurations after a kill (--resume): 30, about 3 % (docs/performance.md).
 FLUSH_COST_FACTOR = 30.0
+FLUSH_COST_FACTOR = 30.0
+
+#: the reason of a configuration whose process died while it ran (:func:`crashed_rows`)
+CRASHED = "Crashed"
 
 
 
@@ -154,6 +160,55 @@ class _Writer:
             self.flush()
 
 
+class _InFlight:
+    """:data:`INFLIGHT` in the run directory: the key and name of the configuration this process
+    runs, each write atomic (a few hundred bytes: microseconds, against the milliseconds a
+    configuration takes at least)."""
+
+    def __init__(self, out_dir: Path):
+        self.path, self.key = out_dir / INFLIGHT, None
+
+    def start(self, cfg: Config, what: str) -> None:
+        self.key = list(map(str, cfg.key))
+        write_json(self.path, {"key": self.key, "what": what, "pid": os.getpid(), "started": time.time()})
+
+    def end(self, cfg: Config) -> None:
+        if self.key == list(map(str, cfg.key)):
+            self.clear()
+
+    def clear(self) -> None:
+        self.key = None
+        self.path.unlink(missing_ok=True)
+
+
+def crashed_rows(out_dir: Path, run_id: str, cfgs: list[Config], done: set, backends: dict) -> list[dict]:
+    """The failed row of the configuration a killed session left in :data:`INFLIGHT` (none if
+    there is no such file, or it names a configuration the run has rows for or no longer plans),
+    and the file removed: that configuration killed its process, and running it again would kill
+    this one."""
+    from .configuration import base_row
+
+    path = out_dir / INFLIGHT
+    try:
+        note = json.loads(path.read_text())
+        key = tuple(map(str, note["key"]))
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError, KeyError, TypeError):  # a torn note: nothing to tell from it
+        path.unlink(missing_ok=True)
+        return []
+    path.unlink(missing_ok=True)
+    if key in done:
+        return []
+    for cfg in cfgs:
+        if tuple(map(str, cfg.key)) == key:
+            reason = (f"{CRASHED}: the process running this configuration died inside it (pid {note.get('pid')}: "
+                      "a segfault, an abort or an exit in the backend or its libraries); it is not run again. "
+                      "Run it alone (--case, --backend, --method) to see the crash")
+            return [{**base_row(run_id, cfg, backends.get(cfg.backend_id)), "outcome": "failed", "reason": reason}]
+    return []
+
+
 def _finish_env(env: dict, cf_samples: dict, rounds: int, interrupted: str, n_over: int, n_total: int,
                 budget_s: float | None) -> None:
     """The closed-form units, the rounds, and whether the run is complete (and if not, why)."""
@@ -201,6 +256,9 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
                          f"(tags {list(suite.case_tags)}) or no method matches --method; "
                          "`python -m bench cases` lists the cases")
     rows, done = kept_rows(previous)
+    crashed = crashed_rows(out_dir, run_id, cfgs, done, backends) if opts.resume else []
+    rows += crashed
+    done |= {tuple(str(r[k]) for k in CONFIG_KEY) for r in crashed}
     todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
     counts = outcome_counts(rows)
     n_before = sum(counts.values())
@@ -213,13 +271,18 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     ref_options = ReferenceOptions(expensive=suite.expensive_references, timeout_s=opts.reference_timeout_s,
                                    disk=opts.reference_cache_dir)
     writer = _Writer(out_dir, env, rows, opts.flush_s, started)
+    if crashed:  # written before anything runs: a second crash must not lose it
+        writer.flush()
     kept, finished, n_over, interrupted = len(rows), [], 0, ""
     if progress:
         progress(n_before, n_total, "submitting", dict(counts))
 
+    inflight = _InFlight(out_dir)
+
     def on_start(j: int) -> None:
+        cfg = todo[j]
+        inflight.start(cfg, f"{cfg.case.id} {cfg.backend_id} {cfg.dtype} {cfg.method} {knob_string(cfg.knobs)}")
         if progress:
-            cfg = todo[j]
             progress(n_before + j, n_total, f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}",
                      dict(counts))
 
@@ -227,6 +290,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     try:
         for j, got, over in executor.execute(run_id, todo, backends, opts.policy, ref_options, opts.budget_s,
                                              deadline, on_start=on_start):
+            inflight.end(todo[j])
             finished.append((j, got))
             rows.extend(got)
             counts[outcome_of(got)] += 1
@@ -238,6 +302,8 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
             writer.flush_if_due()
     except Interrupted as exc:
         interrupted = f"{exc}; {len(todo) - len(finished)} configurations not run: finish with --resume"
+    finally:  # only a process that died inside a configuration leaves the note
+        inflight.clear()
     # plan order, as the plan lists them (an executor's completion order may differ)
     rows[kept:] = [r for _, got in sorted(finished, key=lambda jg: jg[0]) for r in got]
     if opts.rounds > 1 and not opts.policy.accuracy_only and not interrupted:

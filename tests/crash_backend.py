@@ -1,0 +1,57 @@
+"""A user's plug-in backend that kills its own process on one configuration, as a segfault or an
+abort in a native library would: it wraps numpy, and where the method, dtype, scene kind and knob
+match the environment (``CRASH_METHOD``, ``CRASH_DTYPE``, ``CRASH_KIND``, ``CRASH_KNOB`` as
+``name=value``; each optional), its ``run`` raises SIGSEGV (``CRASH_HOW=exit``: ``os._exit(3)``).
+Used by tests/test_crash_isolation.py through ``--backend tests.crash_backend:CrashBackend``."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+
+from impls.numpy.backend import NumpyBackend
+
+
+def _matches(method, scene, dtype, knobs) -> bool:
+    env = os.environ
+    if env.get("CRASH_METHOD", method) != method or env.get("CRASH_DTYPE", dtype) != dtype:
+        return False
+    if env.get("CRASH_KIND", scene.kind) != scene.kind:
+        return False
+    if "CRASH_KNOB" in env:
+        name, value = env["CRASH_KNOB"].split("=")
+        return name in knobs and float(knobs[name]) == float(value)
+    return True
+
+
+class CrashBackend:
+    lib = "crashy"
+
+    def __init__(self, device: str = "cpu"):
+        self._inner = NumpyBackend(device)
+        self.device = device
+        self.id = "crashy"
+        self.capabilities = self._inner.capabilities
+
+    def methods(self):
+        return self._inner.methods()
+
+    def prepare(self, method, scene, origins, directions, **kwargs):
+        prep = self._inner.prepare(method, scene, origins, directions, **kwargs)
+        knobs = {k: v for k, v in kwargs.items() if k not in ("dtype", "t_min", "t_max", "t_hit", "color")}
+        if not _matches(method, scene, kwargs.get("dtype", "float64"), knobs):
+            return prep
+
+        def run():
+            if os.environ.get("CRASH_HOW") == "exit":
+                os._exit(3)
+            os.kill(os.getpid(), signal.SIGSEGV)
+
+        return dataclasses.replace(prep, run=run)
+
+    def synchronize(self, out=None):
+        return None
+
+    def versions(self):
+        return {"crashy": "0.1"}

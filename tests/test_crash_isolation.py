@@ -1,0 +1,80 @@
+"""A backend that kills its process (a segfault, an abort, an ``os._exit`` in a native library)
+costs its own configuration and no other row: ``python -m bench run`` supervises the process that
+runs it and resumes the run past the configuration that killed it (bench/run/supervise.py,
+``runner.INFLIGHT``); the side stages' process is started again past it the same way
+(bench/commands/_side_stages.py).  The crashing backend is tests/crash_backend.py."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pandas as pd
+import pytest
+
+from bench.run.runner import CRASHED, INFLIGHT
+from tests.conftest import bench_cli
+
+#: each test starts several interpreters (one more per crash)
+pytestmark = pytest.mark.slow
+
+CRASHY = "tests.crash_backend:CrashBackend"
+
+
+def _configs(path) -> pd.DataFrame:
+    return pd.read_csv(path).drop_duplicates(["case_id", "backend", "dtype", "method", "knob"])
+
+
+@pytest.mark.parametrize("how", ["segv", "exit"])
+def test_a_backend_that_kills_its_process_costs_only_its_configuration(tmp_path, how):
+    """Before: the run died with it (status 139), wrote no row, and ``--resume`` died again on the
+    same configuration.  Now: that configuration is a failed row saying it crashed, every other
+    configuration ran, the run is complete and says on stderr what happened."""
+    out = tmp_path / "run"
+    env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": how}
+    p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method",
+                  "sphere_trace,hybrid_secant", "--no-progress", "--out", out, env=env)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "the run's process died" in p.stderr and "sphere_trace" in p.stderr, p.stderr[-2000:]
+    g = _configs(out / "results.csv")
+    failed = g[g.outcome == "failed"]
+    assert len(failed) == 1, failed[["backend", "method", "knob", "reason"]]
+    row = failed.iloc[0]
+    assert (row.backend, row.method) == ("crashy", "sphere_trace") and "tol=1e-08" in row.knob
+    assert row.reason.startswith(CRASHED)
+    # every other configuration ran, the crashing backend's other ones too, and as often as numpy's
+    for bid in ("crashy", "numpy"):
+        mine = g[g.backend == bid]
+        assert (mine.outcome == "ok").sum() == (g[g.backend == "numpy"].outcome == "ok").sum() - (bid == "crashy")
+    assert not (out / INFLIGHT).exists()
+    env_rec = json.loads((out / "environment.json").read_text())
+    assert env_rec["complete"] == "true" and int(env_rec["resumed"]) == 1
+
+
+def test_the_side_stages_go_on_past_a_backend_that_kills_their_process(tmp_path):
+    """The stability stage runs in a second process; a backend that killed it cost the stability
+    stage and the claims of every backend.  Now the stages start again in a new process that
+    resumes the stability stage past that configuration."""
+    from bench.commands import parser
+    from bench.commands._side_stages import SideStages
+    from bench.report.tables import STABILITY_DIR
+
+    args = parser().parse_args(["run", "--backend", f"{CRASHY},numpy", "--no-claims"])
+    os.environ.update(CRASH_METHOD="sphere_trace", CRASH_KIND="torus", CRASH_DTYPE="float64", CRASH_HOW="exit")
+    try:
+        side = SideStages(("stability",), (args, str(tmp_path), "stability", False, False)).start()
+        try:
+            notes = side.wait()
+        finally:
+            side.close()
+    finally:
+        for k in ("CRASH_METHOD", "CRASH_KIND", "CRASH_DTYPE", "CRASH_HOW"):
+            os.environ.pop(k)
+    assert notes == {"stability": ""}, notes
+    g = _configs(tmp_path / STABILITY_DIR / "results.csv")
+    failed = g[g.outcome == "failed"]
+    assert len(failed) == 1 and failed.iloc[0].reason.startswith(CRASHED), failed
+    row = failed.iloc[0]
+    assert (row["backend"], row["method"], row["dtype"]) == ("crashy", "sphere_trace", "float64")
+    ok = g[g.outcome == "ok"]
+    assert (ok.backend == "numpy").sum() == (ok.backend == "crashy").sum() + 1 > 10
