@@ -1,7 +1,8 @@
 """A user's plug-in backend that kills its own process on one configuration, as a segfault or an
 abort in a native library would: it wraps numpy, and where the method, dtype, scene kind and knob
 match the environment (``CRASH_METHOD``, ``CRASH_DTYPE``, ``CRASH_KIND``, ``CRASH_KNOB`` as
-``name=value``; each optional), its ``run`` raises SIGSEGV (``CRASH_HOW=exit``: ``os._exit(3)``).
+``name=value``; each optional), its ``run`` raises SIGSEGV (``CRASH_HOW=exit``: ``os._exit(3)``; ``CRASH_HOW=hang``: it blocks SIGALRM,
+the time limit's signal, and sleeps for an hour, as a kernel that never returns to Python would).
 Used by tests/test_crash_isolation.py through ``--backend tests.crash_backend:CrashBackend``."""
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import time
 
 from impls.numpy.backend import NumpyBackend
 
@@ -44,8 +46,12 @@ class CrashBackend:
             return prep
 
         def run():
-            if os.environ.get("CRASH_HOW") == "exit":
+            how = os.environ.get("CRASH_HOW")
+            if how == "exit":
                 os._exit(3)
+            if how == "hang":  # as native code that never returns: the time limit's SIGALRM is never seen
+                signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
+                time.sleep(3600)
             os.kill(os.getpid(), signal.SIGSEGV)
 
         return dataclasses.replace(prep, run=run)

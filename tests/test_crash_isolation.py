@@ -12,6 +12,7 @@ import os
 import pandas as pd
 import pytest
 
+from bench.run import supervise
 from bench.run.runner import CRASHED, INFLIGHT
 from tests.conftest import bench_cli
 
@@ -78,3 +79,48 @@ def test_the_side_stages_go_on_past_a_backend_that_kills_their_process(tmp_path)
     assert (row["backend"], row["method"], row["dtype"]) == ("crashy", "sphere_trace", "float64")
     ok = g[g.outcome == "ok"]
     assert (ok.backend == "numpy").sum() == (ok.backend == "crashy").sum() + 1 > 10
+
+
+def test_a_configuration_hung_in_native_code_is_killed_and_recorded_as_a_timeout(tmp_path):
+    """``--timeout`` interrupts Python code at once and a kernel when it returns; one that never
+    returns held the run forever.  Now the supervisor kills the process once the configuration has
+    run factor × the limit + seconds (``supervise.HUNG_AFTER``, shortened here through its
+    environment variable), and the resumed run records it as a Timeout row."""
+    out = tmp_path / "run"
+    env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
+           supervise.HUNG_AFTER_ENV: "1,30"}
+    p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
+                  "--timeout", "2", "--no-progress", "--out", out, env=env)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    # (the second process may have claimed it: then the first process kills that one, and says so)
+    assert "is stuck in" in p.stdout + p.stderr, p.stdout[-2000:] + p.stderr[-2000:]
+    g = _configs(out / "results.csv")
+    failed = g[g.outcome == "failed"]
+    assert len(failed) == 1 and "tol=1e-08" in failed.iloc[0].knob, failed
+    assert failed.iloc[0].reason.startswith("Timeout:") and "killed after" in failed.iloc[0].reason
+    assert (g[g.backend == "numpy"].outcome == "ok").sum() == (g[g.backend == "crashy"].outcome == "ok").sum() + 1
+
+
+def test_overdue_reads_the_note_and_the_limit(tmp_path, monkeypatch):
+    """A note is overdue past factor × limit + seconds of its start, never without a limit; a
+    missing or torn note is not."""
+    from bench.run.results import write_json
+
+    monkeypatch.delenv(supervise.HUNG_AFTER_ENV, raising=False)
+    factor, extra = supervise.HUNG_AFTER
+    path = tmp_path / INFLIGHT
+    assert supervise.overdue(path) is None
+    write_json(path, {"key": ["a"], "what": "w", "started": 1000.0, "limit_s": 10.0})
+    assert supervise.overdue(path, now=1000.0 + factor * 10 + extra - 1) is None
+    hung = supervise.overdue(path, now=1000.0 + factor * 10 + extra + 1)
+    assert hung["what"] == "w" and hung["hung_s"] == pytest.approx(factor * 10 + extra + 1)
+    write_json(path, {"key": ["a"], "started": 0.0, "limit_s": 0.0})
+    assert supervise.overdue(path, now=1e9) is None
+    path.write_text("{torn")
+    assert supervise.overdue(path, now=1e9) is None
+
+
+def test_the_side_directory_is_the_stability_stages():
+    from bench.report.tables import STABILITY_DIR
+
+    assert supervise.SIDE_DIR == STABILITY_DIR

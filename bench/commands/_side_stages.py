@@ -32,6 +32,7 @@ from ._common import (configure_process, make_console, reference_cache_dir, reso
                       split)
 from ..run.environment import usable_cores
 from ._run_stages import run_stability_into
+from ..report.tables import STABILITY_DIR
 from ..run.supervise import die_with_parent
 
 #: environment.json's ``side_stages`` values
@@ -139,10 +140,7 @@ class SideStages:
         if self.share is not None:
             self.share.offer(None)  # it waits for a plan: a run that offered none ended early
         if self.process is not None:
-            try:
-                got = self.conn.recv()  # returns when the child sends, or raises EOFError when it died
-            except (EOFError, OSError):
-                got = {}
+            got = self._receive()
             if not got:
                 self.process.join()  # it died: its exit code says how
             self.waited = True
@@ -157,6 +155,26 @@ class SideStages:
                     return again[0].wait()
         return {s: str(got[s]) if s in got else f"{s} failed: {why}" for s in self.stages}
 
+    def _receive(self) -> dict:
+        """The second process's notes, or {} when it died; a configuration of its stability stage
+        hung in native code (:func:`bench.run.supervise.overdue`) is marked so and the process
+        killed (then {}: :meth:`_resumed` goes on past it)."""
+        from ..run.runner import INFLIGHT
+        from ..run.supervise import POLL_S, mark_hung, overdue
+
+        note = Path(self.arguments[1]) / STABILITY_DIR / INFLIGHT if self.target is stages_main else None
+        try:
+            while not self.conn.poll(POLL_S):
+                hung = overdue(note) if note is not None else None
+                if hung is not None and hung.get("pid") == self.process.pid:
+                    mark_hung(note, hung)
+                    print(f"the second process is stuck in {hung.get('what', 'a configuration')} of the stability stage "
+                          f"({hung['hung_s']:.0f} s, its limit {float(hung['limit_s']):g} s): killing it", flush=True)
+                    self.process.kill()
+            return self.conn.recv()  # what the child sent, or EOFError when it died
+        except (EOFError, OSError):
+            return {}
+
     def _resumed(self):
         """After this process died inside a configuration of the stability stage (its runner's
         in-flight note is there, :data:`bench.run.runner.INFLIGHT`): ``(the stages started again in
@@ -164,7 +182,6 @@ class SideStages:
         what it was)``; None otherwise, or after :data:`bench.run.supervise.MAX_RESTARTS` restarts."""
         import json
 
-        from ..report.tables import STABILITY_DIR
         from ..run.runner import INFLIGHT
         from ..run.supervise import MAX_RESTARTS
 
@@ -184,6 +201,12 @@ class SideStages:
     def alive(self) -> bool:
         """Whether the second process is running."""
         return self.process is not None and self.process.is_alive()
+
+    def kill(self) -> None:
+        """Kill the second process (a configuration it runs for the plan hung in native code:
+        :class:`bench.run.sharing.SharingExecutor`)."""
+        if self.process is not None:
+            self.process.kill()
 
     def close(self) -> None:
         """After :meth:`wait`, let the second process end (reading its last messages, which the run

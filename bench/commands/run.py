@@ -259,7 +259,7 @@ def _run_options_of(args, suite, backends, policy, budget, run_id, executor, env
                       run_id=run_id, resume=args.resume, env_extra=env_extra, budget_s=budget, rounds=args.rounds,
                       reference_cache_dir=reference_cache_dir(args), reference_timeout_s=args.reference_timeout,
                       executor=executor, rerun_cases=split(args.rerun_case),
-                      share=None if side is None or side.share is None else (side.share, side.alive))
+                      share=None if side is None or side.share is None else (side.share, side.alive, side.kill))
 
 
 def _execute(suite, backends, out: Path, options, console, lines: ProgressLines, live: bool):

@@ -34,7 +34,7 @@ from .results import OVER_BUDGET, knob_string, to_frame, write_json, write_resul
 from .resume import check_case_versions, kept_rows, load_previous, outcome_counts, outcome_of, record_elapsed
 from .sharing import SharingExecutor
 from .suites import Suite
-from .supervise import INFLIGHT
+from .supervise import INFLIGHT, hung_reason
 from .timing import TimingPolicy
 
 __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "plan", "run"]
@@ -165,12 +165,13 @@ class _InFlight:
     runs, each write atomic (a few hundred bytes: microseconds, against the milliseconds a
     configuration takes at least)."""
 
-    def __init__(self, out_dir: Path):
-        self.path, self.key = out_dir / INFLIGHT, None
+    def __init__(self, out_dir: Path, limit_s: float | None):
+        self.path, self.key, self.limit_s = out_dir / INFLIGHT, None, float(limit_s or 0.0)
 
     def start(self, cfg: Config, what: str) -> None:
         self.key = list(map(str, cfg.key))
-        write_json(self.path, {"key": self.key, "what": what, "pid": os.getpid(), "started": time.time()})
+        write_json(self.path, {"key": self.key, "what": what, "pid": os.getpid(), "started": time.time(),
+                               "limit_s": self.limit_s})
 
     def end(self, cfg: Config) -> None:
         if self.key == list(map(str, cfg.key)):
@@ -184,8 +185,8 @@ class _InFlight:
 def crashed_rows(out_dir: Path, run_id: str, cfgs: list[Config], done: set, backends: dict) -> list[dict]:
     """The failed row of the configuration a killed session left in :data:`INFLIGHT` (none if
     there is no such file, or it names a configuration the run has rows for or no longer plans),
-    and the file removed: that configuration killed its process, and running it again would kill
-    this one."""
+    and the file removed: that configuration killed its process (or hung in native code and was
+    killed: a Timeout row), and running it again would do so again."""
     from .configuration import base_row
 
     path = out_dir / INFLIGHT
@@ -200,13 +201,16 @@ def crashed_rows(out_dir: Path, run_id: str, cfgs: list[Config], done: set, back
     path.unlink(missing_ok=True)
     if key in done:
         return []
-    for cfg in cfgs:
-        if tuple(map(str, cfg.key)) == key:
-            reason = (f"{CRASHED}: the process running this configuration died inside it (pid {note.get('pid')}: "
-                      "a segfault, an abort or an exit in the backend or its libraries); it is not run again. "
-                      "Run it alone (--case, --backend, --method) to see the crash")
-            return [{**base_row(run_id, cfg, backends.get(cfg.backend_id)), "outcome": "failed", "reason": reason}]
-    return []
+    cfg = next((c for c in cfgs if tuple(map(str, c.key)) == key), None)
+    if cfg is None:
+        return []
+    if "hung_s" in note:  # killed by the supervisor's watchdog (bench.run.supervise.overdue)
+        reason = hung_reason(float(note.get("limit_s") or 0.0), float(note["hung_s"]))
+    else:
+        reason = (f"{CRASHED}: the process running this configuration died inside it (pid {note.get('pid')}: "
+                  "a segfault, an abort or an exit in the backend or its libraries); it is not run again. "
+                  "Run it alone (--case, --backend, --method) to see the crash")
+    return [{**base_row(run_id, cfg, backends.get(cfg.backend_id)), "outcome": "failed", "reason": reason}]
 
 
 def _finish_env(env: dict, cf_samples: dict, rounds: int, interrupted: str, n_over: int, n_total: int,
@@ -225,6 +229,30 @@ def _finish_env(env: dict, cf_samples: dict, rounds: int, interrupted: str, n_ov
     else:
         env["complete"] = "true"
         env.pop("incomplete_reason", None)
+
+
+def _kept_and_todo(out_dir: Path, run_id: str, cfgs: list[Config], previous, backends: dict, resume: bool):
+    """(rows kept, crashed rows among them, configurations to run) of a new or resumed session:
+    a resumed one keeps the rows it has and records the configuration a killed session died in
+    (:func:`crashed_rows`) as failed."""
+    rows, done = kept_rows(previous)
+    crashed = crashed_rows(out_dir, run_id, cfgs, done, backends) if resume else []
+    done |= {tuple(str(r[k]) for k in CONFIG_KEY) for r in crashed}
+    return rows + crashed, crashed, [c for c in cfgs if tuple(map(str, c.key)) not in done]
+
+
+def _what(cfg: Config) -> str:
+    """A configuration as the progress lines name it."""
+    return f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}"
+
+
+def _executor(opts: RunOptions, env: dict):
+    """``opts.executor``, or one of this process (sharing the plan with a second process where it has one)."""
+    if opts.executor is not None:
+        return opts.executor
+    if opts.share is not None and opts.rounds == 1:
+        return SharingExecutor(environment.machine_key(env), *opts.share)
+    return InProcessExecutor(environment.machine_key(env))
 
 
 def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptions | None = None, *,
@@ -255,19 +283,11 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
         raise ValueError(f"nothing to run: no case matches {opts.case_pattern or suite.case_pattern!r} "
                          f"(tags {list(suite.case_tags)}) or no method matches --method; "
                          "`python -m bench cases` lists the cases")
-    rows, done = kept_rows(previous)
-    crashed = crashed_rows(out_dir, run_id, cfgs, done, backends) if opts.resume else []
-    rows += crashed
-    done |= {tuple(str(r[k]) for k in CONFIG_KEY) for r in crashed}
-    todo = [c for c in cfgs if tuple(map(str, c.key)) not in done]
+    rows, crashed, todo = _kept_and_todo(out_dir, run_id, cfgs, previous, backends, opts.resume)
     counts = outcome_counts(rows)
     n_before = sum(counts.values())
     n_total = len(todo) + n_before
-    executor = opts.executor
-    if executor is None and opts.share is not None and opts.rounds == 1:
-        executor = SharingExecutor(environment.machine_key(env), *opts.share)
-    elif executor is None:
-        executor = InProcessExecutor(environment.machine_key(env))
+    executor = _executor(opts, env)
     ref_options = ReferenceOptions(expensive=suite.expensive_references, timeout_s=opts.reference_timeout_s,
                                    disk=opts.reference_cache_dir)
     writer = _Writer(out_dir, env, rows, opts.flush_s, started)
@@ -277,14 +297,13 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     if progress:
         progress(n_before, n_total, "submitting", dict(counts))
 
-    inflight = _InFlight(out_dir)
+    inflight = _InFlight(out_dir, opts.policy.timeout_s)
 
     def on_start(j: int) -> None:
         cfg = todo[j]
         inflight.start(cfg, f"{cfg.case.id} {cfg.backend_id} {cfg.dtype} {cfg.method} {knob_string(cfg.knobs)}")
         if progress:
-            progress(n_before + j, n_total, f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}",
-                     dict(counts))
+            progress(n_before + j, n_total, _what(cfg), dict(counts))
 
     deadline = None if opts.budget_s is None else time.time() + opts.budget_s - (time.monotonic() - started)
     try:
@@ -296,9 +315,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
             counts[outcome_of(got)] += 1
             n_over += over
             if progress:
-                cfg = todo[j]
-                progress(n_before + len(finished), n_total, f"last: {cfg.case.id} {cfg.backend_id} {cfg.method} "
-                         f"{knob_string(cfg.knobs)}", dict(counts))
+                progress(n_before + len(finished), n_total, f"last: {_what(todo[j])}", dict(counts))
             writer.flush_if_due()
     except Interrupted as exc:
         interrupted = f"{exc}; {len(todo) - len(finished)} configurations not run: finish with --resume"

@@ -36,11 +36,14 @@ import multiprocessing
 import os
 import pickle
 import queue
+import time
 from typing import Callable, Iterator
 
+from .configuration import base_row
 from .executor import InProcessExecutor
 from .plan import Config
 from .references import ReferenceOptions
+from .supervise import hung_for, hung_reason
 from .timing import TimingPolicy
 
 #: the ``worker`` of the rows the second process measured
@@ -192,6 +195,7 @@ def serve(share: PlanShare, backends: dict) -> int:
     n = 0
     while (g := share.claim(len(plan.groups))) is not None:
         for j in plan.groups[g]:
+            share.send(("start", j, time.time()))  # for the first process's watch on a hang (SharingExecutor)
             rows, over = ex.run_config(plan.run_id, plan.todo[j], backends, plan.policy, ref_cache, plan.budget_s,
                                        plan.deadline)
             share.send(("rows", j, [{**r, "worker": SECOND, "worker_pid": os.getpid()} for r in rows], over))
@@ -207,14 +211,18 @@ class SharingExecutor(InProcessExecutor):
     #: seconds between checks that the second process still lives, while waiting for its rows
     POLL_S = 0.2
 
-    def __init__(self, machine_key: str, share: PlanShare, alive: Callable[[], bool]):
+    def __init__(self, machine_key: str, share: PlanShare, alive: Callable[[], bool],
+                 kill: Callable[[], None] | None = None):
         super().__init__(machine_key)
-        self.share, self.alive = share, alive
+        self.share, self.alive, self.kill = share, alive, kill
         self.n_second = 0
         self._second_done = False  # its "done" arrived, or it was offered nothing
+        self._second_at: tuple[int, float] | None = None  # (configuration, time.time() it started) there
 
     def _take(self, msg, pending: set[int]) -> Iterator[tuple[int, list[dict], bool]]:
-        if msg[0] == "rows" and msg[1] in pending:
+        if msg[0] == "start":
+            self._second_at = (msg[1], msg[2])
+        elif msg[0] == "rows" and msg[1] in pending:
             pending.discard(msg[1])
             self.n_second += 1
             yield msg[1], msg[2], msg[3]
@@ -246,6 +254,14 @@ class SharingExecutor(InProcessExecutor):
             msg = self.share.receive(self.POLL_S)
             if msg is not None:
                 yield from self._take(msg, pending)
+            elif (hung := self._hung(pending, policy)) is not None:
+                j, hung_s = hung
+                pending.discard(j)
+                print(f"the second process is stuck in {todo[j].case.id} {todo[j].backend_id} {todo[j].method} "
+                      f"({hung_s:.0f} s, its limit {policy.timeout_s:g} s): killing it", flush=True)
+                self.kill()
+                yield j, [{**base_row(run_id, todo[j], backends.get(todo[j].backend_id)), "outcome": "failed",
+                           "reason": hung_reason(float(policy.timeout_s), hung_s)}], False
             elif not self.alive():
                 while (msg := self.share.receive(0)) is not None:  # what it sent before it died
                     yield from self._take(msg, pending)
@@ -254,6 +270,16 @@ class SharingExecutor(InProcessExecutor):
             if on_start:
                 on_start(j)
             yield (j, *self.run_config(run_id, todo[j], backends, policy, ref_cache, budget_s, deadline))
+
+    def _hung(self, pending: set[int], policy: TimingPolicy) -> tuple[int, float] | None:
+        """(configuration, seconds) where the second process has run a configuration of the plan
+        long enough past ``--timeout`` to be hung in native code (:func:`bench.run.supervise.hung_for`),
+        and this process can kill it; else None."""
+        if self._second_at is None or self.kill is None or self._second_at[0] not in pending:
+            return None
+        j, started = self._second_at
+        hung_s = hung_for(started, float(policy.timeout_s or 0.0))
+        return None if hung_s is None else (j, hung_s)
 
     def env_record(self, previous: dict | None = None) -> dict[str, str]:
         return {"configurations_second_process": str(self.n_second)}

@@ -26,6 +26,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 #: the run directory's note of the configuration its process is running, written as it starts and
@@ -39,6 +40,17 @@ SUPERVISED_ENV = "ISOBENCH_SUPERVISED"
 OUT_NOTE_ENV = "ISOBENCH_OUT_NOTE"
 #: the supervisor's pid, in the child's environment (:func:`die_with_parent`)
 PARENT_ENV = "ISOBENCH_SUPERVISOR_PID"
+#: where the side stages' runner keeps its own note (``bench.report.tables.STABILITY_DIR``)
+SIDE_DIR = "stability"
+#: seconds between two looks at the run's in-flight note
+POLL_S = 1.0
+#: a configuration counts as hung in native code once it has run factor × its limit + seconds
+#: (:func:`overdue`): past the limit by as much again and a minute, so that a kernel that returns
+#: late is interrupted as usual and the accuracy measurement after the timed part (outside the
+#: limit) has time to finish
+HUNG_AFTER = (2.0, 60.0)
+#: ``factor,seconds`` replacing :data:`HUNG_AFTER` (tests/test_crash_isolation.py: not to wait a minute)
+HUNG_AFTER_ENV = "ISOBENCH_HUNG_AFTER"
 #: restarts after crashes, at most, per command
 MAX_RESTARTS = 50
 #: the child's exit statuses that mean it was stopped, not that it crashed
@@ -86,9 +98,69 @@ def _status(code: int) -> str:
     return f"exit status {code}"
 
 
-def _child(argv: list[str], env: dict) -> int:
+def read_note(path: Path) -> dict | None:
+    """The in-flight note at ``path`` (:data:`INFLIGHT`), or None (none, or unreadable)."""
+    try:
+        note = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return note if isinstance(note, dict) else None
+
+
+def overdue(path: Path, now: float | None = None) -> dict | None:
+    """The note at ``path`` if its configuration has run past its time limit (``limit_s``, the
+    run's ``--timeout``; 0: none) by more than :data:`HUNG_AFTER` allows, else None.  The limit
+    interrupts Python code at once and a compiled kernel when it returns to Python
+    (:func:`bench.run.timing.time_limit`); a configuration still running that long after it is
+    inside native code that does not return (a hung kernel, a compile that does not end)."""
+    note = read_note(path)
+    if not note or "hung_s" in note:  # none, or one already killed as hung
+        return None
+    elapsed = hung_for(float(note.get("started", 0.0)), float(note.get("limit_s") or 0.0), now)
+    return None if elapsed is None else {**note, "hung_s": elapsed}
+
+
+def hung_for(started: float, limit_s: float, now: float | None = None) -> float | None:
+    """Seconds since ``started`` (a ``time.time()``) if a configuration with time limit ``limit_s``
+    (0: none) started then counts as hung in native code (:data:`HUNG_AFTER`), else None."""
+    if not limit_s:
+        return None
+    elapsed = (time.time() if now is None else now) - started
+    factor, extra = map(float, os.environ.get(HUNG_AFTER_ENV, "").split(",")) if os.environ.get(HUNG_AFTER_ENV) \
+        else HUNG_AFTER
+    return elapsed if elapsed > factor * limit_s + extra else None
+
+
+def hung_reason(limit_s: float, hung_s: float) -> str:
+    """The reason of a configuration's failed row after it was killed as hung."""
+    return (f"Timeout: ran past the time limit of {limit_s:g} s (--timeout) in code that does not return to Python "
+            f"(a native kernel or compile): its process was killed after {hung_s:.0f} s, and it is not run again")
+
+
+def mark_hung(path: Path, note: dict) -> None:
+    """Rewrite the note as that of a configuration killed as hung (:func:`overdue`), so that the
+    resumed run records it as a Timeout, not a crash (:func:`bench.run.runner.crashed_rows`)."""
+    from .results import write_json
+
+    write_json(Path(path), note)
+
+
+def _wait_gone(pid: int, seconds: float = 10.0) -> None:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except (ProcessLookupError, PermissionError):
+            return
+        time.sleep(0.05)
+
+
+def _child(argv: list[str], env: dict, note_of_out) -> int:
     """Run ``python -m bench <argv>`` and wait for it; SIGTERM given to this process is passed
-    on, SIGINT (a terminal's Ctrl-C reaches both) left to the child."""
+    on, SIGINT (a terminal's Ctrl-C reaches both) left to the child.  Every :data:`POLL_S` it
+    looks at the run's in-flight note (``note_of_out()``: its path, once the child claimed a run
+    directory): a configuration hung in native code (:func:`overdue`) is marked so and the child
+    killed."""
     proc = subprocess.Popen([sys.executable, "-m", "bench", *argv], env={**env, PARENT_ENV: str(os.getpid())})
 
     def forward(signum, frame):
@@ -97,7 +169,18 @@ def _child(argv: list[str], env: dict) -> int:
     old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
     old_term = signal.signal(signal.SIGTERM, forward)
     try:
-        return proc.wait()
+        while True:
+            try:
+                return proc.wait(timeout=POLL_S)
+            except subprocess.TimeoutExpired:
+                pass
+            path = note_of_out()
+            hung = overdue(path) if path is not None else None
+            if hung is not None and hung.get("pid") == proc.pid:  # (not a note an earlier child left)
+                mark_hung(path, hung)
+                print(f"the run's process is stuck in {hung.get('what', 'a configuration')} ({hung['hung_s']:.0f} s, "
+                      f"its limit {float(hung['limit_s']):g} s): killing it", file=sys.stderr, flush=True)
+                proc.kill()
     finally:
         signal.signal(signal.SIGINT, old_int)
         signal.signal(signal.SIGTERM, old_term)
@@ -110,13 +193,27 @@ def supervise(argv: list[str]) -> int:
     os.close(fd)
     env = {**os.environ, SUPERVISED_ENV: "1", OUT_NOTE_ENV: note}
     args = list(argv)
+
+    def out_dir() -> Path | None:
+        text = Path(note).read_text().strip()
+        return Path(text) if text else None
+
+    def note_of_out() -> Path | None:
+        out = out_dir()
+        return None if out is None else out / INFLIGHT
+
     try:
         for restart in range(MAX_RESTARTS + 1):
-            code = _child(args, env)
-            text = Path(note).read_text().strip()
-            out = Path(text) if text else None
+            code = _child(args, env, note_of_out)
+            out = out_dir()
             if code == 0 or code in _STOPPED or out is None or not (out / INFLIGHT).exists():
                 return code if code >= 0 else 128 - code
+            # the side stages' process died with this one (PR_SET_PDEATHSIG): what it was running is
+            # not to blame, and the resumed stability stage must not record it as crashed
+            side = read_note(out / SIDE_DIR / INFLIGHT)
+            if side is not None:
+                _wait_gone(int(side.get("pid", 0)) or -1)
+                (out / SIDE_DIR / INFLIGHT).unlink(missing_ok=True)
             try:
                 what = json.loads((out / INFLIGHT).read_text()).get("what", "?")
             except (OSError, ValueError):
