@@ -54,7 +54,10 @@ def test_counts_and_failures_are_per_configuration():
     df = pd.DataFrame([_row(), _row(quantity="other"), _row(backend="jax:cpu", outcome="failed"),
                        _row(backend="torch:cpu", outcome="skipped")])
     assert summary.config_counts(df) == {"ran": 1, "skipped": 1, "failed": 1}
-    assert summary.failures(df) == ["sphere.camera.64x64 jax:cpu float64 hybrid_secant: boom"]
+    assert summary.failures(df) == ["sphere.camera.64x64 jax:cpu float64 hybrid_secant @ xtol=1e-12: boom"]
+    # a method without knobs (the csv reads its empty knob as NaN) is named without them
+    assert summary.failures(pd.DataFrame([_row(knob=float("nan"), outcome="failed")])) == [
+        "sphere.camera.64x64 numpy float64 hybrid_secant: boom"]
     ov = summary.overview(df, {"run_id": "r1", "suite": "quick", "complete": "false"})
     assert ov["configurations"] == "1 ran · 1 skipped · 1 failed"
     assert ov["complete"].startswith("NO")

@@ -88,12 +88,17 @@ def config_counts(df: pd.DataFrame) -> dict[str, int]:
 
 
 def failures(df: pd.DataFrame, limit: int = 10) -> list[str]:
-    """The first ``limit`` failed configurations as ``case backend dtype method: reason`` lines."""
+    """The first ``limit`` failed configurations as ``case backend dtype method @ knobs: reason``
+    lines (the knobs where it has any: the points of one method's sweep fail apart)."""
     if df is None or not len(df):
         return []
     bad = df[df["outcome"] == "failed"].drop_duplicates(CONFIG_KEY)
-    return [f"{r.case_id} {r.backend} {r.dtype} {r.method}: {str(r.reason)[:160]}"
+    return [f"{r.case_id} {r.backend} {r.dtype} {r.method}{_at_knobs(r.knob)}: {str(r.reason)[:160]}"
             for r in bad.head(limit).itertuples(index=False)]
+
+
+def _at_knobs(knob) -> str:
+    return f" @ {knob}" if isinstance(knob, str) and knob else ""
 
 
 def overview(df: pd.DataFrame, env: dict) -> dict[str, str]:
