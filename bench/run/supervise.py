@@ -5,8 +5,8 @@ configuration and no other row.
 A configuration's Python exceptions, contract breaches and hangs are failed rows already
 (:func:`bench.run.configuration.run_one`); a process that dies cannot write one.  So the command
 runs in a child process (environment :data:`SUPERVISED_ENV` set), and the runner keeps a note of
-the configuration in flight in the run directory (:data:`bench.run.runner.INFLIGHT`, removed as
-each configuration ends and when the runner stops by any Python path).  When the child dies with
+the configuration in flight in the run directory (:data:`INFLIGHT`, removed as each configuration
+ends and when the runner stops by any Python path).  When the child dies with
 that note present, this process says so and starts the same command again with
 ``--resume --out DIR``: the resumed runner records the noted configuration as a failed row
 ("Crashed: …") and runs the rest; rows written before the death are kept (the runner rewrites them
@@ -16,6 +16,13 @@ least the configuration that crashed, so it ends; :data:`MAX_RESTARTS` bounds it
 Not restarted: an exit without the note (the command ended, whatever its status), and a child
 stopped by SIGINT or SIGTERM (the user's or the machine's stop, which this process passes on).
 A library user calling :func:`bench.commands.main` in-process is not supervised.
+
+Hangs: ``--timeout`` interrupts Python code at once and a compiled kernel when it returns to
+Python (:func:`bench.run.timing.time_limit`).  The note carries that limit; a configuration that
+has run :data:`HUNG_AFTER` past it is inside native code that does not return, and its process is
+killed (:func:`overdue`, :func:`mark_hung`): by this process for the run's own, by the first process
+for the second's share of the plan (:class:`bench.run.sharing.SharingExecutor`), by the side
+stages' waiter for the stability stage.  The resumed run records it as a ``Timeout`` row.
 """
 
 from __future__ import annotations
