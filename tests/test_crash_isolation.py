@@ -124,3 +124,22 @@ def test_the_side_directory_is_the_stability_stages():
     from bench.report.tables import STABILITY_DIR
 
     assert supervise.SIDE_DIR == STABILITY_DIR
+
+
+def test_a_hung_configuration_on_a_cluster_worker_is_a_timeout_row(tmp_path):
+    """On ``--cluster`` a configuration runs in a worker's thread, which the time limit interrupts
+    only between bytecodes: one stuck in native code held the run forever.  Now the client cancels
+    it once it has run ``supervise.HUNG_AFTER`` past the limit, restarts its worker, and records a
+    Timeout row; the other configurations run."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "run"
+    env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
+           supervise.HUNG_AFTER_ENV: "1,10"}
+    p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
+                  "--cluster", "local:2", "--timeout", "2", "--no-claims", "--no-progress", "--out", out, env=env)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    g = _configs(out / "results.csv")
+    failed = g[g.outcome == "failed"]
+    assert len(failed) == 1 and "tol=1e-08" in failed.iloc[0].knob, failed
+    assert failed.iloc[0].reason.startswith("Timeout:") and "killed after" in failed.iloc[0].reason
+    assert (g[g.backend == "numpy"].outcome == "ok").sum() == (g[g.backend == "crashy"].outcome == "ok").sum() + 1

@@ -55,6 +55,7 @@ from .configuration import base_row, over_budget_message
 from .executor import Interrupted
 from .references import ReferenceOptions
 from .results import knob_string
+from .supervise import hung_for, hung_reason
 from .timing import TimingPolicy
 
 LOCAL = "local:"
@@ -252,6 +253,10 @@ class ClusterExecutor:
                 done = wait(list(inflight), timeout=5.0, return_when="FIRST_COMPLETED").done
             except TimeoutError:
                 done = set()
+            for job, hung_s in self._hung(inflight, policy):  # native code that never returns: its worker restarted
+                cfg = todo[job.index]
+                yield job.index, [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
+                                   "reason": hung_reason(float(policy.timeout_s), hung_s)}], False
             if not done:
                 if self._capacity(fresh=True) == 0:
                     no_worker_since = no_worker_since or time.monotonic()
@@ -278,6 +283,30 @@ class ClusterExecutor:
         for r in refs.values():
             r.result = None  # the integrals' futures: dask may forget them now
         self._record["cluster.execute_s"] = f"{time.perf_counter() - t_start:.2f}"
+
+    def _hung(self, inflight: dict, policy: TimingPolicy) -> list:
+        """``(job, seconds)`` of the configuration tasks in flight that have run long enough past
+        ``--timeout`` to be hung in native code (:func:`bench.run.supervise.hung_for`, counted from
+        their submission: a task is submitted only when a worker thread is free for it): each is
+        cancelled and its worker restarted (the worker thread cannot be interrupted; its nanny
+        starts a fresh process, and the tasks it also ran are run again elsewhere)."""
+        out = []
+        for future, job in list(inflight.items()):
+            if job.kind == "reference":
+                continue
+            hung_s = hung_for(time.time() - (time.perf_counter() - job.submitted), float(policy.timeout_s or 0.0))
+            if hung_s is None:
+                continue
+            try:
+                where = [w for w, keys in self.client.processing().items() if future.key in keys]
+                future.cancel()
+                if where:
+                    self.client.restart_workers(where, raise_for_error=False)
+            except Exception:  # noqa: BLE001 - the row says it hung whether or not the restart worked
+                pass
+            del inflight[future]
+            out.append((job, hung_s))
+        return out
 
     def _submit(self, job: _Job):
         if job.kind == "reference":

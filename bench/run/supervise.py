@@ -22,7 +22,8 @@ Python (:func:`bench.run.timing.time_limit`).  The note carries that limit; a co
 has run :data:`HUNG_AFTER` past it is inside native code that does not return, and its process is
 killed (:func:`overdue`, :func:`mark_hung`): by this process for the run's own, by the first process
 for the second's share of the plan (:class:`bench.run.sharing.SharingExecutor`), by the side
-stages' waiter for the stability stage.  The resumed run records it as a ``Timeout`` row.
+stages' waiter for the stability stage; on a cluster the client cancels the task and restarts its
+worker (:class:`bench.run.cluster.ClusterExecutor`).  Each is a ``Timeout`` row.
 """
 
 from __future__ import annotations
