@@ -24,7 +24,8 @@ Faults: a worker that dies mid-task is replaced (its nanny restarts it) and dask
 task elsewhere; a configuration whose worker dies more than
 ``distributed.scheduler.allowed-failures`` times (:class:`distributed.KilledWorker`) becomes a
 failed row with that reason, and the run goes on.  A hang is cut by ``--timeout`` as in one
-process (:func:`bench.run.timing.time_limit` works in a worker's task thread).
+process (:func:`bench.run.timing.time_limit` works in a worker's task thread); one in native code,
+which it cannot cut, by :func:`bench.run.cluster_jobs.hung_jobs`.
 
 Shared references: a rendering integral (:func:`bench.run.references.exact_color`) is a task of its
 own (:func:`reference_task`), computed once per case × density model × sharpness on some
@@ -47,15 +48,15 @@ import uuid
 from typing import Any, Iterator
 
 import numpy as np
-from distributed import Client, KilledWorker, LocalCluster, wait
+from distributed import Client, LocalCluster, wait
 
-from .cluster_jobs import _Job, plan_jobs, ready_queues, retime_rounds
+from .cluster_jobs import _Job, failure_reason, hung_jobs, plan_jobs, ready_queues, retime_rounds
 from .cluster_worker import WorkerSetup, _config_with_seeds, _noop, reference_task, thread_env, worker_record
 from .configuration import base_row, over_budget_message
 from .executor import Interrupted
 from .references import ReferenceOptions
 from .results import knob_string
-from .supervise import hung_for, hung_reason
+from .supervise import hung_reason
 from .timing import TimingPolicy
 
 LOCAL = "local:"
@@ -253,7 +254,7 @@ class ClusterExecutor:
                 done = wait(list(inflight), timeout=5.0, return_when="FIRST_COMPLETED").done
             except TimeoutError:
                 done = set()
-            for job, hung_s in self._hung(inflight, policy):  # native code that never returns: its worker restarted
+            for job, hung_s in hung_jobs(self.client, inflight, policy):  # native code that never returns
                 cfg = todo[job.index]
                 yield job.index, [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
                                    "reason": hung_reason(float(policy.timeout_s), hung_s)}], False
@@ -284,30 +285,6 @@ class ClusterExecutor:
             r.result = None  # the integrals' futures: dask may forget them now
         self._record["cluster.execute_s"] = f"{time.perf_counter() - t_start:.2f}"
 
-    def _hung(self, inflight: dict, policy: TimingPolicy) -> list:
-        """``(job, seconds)`` of the configuration tasks in flight that have run long enough past
-        ``--timeout`` to be hung in native code (:func:`bench.run.supervise.hung_for`, counted from
-        their submission: a task is submitted only when a worker thread is free for it): each is
-        cancelled and its worker restarted (the worker thread cannot be interrupted; its nanny
-        starts a fresh process, and the tasks it also ran are run again elsewhere)."""
-        out = []
-        for future, job in list(inflight.items()):
-            if job.kind == "reference":
-                continue
-            hung_s = hung_for(time.time() - (time.perf_counter() - job.submitted), float(policy.timeout_s or 0.0))
-            if hung_s is None:
-                continue
-            try:
-                where = [w for w, keys in self.client.processing().items() if future.key in keys]
-                future.cancel()
-                if where:
-                    self.client.restart_workers(where, raise_for_error=False)
-            except Exception:  # noqa: BLE001 - the row says it hung whether or not the restart worked
-                pass
-            del inflight[future]
-            out.append((job, hung_s))
-        return out
-
     def _submit(self, job: _Job):
         if job.kind == "reference":
             prev = job.deps[0].result if job.deps else None
@@ -331,7 +308,7 @@ class ClusterExecutor:
             self._seen(res, res.get("task_s", 0.0), now - job.submitted)
         else:
             job.result = None  # the configurations compute it themselves (and fail as in one process)
-            job.error = self._failure(future)
+            job.error = failure_reason(future)
 
     def _config_done(self, run_id: str, cfg, backends: dict, job: _Job, future, now: float):
         if future.status == "finished":
@@ -350,7 +327,7 @@ class ClusterExecutor:
             raise RunInterrupted(f"the scheduler cancelled the task of {cfg.case.id} {cfg.backend_id} {cfg.method} "
                                  f"{knob_string(cfg.knobs)} (scheduler restarted or connection lost)")
         return [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
-                 "reason": self._failure(future)}], False
+                 "reason": failure_reason(future)}], False
 
     def _ref_chain(self, job: _Job) -> list[float]:
         out = []
@@ -359,15 +336,6 @@ class ClusterExecutor:
             out.append(r.task_s)
             r = r.deps[0] if r.deps else None
         return out
-
-    def _failure(self, future) -> str:
-        exc = future.exception()
-        if isinstance(exc, KilledWorker):
-            last = getattr(getattr(exc, "last_worker", None), "address", "?")
-            return (f"KilledWorker: its worker process died {exc.allowed_failures + 1} times while running it "
-                    f"(distributed.scheduler.allowed-failures = {exc.allowed_failures}; last on {last}): a crash, "
-                    "abort or out-of-memory kill in this configuration")
-        return f"{type(exc).__name__} (on the cluster): {exc}"
 
     def _seen(self, res: dict, task_s: float, latency: float) -> None:
         addr = res.get("worker", "")

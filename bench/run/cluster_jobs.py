@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import time
 import uuid
 from collections import deque
 from typing import Any
 
 import numpy as np
-from distributed import wait
+from distributed import KilledWorker, wait
 
 from . import references
 from .cluster_worker import retime_task
@@ -131,3 +132,43 @@ def retime_rounds(executor, rows: list[dict], todo: list, rounds: int, run_id: s
                 cf = float(np.median(executor._cf.get((w, cfg.case.id), [float("nan")])))
                 for j in index[tuple(map(str, cfg.key))]:
                     pool(rows[j], extra, cf)
+
+
+def hung_jobs(client, inflight: dict, policy) -> list:
+    """``(job, seconds)`` of the configuration tasks in flight (``inflight``: future → job) that
+    have run long enough past ``--timeout`` to be hung in native code
+    (:func:`bench.run.supervise.hung_for`, counted from their submission: a task is submitted only
+    when a worker thread is free for it), each removed from ``inflight``, cancelled and its worker
+    restarted (the worker thread cannot be interrupted; its nanny starts a fresh process, and the
+    tasks it also ran are run again elsewhere)."""
+    from .supervise import hung_for
+
+    out = []
+    for future, job in list(inflight.items()):
+        if job.kind == "reference":
+            continue
+        hung_s = hung_for(time.time() - (time.perf_counter() - job.submitted), float(policy.timeout_s or 0.0))
+        if hung_s is None:
+            continue
+        try:
+            where = [w for w, keys in client.processing().items() if future.key in keys]
+            future.cancel()
+            if where:
+                client.restart_workers(where, raise_for_error=False)
+        except Exception:  # noqa: BLE001 - the row says it hung whether or not the restart worked
+            pass
+        del inflight[future]
+        out.append((job, hung_s))
+    return out
+
+
+def failure_reason(future) -> str:
+    """The reason of a configuration whose task failed: its worker died too often
+    (:class:`distributed.KilledWorker`), or the exception it raised on the cluster."""
+    exc = future.exception()
+    if isinstance(exc, KilledWorker):
+        last = getattr(getattr(exc, "last_worker", None), "address", "?")
+        return (f"KilledWorker: its worker process died {exc.allowed_failures + 1} times while running it "
+                f"(distributed.scheduler.allowed-failures = {exc.allowed_failures}; last on {last}): a crash, "
+                "abort or out-of-memory kill in this configuration")
+    return f"{type(exc).__name__} (on the cluster): {exc}"
