@@ -94,8 +94,8 @@ def _chord(xp: Any, w: Any, d: Any, radius: Any) -> tuple[Any, Any]:
 def balls_chord_hull(xp: Any, o: Any, d: Any, centres, radii) -> tuple[Any, Any]:
     """The hull of the chords of k balls (``centres`` (k, 3), ``radii`` (k,), numbers), each
     computed and padded as :func:`ball_chord` computes one, as (n, k) computations: a union of
-    many children bounded by their balls costs one vectorized expression, not k of them (jax
-    inlined k chords into one fused loop per use: a union of 100 spheres compiled for 211 s).
+    many children bounded by their balls costs one vectorized expression, not k of them (XLA
+    inlined k chords into every use of the bound: a union of 100 spheres compiled for 91 s).
     Outside jit the balls go in blocks of at most :data:`BALLS_BLOCK` (n, k) entries (1024² rays
     and 100 balls would be 2.5 GB per (n, k, 3) temporary); min and max are exact, so the blocks
     change nothing."""

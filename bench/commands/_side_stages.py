@@ -157,41 +157,35 @@ class SideStages:
 
     def _receive(self) -> dict:
         """The second process's notes, or {} when it died; a configuration of its stability stage
-        hung in native code (:func:`bench.run.supervise.overdue`) is marked so and the process
-        killed (then {}: :meth:`_resumed` goes on past it)."""
-        from ..run.runner import INFLIGHT
-        from ..run.supervise import POLL_S, mark_hung, overdue
+        hung in native code is marked so and the process killed (:func:`bench.run.supervise.kill_if_hung`;
+        then {}: :meth:`_resumed` goes on past it)."""
+        from ..run.supervise import POLL_S, kill_if_hung
 
-        note = Path(self.arguments[1]) / STABILITY_DIR / INFLIGHT if self.target is stages_main else None
         try:
             while not self.conn.poll(POLL_S):
-                hung = overdue(note) if note is not None else None
-                if hung is not None and hung.get("pid") == self.process.pid:
-                    mark_hung(note, hung)
-                    print(f"the second process is stuck in {hung.get('what', 'a configuration')} of the stability stage "
-                          f"({hung['hung_s']:.0f} s, its limit {float(hung['limit_s']):g} s): killing it", flush=True)
-                    self.process.kill()
+                kill_if_hung(self._note(), self.process.pid, self.process.kill, "the stability stage's process")
             return self.conn.recv()  # what the child sent, or EOFError when it died
         except (EOFError, OSError):
             return {}
 
+    def _note(self) -> Path | None:
+        """The stability stage's in-flight note (:data:`bench.run.supervise.INFLIGHT`), or None
+        where this process runs another target."""
+        from ..run.supervise import INFLIGHT
+
+        return Path(self.arguments[1]) / STABILITY_DIR / INFLIGHT if self.target is stages_main else None
+
     def _resumed(self):
         """After this process died inside a configuration of the stability stage (its runner's
-        in-flight note is there, :data:`bench.run.runner.INFLIGHT`): ``(the stages started again in
+        in-flight note is there, :meth:`_note`): ``(the stages started again in
         a new process, resuming the stability stage, which records that configuration as failed,
         what it was)``; None otherwise, or after :data:`bench.run.supervise.MAX_RESTARTS` restarts."""
-        import json
+        from ..run.supervise import MAX_RESTARTS, read_note
 
-        from ..run.runner import INFLIGHT
-        from ..run.supervise import MAX_RESTARTS
-
-        if self.target is not stages_main or "stability" not in self.stages or self.restarts >= MAX_RESTARTS:
+        note = read_note(self._note()) if self._note() is not None else None
+        if note is None or "stability" not in self.stages or self.restarts >= MAX_RESTARTS:
             return None
-        note = Path(self.arguments[1]) / STABILITY_DIR / INFLIGHT
-        try:
-            what = json.loads(note.read_text()).get("what", "a configuration")
-        except (OSError, ValueError):
-            return None
+        what = note.get("what", "a configuration")
         args = argparse.Namespace(**{**vars(self.arguments[0]), "resume": True})
         again = SideStages(self.stages, (args,) + tuple(self.arguments[1:]), target=self.target)
         again.restarts = self.restarts + 1

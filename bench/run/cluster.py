@@ -52,7 +52,7 @@ from distributed import Client, LocalCluster, wait
 
 from .cluster_jobs import _Job, failure_reason, hung_jobs, plan_jobs, ready_queues, retime_rounds
 from .cluster_worker import WorkerSetup, _config_with_seeds, _noop, reference_task, thread_env, worker_record
-from .configuration import base_row, over_budget_message
+from .configuration import base_row, failed_rows, over_budget_message
 from .executor import Interrupted
 from .references import ReferenceOptions
 from .results import knob_string
@@ -255,9 +255,8 @@ class ClusterExecutor:
             except TimeoutError:
                 done = set()
             for job, hung_s in hung_jobs(self.client, inflight, policy):  # native code that never returns
-                cfg = todo[job.index]
-                yield job.index, [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
-                                   "reason": hung_reason(float(policy.timeout_s), hung_s)}], False
+                yield job.index, failed_rows(run_id, todo[job.index], backends,
+                                             hung_reason(float(policy.timeout_s), hung_s)), False
             if not done:
                 if self._capacity(fresh=True) == 0:
                     no_worker_since = no_worker_since or time.monotonic()
@@ -326,8 +325,7 @@ class ClusterExecutor:
         if future.status == "cancelled":
             raise RunInterrupted(f"the scheduler cancelled the task of {cfg.case.id} {cfg.backend_id} {cfg.method} "
                                  f"{knob_string(cfg.knobs)} (scheduler restarted or connection lost)")
-        return [{**base_row(run_id, cfg, backends[cfg.backend_id]), "outcome": "failed",
-                 "reason": failure_reason(future)}], False
+        return failed_rows(run_id, cfg, backends, failure_reason(future)), False
 
     def _ref_chain(self, job: _Job) -> list[float]:
         out = []

@@ -59,6 +59,12 @@ def base_row(run_id: str, cfg: Config, backend: Any) -> dict:
     }
 
 
+def failed_rows(run_id: str, cfg: Config, backends: dict, reason: str) -> list[dict]:
+    """The one row of a configuration that failed without running to the end (its process or
+    worker died or hung), with ``reason``."""
+    return [{**base_row(run_id, cfg, backends.get(cfg.backend_id)), "outcome": "failed", "reason": reason}]
+
+
 def skip_reason(cfg: Config, backend: Any) -> str | None:
     """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it, the backend's
     optional ``declines(method, scene)`` hook last (:func:`impls.protocol.declined_reason`).  A

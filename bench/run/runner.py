@@ -27,6 +27,7 @@ import numpy as np
 from impls import Unavailable
 
 from . import environment
+from .configuration import failed_rows
 from .executor import InProcessExecutor, Interrupted
 from .plan import CONFIG_KEY, Config, new_run_id, plan
 from .references import ReferenceOptions
@@ -34,7 +35,7 @@ from .results import OVER_BUDGET, knob_string, to_frame, write_json, write_resul
 from .resume import check_case_versions, kept_rows, load_previous, outcome_counts, outcome_of, record_elapsed
 from .sharing import SharingExecutor
 from .suites import Suite
-from .supervise import INFLIGHT, hung_reason
+from .supervise import INFLIGHT, hung_reason, read_note
 from .timing import TimingPolicy
 
 __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "plan", "run"]
@@ -44,7 +45,6 @@ __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "p
 #: (docs/performance.md).  Waiting this many times the last write's cost between writes bounds
 #: writing to 1/(1 + FLUSH_COST_FACTOR) of the wall time, at the price of redoing at most that
 #: interval's configurations after a kill (--resume): 30, about 3 % (docs/performance.md).
-FLUSH_COST_FACTOR = 30.0
 FLUSH_COST_FACTOR = 30.0
 
 #: the reason of a configuration whose process died while it ran (:func:`crashed_rows`)
@@ -184,33 +184,22 @@ class _InFlight:
 
 def crashed_rows(out_dir: Path, run_id: str, cfgs: list[Config], done: set, backends: dict) -> list[dict]:
     """The failed row of the configuration a killed session left in :data:`INFLIGHT` (none if
-    there is no such file, or it names a configuration the run has rows for or no longer plans),
-    and the file removed: that configuration killed its process (or hung in native code and was
-    killed: a Timeout row), and running it again would do so again."""
-    from .configuration import base_row
-
+    there is no such note, it is torn, or it names a configuration the run has rows for or no
+    longer plans), and the note removed: that configuration killed its process (or hung in native
+    code and was killed: a Timeout row), and running it again would do so again."""
     path = out_dir / INFLIGHT
-    try:
-        note = json.loads(path.read_text())
-        key = tuple(map(str, note["key"]))
-    except FileNotFoundError:
-        return []
-    except (OSError, ValueError, KeyError, TypeError):  # a torn note: nothing to tell from it
-        path.unlink(missing_ok=True)
-        return []
+    note = read_note(path)
     path.unlink(missing_ok=True)
-    if key in done:
-        return []
-    cfg = next((c for c in cfgs if tuple(map(str, c.key)) == key), None)
+    key = tuple(map(str, note.get("key") or ())) if note else ()
+    cfg = next((c for c in cfgs if tuple(map(str, c.key)) == key), None) if key not in done else None
     if cfg is None:
         return []
-    if "hung_s" in note:  # killed by the supervisor's watchdog (bench.run.supervise.overdue)
-        reason = hung_reason(float(note.get("limit_s") or 0.0), float(note["hung_s"]))
-    else:
-        reason = (f"{CRASHED}: the process running this configuration died inside it (pid {note.get('pid')}: "
-                  "a segfault, an abort or an exit in the backend or its libraries); it is not run again. "
-                  "Run it alone (--case, --backend, --method) to see the crash")
-    return [{**base_row(run_id, cfg, backends.get(cfg.backend_id)), "outcome": "failed", "reason": reason}]
+    if "hung_s" in note:  # killed by a watchdog (bench.run.supervise.overdue)
+        return failed_rows(run_id, cfg, backends, hung_reason(float(note.get("limit_s") or 0.0), float(note["hung_s"])))
+    return failed_rows(run_id, cfg, backends,
+                       f"{CRASHED}: the process running this configuration died inside it (pid {note.get('pid')}: a "
+                       "segfault, an abort or an exit in the backend or its libraries); it is not run again. Run it "
+                       "alone (--case, --backend, --method) to see the crash")
 
 
 def _finish_env(env: dict, cf_samples: dict, rounds: int, interrupted: str, n_over: int, n_total: int,
@@ -241,9 +230,9 @@ def _kept_and_todo(out_dir: Path, run_id: str, cfgs: list[Config], previous, bac
     return rows + crashed, crashed, [c for c in cfgs if tuple(map(str, c.key)) not in done]
 
 
-def _what(cfg: Config) -> str:
-    """A configuration as the progress lines name it."""
-    return f"{cfg.case.id} {cfg.backend_id} {cfg.method} {knob_string(cfg.knobs)}"
+def _what(cfg: Config, dtype: bool = False) -> str:
+    """A configuration as the progress lines name it (with its dtype: as the in-flight note does)."""
+    return f"{cfg.case.id} {cfg.backend_id}{f' {cfg.dtype}' if dtype else ''} {cfg.method} {knob_string(cfg.knobs)}"
 
 
 def _executor(opts: RunOptions, env: dict):
@@ -301,7 +290,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
 
     def on_start(j: int) -> None:
         cfg = todo[j]
-        inflight.start(cfg, f"{cfg.case.id} {cfg.backend_id} {cfg.dtype} {cfg.method} {knob_string(cfg.knobs)}")
+        inflight.start(cfg, _what(cfg, dtype=True))
         if progress:
             progress(n_before + j, n_total, _what(cfg), dict(counts))
 

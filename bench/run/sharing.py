@@ -39,7 +39,7 @@ import queue
 import time
 from typing import Callable, Iterator
 
-from .configuration import base_row
+from .configuration import failed_rows
 from .executor import InProcessExecutor
 from .plan import Config
 from .references import ReferenceOptions
@@ -260,8 +260,7 @@ class SharingExecutor(InProcessExecutor):
                 print(f"the second process is stuck in {todo[j].case.id} {todo[j].backend_id} {todo[j].method} "
                       f"({hung_s:.0f} s, its limit {policy.timeout_s:g} s): killing it", flush=True)
                 self.kill()
-                yield j, [{**base_row(run_id, todo[j], backends.get(todo[j].backend_id)), "outcome": "failed",
-                           "reason": hung_reason(float(policy.timeout_s), hung_s)}], False
+                yield j, failed_rows(run_id, todo[j], backends, hung_reason(float(policy.timeout_s), hung_s)), False
             elif not self.alive():
                 while (msg := self.share.receive(0)) is not None:  # what it sent before it died
                     yield from self._take(msg, pending)

@@ -20,7 +20,7 @@ A library user calling :func:`bench.commands.main` in-process is not supervised.
 Hangs: ``--timeout`` interrupts Python code at once and a compiled kernel when it returns to
 Python (:func:`bench.run.timing.time_limit`).  The note carries that limit; a configuration that
 has run :data:`HUNG_AFTER` past it is inside native code that does not return, and its process is
-killed (:func:`overdue`, :func:`mark_hung`): by this process for the run's own, by the first process
+killed (:func:`kill_if_hung`): by this process for the run's own, by the first process
 for the second's share of the plan (:class:`bench.run.sharing.SharingExecutor`), by the side
 stages' waiter for the stability stage; on a cluster the client cancels the task and restarts its
 worker (:class:`bench.run.cluster.ClusterExecutor`).  Each is a ``Timeout`` row.
@@ -145,15 +145,27 @@ def hung_reason(limit_s: float, hung_s: float) -> str:
             f"(a native kernel or compile): its process was killed after {hung_s:.0f} s, and it is not run again")
 
 
-def mark_hung(path: Path, note: dict) -> None:
-    """Rewrite the note as that of a configuration killed as hung (:func:`overdue`), so that the
-    resumed run records it as a Timeout, not a crash (:func:`bench.run.runner.crashed_rows`)."""
+def kill_if_hung(path: Path | None, pid: int, kill, who: str) -> bool:
+    """Where the note at ``path`` is overdue (:func:`overdue`) and was written by process ``pid``
+    (not a note an earlier process left): rewrite it as that of a configuration killed as hung,
+    so that the resumed run records a Timeout, not a crash (:func:`bench.run.runner.crashed_rows`),
+    say so on stderr naming ``who``, call ``kill()``, and return True."""
     from .results import write_json
 
-    write_json(Path(path), note)
+    hung = overdue(path) if path is not None else None
+    if hung is None or hung.get("pid") != pid:
+        return False
+    write_json(Path(path), hung)
+    print(f"{who} is stuck in {hung.get('what', 'a configuration')} ({hung['hung_s']:.0f} s, its limit "
+          f"{float(hung['limit_s']):g} s): killing it", file=sys.stderr, flush=True)
+    kill()
+    return True
 
 
 def _wait_gone(pid: int, seconds: float = 10.0) -> None:
+    """Until process ``pid`` (> 0; else nothing) is gone, for at most ``seconds``."""
+    if pid <= 0:  # (os.kill(0 or −1, 0) would ask about a process group or every process)
+        return
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
         try:
@@ -167,8 +179,8 @@ def _child(argv: list[str], env: dict, note_of_out) -> int:
     """Run ``python -m bench <argv>`` and wait for it; SIGTERM given to this process is passed
     on, SIGINT (a terminal's Ctrl-C reaches both) left to the child.  Every :data:`POLL_S` it
     looks at the run's in-flight note (``note_of_out()``: its path, once the child claimed a run
-    directory): a configuration hung in native code (:func:`overdue`) is marked so and the child
-    killed."""
+    directory): a configuration hung in native code is marked so and the child killed
+    (:func:`kill_if_hung`)."""
     proc = subprocess.Popen([sys.executable, "-m", "bench", *argv], env={**env, PARENT_ENV: str(os.getpid())})
 
     def forward(signum, frame):
@@ -182,13 +194,7 @@ def _child(argv: list[str], env: dict, note_of_out) -> int:
                 return proc.wait(timeout=POLL_S)
             except subprocess.TimeoutExpired:
                 pass
-            path = note_of_out()
-            hung = overdue(path) if path is not None else None
-            if hung is not None and hung.get("pid") == proc.pid:  # (not a note an earlier child left)
-                mark_hung(path, hung)
-                print(f"the run's process is stuck in {hung.get('what', 'a configuration')} ({hung['hung_s']:.0f} s, "
-                      f"its limit {float(hung['limit_s']):g} s): killing it", file=sys.stderr, flush=True)
-                proc.kill()
+            kill_if_hung(note_of_out(), proc.pid, proc.kill, "the run's process")
     finally:
         signal.signal(signal.SIGINT, old_int)
         signal.signal(signal.SIGTERM, old_term)
@@ -220,12 +226,9 @@ def supervise(argv: list[str]) -> int:
             # not to blame, and the resumed stability stage must not record it as crashed
             side = read_note(out / SIDE_DIR / INFLIGHT)
             if side is not None:
-                _wait_gone(int(side.get("pid", 0)) or -1)
+                _wait_gone(int(side.get("pid") or 0))
                 (out / SIDE_DIR / INFLIGHT).unlink(missing_ok=True)
-            try:
-                what = json.loads((out / INFLIGHT).read_text()).get("what", "?")
-            except (OSError, ValueError):
-                what = "a configuration"
+            what = (read_note(out / INFLIGHT) or {}).get("what", "a configuration")
             if restart == MAX_RESTARTS:
                 print(f"the run's process died ({_status(code)}) while running {what}, after {MAX_RESTARTS} restarts; "
                       f"stopping: finish it with --resume --out {out}", file=sys.stderr, flush=True)
