@@ -20,6 +20,9 @@ from tests.conftest import bench_cli
 pytestmark = pytest.mark.slow
 
 CRASHY = "tests.crash_backend:CrashBackend"
+#: the run's own configurations only: the stability stage (a second process, its own test below)
+#: and the claims took 22 of a crash test's 28 s
+QUIET = ("--no-stability", "--no-claims", "--no-progress")
 
 
 def _configs(path) -> pd.DataFrame:
@@ -34,7 +37,7 @@ def test_a_backend_that_kills_its_process_costs_only_its_configuration(tmp_path,
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": how}
     p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method",
-                  "sphere_trace,hybrid_secant", "--no-progress", "--out", out, env=env)
+                  "sphere_trace,hybrid_secant", *QUIET, "--out", out, env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "the run's process died" in p.stderr and "sphere_trace" in p.stderr, p.stderr[-2000:]
     g = _configs(out / "results.csv")
@@ -88,9 +91,9 @@ def test_a_configuration_hung_in_native_code_is_killed_and_recorded_as_a_timeout
     environment variable), and the resumed run records it as a Timeout row."""
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
-           supervise.HUNG_AFTER_ENV: "1,30"}
+           supervise.HUNG_AFTER_ENV: "1,10"}
     p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
-                  "--timeout", "2", "--no-progress", "--out", out, env=env)
+                  "--timeout", "2", *QUIET, "--out", out, env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     # (the second process may have claimed it: then the first process kills that one, and says so)
     assert "is stuck in" in p.stdout + p.stderr, p.stdout[-2000:] + p.stderr[-2000:]
@@ -136,7 +139,7 @@ def test_a_hung_configuration_on_a_cluster_worker_is_a_timeout_row(tmp_path):
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
            supervise.HUNG_AFTER_ENV: "1,10"}
     p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
-                  "--cluster", "local:2", "--timeout", "2", "--no-claims", "--no-progress", "--out", out, env=env)
+                  "--cluster", "local:2", "--timeout", "2", *QUIET, "--out", out, env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     g = _configs(out / "results.csv")
     failed = g[g.outcome == "failed"]
