@@ -57,33 +57,67 @@ def thin_walls(seed: int):
 
 
 def allowance(method: str, knobs: dict) -> float:
-    """The chord below which a crossing pair may be skipped (docs/methods.md)."""
+    """The chord below which a crossing pair may be skipped (docs/methods.md): sphere tracing's
+    δ = max(tol/L, 4·rounding) (L = 1 for these scenes), the hybrids' ``min_step`` (the knob's
+    default from :data:`impls.methods.METHODS` where not given)."""
+    from impls.methods import METHODS
+
+    defaults = {k.name: k.default for k in METHODS[method].knobs}
     if method == "sphere_trace":
-        return max(knobs.get("tol", 1e-10), 1e-12)  # δ = max(tol/L, 4·rounding), L = 1 here
-    return knobs.get("min_step", 1e-5)
+        return max(knobs.get("tol", defaults["tol"]), 1e-12)
+    return knobs.get("min_step", defaults["min_step"])
 
 
-def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None) -> dict:
-    """Counts of rays breaking the documented guarantee: a CONVERGED ray after a skipped crossing
-    pair at least ``allow`` wide or off every crossing, a MISS on a ray with a crossing.
+def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None, t_min: float = 0.0) -> dict:
+    """Counts of rays breaking the documented guarantee.  A ray's crossings are the ends of its
+    exact solid intervals in (t_min, t_max], in order (a ray starting inside a solid has its exit
+    first).  A CONVERGED depth must be within :data:`TOL` of a crossing c_k (the first such k),
+    and the crossings it passed, c_0 … c_{k−1}, must pair up, (c_0, c_1), (c_2, c_3), …, each
+    pair narrower than ``allow``: an odd number passed means a lone crossing was skipped (an
+    exit reported after its entry, whatever the width).  A MISS must have no crossing.
     ``intervals``: the scene's exact ``ray_intervals(o, d)``, when already computed."""
     intervals = scene.ray_intervals(o, d) if intervals is None else intervals
     bad_conv, bad_miss = [], []
     for i, iv in enumerate(intervals):
         st, t = int(res.status[i]), float(res.t[i])
-        ends = iv.reshape(-1, 2)
-        ends = ends[(ends[:, 1] > 0.0) & (ends[:, 0] < t_max)]
-        crossings = np.concatenate([ends[:, 0][ends[:, 0] > 0], ends[:, 1][ends[:, 1] < t_max]])
+        c = np.sort(np.asarray(iv, float).ravel())
+        c = c[(c > t_min) & (c <= t_max)]
         if st == Status.CONVERGED:
-            if not crossings.size or np.min(np.abs(crossings - t)) > TOL * max(1.0, abs(t)):
+            near = np.abs(c - t) <= TOL * max(1.0, abs(t))
+            if not near.any():
                 bad_conv.append(i)
                 continue
-            skipped = ends[ends[:, 1] < t - TOL * max(1.0, abs(t))]
-            if np.any(skipped[:, 1] - np.maximum(skipped[:, 0], 0.0) >= allow):
+            passed = c[:int(np.argmax(near))]
+            if passed.size % 2 or np.any(passed[1::2] - passed[0::2] >= allow):
                 bad_conv.append(i)
-        elif st == Status.MISS and crossings.size:
+        elif st == Status.MISS and c.size:
             bad_miss.append(i)
     return {"converged off the first crossing": bad_conv, "certified miss with a crossing": bad_miss}
+
+
+def test_the_guarantee_check_catches_a_skipped_entry_and_reads_inside_starts():
+    """The checker itself, on planted answers (no root finder): an exit reported after its
+    solid's entry breaks the guarantee however wide the solid; a ray starting inside a solid
+    answers its exit, and may pass a gap narrower than the allowance, not a wider one; t_min
+    counts only the crossings after it."""
+    from types import SimpleNamespace
+
+    def judge(scene, o, t, status=Status.CONVERGED, **kw):
+        res = SimpleNamespace(status=np.array([int(status)]), t=np.array([t]))
+        bad = check_guarantee(scene, np.array([o], float), np.array([[0.0, 0.0, -1.0]]), res, 10.0, 1e-5, **kw)
+        return [k for k, v in bad.items() if v]
+
+    ball = Sphere(center=(0, 0, 0), radius=1.0)  # from z = 3 downward: solid on [2, 4]
+    assert judge(ball, (0, 0, 3), 2.0) == []
+    assert judge(ball, (0, 0, 3), 4.0) == ["converged off the first crossing"]  # the entry at 2 skipped
+    assert judge(ball, (0, 0, 3), 3.0) == ["converged off the first crossing"]  # on no crossing
+    assert judge(ball, (0, 0, 3), np.inf, Status.MISS) == ["certified miss with a crossing"]
+    assert judge(ball, (0, 0, 3), 4.0, t_min=3.0) == []  # starts inside at t_min: the exit is first
+    assert judge(ball, (0, 0, 3), np.inf, Status.MISS, t_min=4.5) == []
+    for gap, ok in ((1e-7, True), (1e-3, False)):  # inside the upper ball, a gap, then the lower one
+        pair = Union(ball, Sphere(center=(0, 0, -2.0 - gap), radius=1.0))
+        assert judge(pair, (0, 0, 0), 3.0 + gap) == ([] if ok else ["converged off the first crossing"])
+        assert judge(pair, (0, 0, 0), 1.0) == []
 
 
 @functools.lru_cache(maxsize=None)

@@ -165,3 +165,28 @@ def test_the_default_ladder_is_the_drivers_choice(backend, ladder, method):
     np.testing.assert_array_equal(default.iterations, explicit.iterations)
     np.testing.assert_array_equal(default.evals, explicit.evals)
     assert (default.evals > default.iterations + 1).any() == (ladder > 1)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch:cpu", "numba", "warp",
+                                     pytest.param("jax:cpu", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["march_secant", "march_bisect", "march_newton"])
+def test_a_march_that_starts_on_the_surface_exactly_is_uncertified(backend, method):
+    """φ = 0 exactly at the start shows no side of the surface, and the first crossing lies
+    strictly after the start (reference.scene.first_hit_from_intervals): a ray leaving a sphere
+    from a point of it has no crossing, one entering it crosses at the far side.  The marches
+    reported CONVERGED at t_min for both (found with rays from a sphere's centre and t_min its
+    radius); now UNCERTIFIED, as the certified methods have been; other rays are unchanged."""
+    from tests.conftest import resolve_or_skip
+
+    b = resolve_or_skip(backend)
+    if method not in b.methods():
+        pytest.skip(f"{backend} does not offer {method}")
+    ball = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+    # starts on the sphere at t_min: out of it along +z, into it along −z (φ(o) = 0 exactly: |o| = 1)
+    o = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 3.0]])
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    assert np.all(ball.value(o[:2], np) == 0.0)
+    p = b.prepare(method, ball, o, d, dtype="float64", t_min=0.0, t_max=10.0, step=0.01)
+    res = p.result(p.run())
+    assert list(res.status[:2]) == [Status.UNCERTIFIED] * 2, res.status
+    assert res.status[2] == Status.CONVERGED and abs(res.t[2] - 2.0) < 1e-9

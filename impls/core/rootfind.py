@@ -885,8 +885,11 @@ class MarchRefine(_Search):
             # the certification of a bracket's crossing as the first (step_refine): set on a crossing
             s.update(u=t, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(f, dtype=xp.bool))
         # a certifying rule starts only from a resolved point (a start on the surface to rounding
-        # is UNCERTIFIED); a constant-step march from φ = 0 exactly is at a root
-        s["status"] = _init_status(xp, status, f, (f == 0) if unres is None else xp.zeros_like(unres), unres)
+        # is UNCERTIFIED); a constant-step march from φ = 0 exactly shows no side either: the first
+        # crossing lies strictly after the start (reference.scene.first_hit_from_intervals), and
+        # whether the ray leaves the surface into the solid or out of it is not known, so it too is
+        # UNCERTIFIED at once (it was CONVERGED at t_min, a depth the reference does not have)
+        s["status"] = _init_status(xp, status, f, xp.zeros_like(f, dtype=xp.bool), (f == 0) if unres is None else unres)
         return s
 
     # The stage steps assume every row they are given is IN_PROGRESS in their stage (the

@@ -39,7 +39,7 @@ import math
 import numpy as np
 
 from ..core.driver import _whole_at_least
-from ..core.rootfind import (BAD, CONV, IN, LIPV, MAXI, MISS, NONF, Bisect, CertifiedStep, ConstantStep, MarchRefine,
+from ..core.rootfind import (BAD, CONV, IN, LIPV, MAXI, MISS, NONF, UNC, Bisect, CertifiedStep, ConstantStep, MarchRefine,
                              Newton, Secant, SphereTrace)
 
 #: per-ray ladder samples where the knob leaves it to the driver (-1): none (module docstring)
@@ -230,7 +230,7 @@ def kernels_source(key: str, parallel: bool = True) -> str:
         "import math",
         "import numpy as np",
         "from numba import njit, prange",
-        "from impls.numba.driver import BAD, CONV, IN, LIPV, MAXI, MISS, NONF",
+        "from impls.numba.driver import BAD, CONV, IN, LIPV, MAXI, MISS, NONF, UNC",
         f"from impls.numba.driver import {consts}",
         "from impls.cache import lock_numba_cache",
         "from impls.numba.fields import helpers as _helpers",
@@ -370,7 +370,7 @@ def _make_kernels(phi, bounds, parallel=True):
     # the generated kernels' globals: what the cached module (kernels_source) defines at its top level
     ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "verdict": verdict, "final_t": final_t,
           "_max": _max, "_min": _min, "math": math, "np": np, "njit": njit, "prange": prange, "inf": inf, "IN": IN,
-          "NONF": NONF, "CONV": CONV, "CHUNK": template.CHUNK,
+          "NONF": NONF, "CONV": CONV, "UNC": UNC, "CHUNK": template.CHUNK,
           **{k: v for k, v in globals().items() if k[:2] in ("F_", "I_")}}
     exec(compile(template.source(parallel), "<isobench numba kernels>", "exec"), ns)  # noqa: S102 - our own generated source
     run_march, run_lanes = ns["run_march"], ns["run_lanes"]

@@ -101,7 +101,7 @@ if ph_K == -1:
     if not math.isfinite(fe_K):
         st_K = NONF
     elif fe_K == 0:
-        st_K = CONV
+        st_K = UNC
     else:
         f_K, df_K = fe_K, dfe_K
         mag_K = ((abs(o0_K) + abs(o1_K)) + abs(o2_K)) + scale
