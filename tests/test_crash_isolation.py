@@ -23,6 +23,11 @@ CRASHY = "tests.crash_backend:CrashBackend"
 #: the run's own configurations only: the stability stage (a second process, its own test below)
 #: and the claims took 22 of a crash test's 28 s
 QUIET = ("--no-stability", "--no-claims", "--no-progress")
+#: the hang tests' ``--timeout`` and hang threshold (``supervise.HUNG_AFTER_ENV``: killed at 1 × the
+#: limit + 5 s = 15 s): the other configurations take ~0.2 s each here, so a limit of 10 s holds
+#: them on a machine 50× slower than an idle one (a limit of 2 s would time out a legitimate one
+#: under load), and the hang still costs only 15 s of waiting
+LIMIT, HUNG_AFTER = "10", "1,5"
 
 
 def _configs(path) -> pd.DataFrame:
@@ -91,9 +96,9 @@ def test_a_configuration_hung_in_native_code_is_killed_and_recorded_as_a_timeout
     environment variable), and the resumed run records it as a Timeout row."""
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
-           supervise.HUNG_AFTER_ENV: "1,10"}
+           supervise.HUNG_AFTER_ENV: HUNG_AFTER}
     p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
-                  "--timeout", "2", *QUIET, "--out", out, env=env)
+                  "--timeout", LIMIT, *QUIET, "--out", out, env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     # (the second process may have claimed it: then the first process kills that one, and says so)
     assert "is stuck in" in p.stdout + p.stderr, p.stdout[-2000:] + p.stderr[-2000:]
@@ -123,6 +128,18 @@ def test_overdue_reads_the_note_and_the_limit(tmp_path, monkeypatch):
     assert supervise.overdue(path, now=1e9) is None
 
 
+@pytest.mark.parametrize("text", ["{torn", "[1, 2]", '{"key": 5}', '{"key": null}'])
+def test_a_torn_or_malformed_note_records_nothing_and_is_removed(tmp_path, text):
+    """A note the killed process left half-written (or one not written by a runner) names no
+    configuration: the resumed run records no crash from it and removes it."""
+    from bench.run.runner import crashed_rows
+
+    path = tmp_path / INFLIGHT
+    path.write_text(text)
+    assert crashed_rows(tmp_path, "r", [], set(), {}) == []
+    assert not path.exists()
+
+
 def test_the_side_directory_is_the_stability_stages():
     from bench.report.tables import STABILITY_DIR
 
@@ -137,9 +154,9 @@ def test_a_hung_configuration_on_a_cluster_worker_is_a_timeout_row(tmp_path):
     pytest.importorskip("distributed")
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
-           supervise.HUNG_AFTER_ENV: "1,10"}
+           supervise.HUNG_AFTER_ENV: HUNG_AFTER}
     p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
-                  "--cluster", "local:2", "--timeout", "2", *QUIET, "--out", out, env=env)
+                  "--cluster", "local:2", "--timeout", LIMIT, *QUIET, "--out", out, env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     g = _configs(out / "results.csv")
     failed = g[g.outcome == "failed"]

@@ -182,7 +182,8 @@ class SideStages:
         what it was)``; None otherwise, or after :data:`bench.run.supervise.MAX_RESTARTS` restarts."""
         from ..run.supervise import MAX_RESTARTS, read_note
 
-        note = read_note(self._note()) if self._note() is not None else None
+        path = self._note()
+        note = read_note(path) if path is not None else None
         if note is None or "stability" not in self.stages or self.restarts >= MAX_RESTARTS:
             return None
         what = note.get("what", "a configuration")

@@ -190,7 +190,7 @@ def crashed_rows(out_dir: Path, run_id: str, cfgs: list[Config], done: set, back
     path = out_dir / INFLIGHT
     note = read_note(path)
     path.unlink(missing_ok=True)
-    key = tuple(map(str, note.get("key") or ())) if note else ()
+    key = tuple(map(str, note["key"])) if note and isinstance(note.get("key"), list) else ()  # else torn
     cfg = next((c for c in cfgs if tuple(map(str, c.key)) == key), None) if key not in done else None
     if cfg is None:
         return []
