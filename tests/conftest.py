@@ -152,8 +152,9 @@ def resolve_or_skip(backend_id: str):
 #: every level setting) at about a third of the compile (its timed runs' levels are each a copy of
 #: every stage's loop: docs/performance.md); measured on test_roots.py and test_rootfind_certified.py
 #: -k jax with an empty cache, 286 → 184 s.  The timed levels stay covered: tests/test_driver.py
-#: builds its own settings, and the quick-suite run (test_cli.py) times them against the committed
-#: baseline.  Not numba: its untimed configuration leaves out the marcher kernels the tests check.
+#: builds its own settings, and the 256² mesh test (test_certified_at_scale.py) takes jax's timed
+#: backend.  (The shared quick-suite run is accuracy-only, so it too runs the untimed settings.)
+#: Not numba: its untimed configuration leaves out the marcher kernels the tests check.
 UNTIMED_LIBS = ("jax",)
 
 

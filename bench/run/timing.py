@@ -5,7 +5,8 @@ Protocol (after pyperf and pytest-benchmark):
 1. The first call (compilation, caches, allocator warm-up) is timed alone: ``first_call_s``.
    Backends that compile ahead of time report ``compile_s`` separately (``Prepared.compile_s``).
 2. ``warmup`` further untimed calls, for a backend that compiles (one that does not is warm after
-   its first call: :func:`bench.run.configuration.warmup_policy`).  With no warm-up, a first call
+   its first call: :func:`bench.run.configuration.warmup_policy`), unless the first call took at
+   least ``warm_after_s``: then it was its own warm-up, and the next call is the first sample.  With no warm-up, a first call
    of at least ``min_time_s / min_repeats`` seconds is also the first sample (calibration gives
    one call per sample there, and the repeat count, not the time, bounds the samples: a fourth
    call would be a quarter of the configuration's time).  Measured on a quick run's numpy and
@@ -63,8 +64,12 @@ class Timing:
 class TimingPolicy:
     """``min_repeats``/``min_time_s``: samples at least; ``max_repeats``/``max_time_s``: at most;
     ``min_sample_s``: calibration target of one sample; ``warmup``: untimed calls after the
-    first; ``timeout_s``: hard limit per configuration (0: none); ``accuracy_only``: one call,
-    no timing samples (deterministic baselines)."""
+    first, unless the first took at least ``warm_after_s`` (the one-time costs a warm-up call
+    absorbs, numba's dispatch, Warp's module load, XLA's first-run allocations, are paid in the
+    first call; a call that long is a warm-up of its own, and the next call, the first sample, is
+    warm: docs/performance.md, "How a time is measured"); ``timeout_s``: hard limit per
+    configuration (0: none); ``accuracy_only``: one call, no timing samples (deterministic
+    baselines)."""
 
     min_repeats: int = 5
     max_repeats: int = 200
@@ -72,6 +77,7 @@ class TimingPolicy:
     max_time_s: float = 10.0
     min_sample_s: float = 1e-3
     warmup: int = 1
+    warm_after_s: float = 0.05
     timeout_s: float = 120.0
     accuracy_only: bool = False
 
@@ -79,7 +85,7 @@ class TimingPolicy:
         for name in ("min_repeats", "max_repeats", "warmup"):
             if getattr(self, name) < (0 if name == "warmup" else 1):
                 raise ValueError(f"TimingPolicy.{name}={getattr(self, name)} must be ≥ {0 if name == 'warmup' else 1}")
-        for name in ("min_time_s", "max_time_s", "min_sample_s", "timeout_s"):
+        for name in ("min_time_s", "max_time_s", "min_sample_s", "warm_after_s", "timeout_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"TimingPolicy.{name}={v} must be a finite number ≥ 0")
@@ -150,7 +156,7 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
     if not policy.warmup and first >= max(policy.min_sample_s, policy.min_time_s / policy.min_repeats):
         samples, total = [first], first  # a long first call of a backend warm after it: the first sample
     else:
-        for _ in range(policy.warmup):
+        for _ in range(policy.warmup if first < policy.warm_after_s else 0):
             _timed(run, sync, 1)
         while True:  # calibration: double until one sample reaches min_sample_s
             dt, _ = _timed(run, sync, loops)
