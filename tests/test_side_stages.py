@@ -4,6 +4,7 @@ the warm-up call kept only for backends that compile (bench/run/configuration.py
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -112,3 +113,15 @@ def test_the_warmup_call_is_kept_for_backends_that_compile_only():
     assert warmup_policy(_Broken(), pol).warmup == 1  # unknown: counted as compiling
     assert warmup_policy(object(), pol).warmup == 1
     assert warmup_policy(_Backend(False), pol).min_repeats == pol.min_repeats  # the samples are untouched
+
+
+def test_a_long_first_call_stands_in_for_the_warmup_only_where_the_compile_was_reported_apart():
+    """A kernel that reports its compile (``Prepared.compile_s``) keeps ``warm_after_s``; one that
+    does not may compile inside its first call and warm up after it (a lazy JIT): ∞, its warm-up
+    call is always made."""
+    pol = TimingPolicy(warmup=1, warm_after_s=0.05)
+    assert warmup_policy(_Backend(True), pol, compile_s=0.3).warm_after_s == 0.05
+    assert warmup_policy(_Backend(True), pol, compile_s=0.0).warm_after_s == 0.05
+    assert warmup_policy(_Backend(True), pol, compile_s=None).warm_after_s == math.inf
+    assert warmup_policy(_Broken(), pol).warm_after_s == math.inf
+    assert warmup_policy(_Backend(False), pol, compile_s=None).warmup == 0  # warm after its first call anyway

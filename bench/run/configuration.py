@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import math
 import traceback
 from typing import Any, Callable
 
@@ -98,9 +99,14 @@ def takes_one_argument(fn: Callable) -> bool:
     return True
 
 
-def warmup_policy(backend: Any, policy: TimingPolicy) -> TimingPolicy:
+def warmup_policy(backend: Any, policy: TimingPolicy, compile_s: float | None = None) -> TimingPolicy:
     """``policy`` for ``backend``: its ``warmup`` calls only for a backend that compiles
     (``capabilities.jit``; one that does not say, or whose capabilities break, counts as one).
+    ``compile_s``: the prepared kernel's ``Prepared.compile_s``.  Where it is None the kernel
+    may compile inside its first call (a lazy JIT, which may go on warming up in the calls after
+    it), so a long first call does not stand in for the warm-up (``warm_after_s`` = ∞); where
+    the compile was reported apart, a first call of at least ``warm_after_s`` does
+    (:func:`bench.run.timing.measure`).
 
     Why: the warm-up call absorbs what a compiling backend does on a kernel's second call
     (numba's dispatch, Warp's module load, XLA's first-run allocations).  A backend that does not
@@ -115,7 +121,11 @@ def warmup_policy(backend: Any, policy: TimingPolicy) -> TimingPolicy:
         compiles = bool(getattr(backend.capabilities, "jit", True))
     except Exception:  # noqa: BLE001 - a plug-in's broken capabilities: keep the warm-up
         compiles = True
-    return policy if compiles or not policy.warmup else dataclasses.replace(policy, warmup=0)
+    if not compiles and policy.warmup:
+        return dataclasses.replace(policy, warmup=0)
+    if compiles and compile_s is None and policy.warm_after_s != math.inf:
+        return dataclasses.replace(policy, warm_after_s=math.inf)
+    return policy
 
 
 def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
@@ -142,7 +152,7 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
                            "(docs/backends.md); it cannot be called with one argument")
     timing, out = measure(lambda: backend_call(backend, "Prepared.run()", prep.run),
                           lambda o: backend_call(backend, "backend.synchronize(out)", lambda: sync(o)),
-                          warmup_policy(backend, policy), unit=closed_form_unit(case))
+                          warmup_policy(backend, policy, compile_seconds(prep)), unit=closed_form_unit(case))
     return prep, timing, out
 
 

@@ -6,7 +6,8 @@ Protocol (after pyperf and pytest-benchmark):
    Backends that compile ahead of time report ``compile_s`` separately (``Prepared.compile_s``).
 2. ``warmup`` further untimed calls, for a backend that compiles (one that does not is warm after
    its first call: :func:`bench.run.configuration.warmup_policy`), unless the first call took at
-   least ``warm_after_s``: then it was its own warm-up, and the next call is the first sample.  With no warm-up, a first call
+   least ``warm_after_s`` (for a kernel whose compile was reported apart; ∞ otherwise): then it
+   was its own warm-up, and the next call is the first sample.  With no warm-up, a first call
    of at least ``min_time_s / min_repeats`` seconds is also the first sample (calibration gives
    one call per sample there, and the repeat count, not the time, bounds the samples: a fourth
    call would be a quarter of the configuration's time).  Measured on a quick run's numpy and
@@ -64,7 +65,7 @@ class Timing:
 class TimingPolicy:
     """``min_repeats``/``min_time_s``: samples at least; ``max_repeats``/``max_time_s``: at most;
     ``min_sample_s``: calibration target of one sample; ``warmup``: untimed calls after the
-    first, unless the first took at least ``warm_after_s`` (the one-time costs a warm-up call
+    first, unless the first took at least ``warm_after_s`` (∞: never; the one-time costs a warm-up call
     absorbs, numba's dispatch, Warp's module load, XLA's first-run allocations, are paid in the
     first call; a call that long is a warm-up of its own, and the next call, the first sample, is
     warm: docs/performance.md, "How a time is measured"); ``timeout_s``: hard limit per
@@ -85,10 +86,12 @@ class TimingPolicy:
         for name in ("min_repeats", "max_repeats", "warmup"):
             if getattr(self, name) < (0 if name == "warmup" else 1):
                 raise ValueError(f"TimingPolicy.{name}={getattr(self, name)} must be ≥ {0 if name == 'warmup' else 1}")
-        for name in ("min_time_s", "max_time_s", "min_sample_s", "warm_after_s", "timeout_s"):
+        for name in ("min_time_s", "max_time_s", "min_sample_s", "timeout_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"TimingPolicy.{name}={v} must be a finite number ≥ 0")
+        if not self.warm_after_s >= 0:  # NaN fails too; ∞: a first call never stands in for the warm-up
+            raise ValueError(f"TimingPolicy.warm_after_s={self.warm_after_s} must be a number ≥ 0 (inf: never)")
 
 
 def call_times(fn: Callable[[], Any], k: int) -> list[float]:
