@@ -65,12 +65,12 @@ class Timing:
 class TimingPolicy:
     """``min_repeats``/``min_time_s``: samples at least; ``max_repeats``/``max_time_s``: at most;
     ``min_sample_s``: calibration target of one sample; ``warmup``: untimed calls after the
-    first, unless the first took at least ``warm_after_s`` (∞: never; the one-time costs a warm-up call
-    absorbs, numba's dispatch, Warp's module load, XLA's first-run allocations, are paid in the
-    first call; a call that long is a warm-up of its own, and the next call, the first sample, is
-    warm: docs/performance.md, "How a time is measured"); ``timeout_s``: hard limit per
-    configuration (0: none); ``accuracy_only``: one call, no timing samples (deterministic
-    baselines)."""
+    first, unless the first took at least ``warm_after_s`` (∞: never; the one-time costs a
+    warm-up call absorbs, numba's dispatch, Warp's module load, XLA's first-run allocations, are
+    paid in the first call; a call that long is a warm-up of its own, and the next call, the
+    first sample, is warm: docs/performance.md, "How a time is measured"); ``timeout_s``: hard
+    limit per configuration (0: none); ``accuracy_only``: one call, no timing samples
+    (deterministic baselines)."""
 
     min_repeats: int = 5
     max_repeats: int = 200
