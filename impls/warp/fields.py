@@ -165,14 +165,29 @@ class WarpScene:
                                device=device)
 
     def phi_points(self, x: np.ndarray) -> np.ndarray:
-        """φ at float64 points ``x`` (n, 3) (numpy in, numpy out; on a GPU the copy back waits for
-        the kernel: ``Array.numpy`` synchronises with the launch's stream)."""
-        import warp as wp
+        """φ at float64 points ``x`` (n, 3), numpy in and out (:func:`launch_on_points`)."""
+        return launch_on_points(self.module.phi_points, x, [self.params], self.device)
 
-        n = x.shape[0]
-        if n == 0:
-            return np.empty(0)
-        X = wp.array(np.ascontiguousarray(x, np.float64), dtype=wp.float64, device=self.device)
-        F = wp.empty(n, dtype=wp.float64, device=self.device)
-        wp.launch(self.module.phi_points, dim=n, inputs=[X, self.params, F], device=self.device)
-        return F.numpy()
+
+def launch_on_points(kernel, x: np.ndarray, inputs: list, device: str) -> np.ndarray:
+    """``kernel(X, *inputs, F)`` launched over the float64 points ``x`` (n, 3); returns F (n,) as
+    numpy.  On the CPU, X and F are the numpy arrays' own memory (``copy=False``: Warp references
+    a contiguous CPU array) and the launch returns once the kernel has run, so a root finder's
+    step, one call per step, pays no copy in or out (docs/performance.md, "Warp on the CPU").  On
+    a GPU, X is copied in and F copied back (``Array.numpy`` waits for the launch's stream)."""
+    import warp as wp
+
+    n = x.shape[0]
+    if n == 0:
+        return np.empty(0)
+    xc = np.ascontiguousarray(x, np.float64)
+    if wp.get_device(device).is_cpu:
+        out = np.empty(n, np.float64)
+        X = wp.array(xc, dtype=wp.float64, device=device, copy=False)
+        F = wp.array(out, dtype=wp.float64, device=device, copy=False)
+        wp.launch(kernel, dim=n, inputs=[X, *inputs, F], device=device)
+        return out
+    X = wp.array(xc, dtype=wp.float64, device=device)
+    F = wp.empty(n, dtype=wp.float64, device=device)
+    wp.launch(kernel, dim=n, inputs=[X, *inputs, F], device=device)
+    return F.numpy()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .fields import launch_on_points
 from .funcs import _max, _min
 
 wp.set_module_options({"fuse_fp": False})  # each operation rounded as numpy rounds it
@@ -76,10 +77,4 @@ class WarpGrid:
         self.shape = wp.array(np.array(grid.shape, np.int32), dtype=wp.int32, device=device)
 
     def phi_points(self, x: np.ndarray) -> np.ndarray:
-        n = x.shape[0]
-        if n == 0:
-            return np.empty(0)
-        X = wp.array(np.ascontiguousarray(x, np.float64), dtype=wp.float64, device=self.device)
-        F = wp.empty(n, dtype=wp.float64, device=self.device)
-        wp.launch(grid_phi_points, dim=n, inputs=[X, self.values, self.geo, self.shape, F], device=self.device)
-        return F.numpy()  # (copied on the launch's stream: waits for the kernel on a GPU)
+        return launch_on_points(grid_phi_points, x, [self.values, self.geo, self.shape], self.device)
