@@ -33,6 +33,7 @@ import numpy as np
 
 from ..numba.fields import compile_scene, decline_reason as _numba_decline
 from ..protocol import Declined
+from .launch import launch_on_points
 
 _FLOAT = re.compile(r"(?<![\w.\]])(\d+\.\d*(?:[eE][-+]?\d+)?)")
 _INF = re.compile(r"\binf\b")
@@ -168,26 +169,3 @@ class WarpScene:
         """φ at float64 points ``x`` (n, 3), numpy in and out (:func:`launch_on_points`)."""
         return launch_on_points(self.module.phi_points, x, [self.params], self.device)
 
-
-def launch_on_points(kernel, x: np.ndarray, inputs: list, device: str) -> np.ndarray:
-    """``kernel(X, *inputs, F)`` launched over the float64 points ``x`` (n, 3); returns F (n,) as
-    numpy.  On the CPU, X and F are the numpy arrays' own memory (``copy=False``: Warp references
-    a contiguous CPU array) and the launch returns once the kernel has run, so a root finder's
-    step, one call per step, pays no copy in or out (docs/performance.md, "Warp on the CPU").  On
-    a GPU, X is copied in and F copied back (``Array.numpy`` waits for the launch's stream)."""
-    import warp as wp
-
-    n = x.shape[0]
-    if n == 0:
-        return np.empty(0)
-    xc = np.ascontiguousarray(x, np.float64)
-    if wp.get_device(device).is_cpu:
-        out = np.empty(n, np.float64)
-        X = wp.array(xc, dtype=wp.float64, device=device, copy=False)
-        F = wp.array(out, dtype=wp.float64, device=device, copy=False)
-        wp.launch(kernel, dim=n, inputs=[X, *inputs, F], device=device)
-        return out
-    X = wp.array(xc, dtype=wp.float64, device=device)
-    F = wp.empty(n, dtype=wp.float64, device=device)
-    wp.launch(kernel, dim=n, inputs=[X, *inputs, F], device=device)
-    return F.numpy()

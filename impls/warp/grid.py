@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .fields import launch_on_points
 from .funcs import _max, _min
+from .launch import launch_on_points
 
 wp.set_module_options({"fuse_fp": False})  # each operation rounded as numpy rounds it
 
