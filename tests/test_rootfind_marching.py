@@ -176,11 +176,10 @@ def test_a_march_that_starts_on_the_surface_exactly_is_uncertified(backend, meth
     from a point of it has no crossing, one entering it crosses at the far side.  The marches
     reported CONVERGED at t_min for both (found with rays from a sphere's centre and t_min its
     radius); now UNCERTIFIED, as the certified methods have been; other rays are unchanged."""
-    from tests.conftest import resolve_or_skip
+    from tests.conftest import require_method, resolve_or_skip
 
     b = resolve_or_skip(backend)
-    if method not in b.methods():
-        pytest.skip(f"{backend} does not offer {method}")
+    require_method(b, method)
     ball = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
     # starts on the sphere at t_min: out of it along +z, into it along −z (φ(o) = 0 exactly: |o| = 1)
     o = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 3.0]])
