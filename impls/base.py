@@ -11,6 +11,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .core.param_grad import python_fori
+from .core.rootfind import void_if_refuted
 from .core.table import METHOD_TABLE
 from .methods import get_method
 from .protocol import Capabilities, Prepared, RayResult
@@ -166,9 +167,10 @@ class ArrayBackend:
     def solve(self, method: str, scene: Any, o: Any, d: Any, *, t_min: float, t_max: float, theta: Any = None,
               **knobs: Any) -> dict:
         """Root method ``method`` on rays ``o``, ``d`` (native arrays) with validated ``knobs``:
-        its algorithm (``MethodSpec.algorithm``) run by this backend's loop driver."""
+        its algorithm (``MethodSpec.algorithm``) run by this backend's loop driver, its certificates
+        withdrawn where a ray refuted a bound taken on trust (:func:`impls.core.rootfind.void_if_refuted`)."""
         alg = get_method(method).algorithm(scene, t_min, t_max, knobs, theta, ladder=self.settings.ladder)
-        return self.run_loop(alg, o, d, self.ray_eval(scene, theta))
+        return void_if_refuted(alg, self.run_loop(alg, o, d, self.ray_eval(scene, theta)))
 
     # hooks -----------------------------------------------------------------------------------
     def asarray(self, a: np.ndarray, dtype: str) -> Any:  # pragma: no cover

@@ -180,6 +180,67 @@ def test_thin_walls_at_256_squared(backend, method, seed):
     assert np.mean(np.isin(res.status, (Status.CONVERGED, Status.MISS))) > 0.95
 
 
+def test_withdrawing_certificates_needs_a_refutation_and_a_bound_taken_on_trust():
+    """:func:`impls.core.rootfind.void_if_refuted` on planted outputs: with a ray LIPSCHITZ_VIOLATED
+    and a bound taken on trust, CONVERGED and MISS become UNCERTIFIED and nothing else changes (the
+    depths included); without a violation, or with a bound the library proves, nothing changes."""
+    from types import SimpleNamespace
+
+    from impls.core.rootfind import void_if_refuted
+
+    codes = [Status.CONVERGED, Status.MISS, Status.LIPSCHITZ_VIOLATED, Status.MAX_ITER, Status.UNCERTIFIED,
+             Status.NON_FINITE, Status.BAD_INPUT]
+    out = {"t": np.array([1.5, np.inf, np.nan, 2.0, 3.0, np.nan, np.nan]),
+           "status": np.array([int(c) for c in codes], np.int32), "iterations": np.arange(7), "evals": np.arange(7)}
+    got = void_if_refuted(SimpleNamespace(check_inside=True), out)
+    want = [Status.UNCERTIFIED, Status.UNCERTIFIED, *codes[2:]]
+    np.testing.assert_array_equal(got["status"], [int(c) for c in want])
+    assert got["status"].dtype == np.int32
+    np.testing.assert_array_equal(got["t"], out["t"])
+    np.testing.assert_array_equal(out["status"], [int(c) for c in codes])  # the input is not written
+    for alg, status in ((SimpleNamespace(check_inside=False), out["status"]),
+                        (SimpleNamespace(check_inside=True), np.delete(out["status"], 2))):
+        kept = void_if_refuted(alg, dict(out, status=status))
+        np.testing.assert_array_equal(kept["status"], status)
+
+
+@functools.lru_cache(maxsize=None)
+def understated_walls(declared: float):
+    """Seed 1's thin walls at 4× their distance bound (true L = 4), declared with L = ``declared``
+    (a :class:`reference.cases.DeclaredLipschitz`: taken on trust, so every step is also checked
+    at its midpoint), the 256² rays and the walls' exact intervals."""
+    from reference.cases import DeclaredLipschitz
+
+    scene, o, d, intervals = thin_walls_and_intervals(1)
+    return DeclaredLipschitz(Scaled(scene, 4.0), declared), o, d, intervals
+
+
+@pytest.mark.parametrize("method", ["hybrid_secant", "sphere_trace"])
+def test_a_bound_refuted_on_any_ray_withdraws_every_certificate(backend, method):
+    """A declared L refuted on one ray is refuted for the whole field, so no ray keeps a certificate
+    proved from it.  Seed 1's thin walls, 4× steeper than the declared L = 1: the per-ray checks
+    flag about half of the 256² rays, and the others' samples agree with L — among them a ray that
+    crosses a wall obliquely between two samples and, certified from the false L, was a MISS
+    (numpy, numba, Warp; 749 CONVERGED and 32,819 MISS beside it).  Now none is CONVERGED or MISS: they are
+    UNCERTIFIED, the CONVERGED ones with their depths.  With the true L declared nothing is
+    flagged and the certificates stand."""
+    _offered(backend, method)
+    lie, o, d, intervals = understated_walls(1.0)
+    res = _solve(backend, method, lie, o.copy(), d.copy(), 10.0)
+    st = res.status
+    assert np.any(st == Status.LIPSCHITZ_VIOLATED)
+    assert np.all(np.isin(st, (Status.LIPSCHITZ_VIOLATED, Status.UNCERTIFIED))), \
+        {Status(k).name: int(v) for k, v in zip(*np.unique(st, return_counts=True))}
+    unc = st == Status.UNCERTIFIED
+    assert np.isfinite(res.t[unc]).any() and np.isinf(res.t[unc]).any()  # hits keep their depths
+    truth, o, d, intervals = understated_walls(4.0)
+    res = _solve(backend, method, truth, o.copy(), d.copy(), 10.0)
+    assert not np.any(res.status == Status.LIPSCHITZ_VIOLATED)
+    bad = check_guarantee(truth, o, d, res, 10.0, allowance(method, {}), intervals)
+    assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
+    assert np.mean(np.isin(res.status, (Status.CONVERGED, Status.MISS))) > 0.95
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("mesh", ["fin", "torus"])
 def test_mesh_cameras_at_256_squared_find_the_first_crossing(backend, mesh):

@@ -1235,3 +1235,31 @@ def outputs(xp, state) -> dict:
     out = {k: state[k] for k in STATE_OUT}
     out["t"] = final_t(xp, out["t"], out["status"])
     return out
+
+
+def void_if_refuted(alg, out: dict) -> dict:
+    """``out`` (a root finder's per-ray outputs, :func:`outputs`) with every certificate withdrawn
+    where the bound it rests on is shown false: when ``alg`` takes the scene's Lipschitz bound L on
+    trust (``alg.check_inside``, :func:`impls.core.methods_root.checks_inside`) and any ray of the
+    call ended LIPSCHITZ_VIOLATED, each CONVERGED ray becomes UNCERTIFIED with its depth and each
+    MISS UNCERTIFIED at t = inf.
+
+    Why every ray: L is one claim about the whole field (|∇φ| ≤ L wherever the scene states it),
+    and every CONVERGED ("the first crossing") and every MISS ("no crossing") is proved from it.  A
+    violation seen on one ray refutes it for all of them, including rays whose own samples happened
+    to agree with L: the per-ray checks see a false L only where it shows between a step's samples
+    (a thin wall crossed obliquely under a 4× understated L passes every check of that ray, and its
+    CONVERGED depth is the wall behind).  The library's own nodes carry bounds proved by their
+    construction, where a violation can only be φ's rounding outrunning its model on that ray:
+    they keep their other rays' certificates (``check_inside`` False), and so do the constant-step
+    marchers, which rely on no bound.  Written with the outputs' own namespace (numpy, torch, or
+    traced jax), so that every backend's driver shares it."""
+    if not getattr(alg, "check_inside", False):
+        return out
+    import array_api_compat
+
+    status = out["status"]
+    xp = array_api_compat.array_namespace(status)
+    refuted = xp.any(status == LIPV)
+    void = refuted & ((status == CONV) | (status == MISS))
+    return dict(out, status=xp.where(void, xp.asarray(UNC, dtype=status.dtype), status))

@@ -27,6 +27,7 @@ import warnings
 import numpy as np
 
 from ..base import HostArrayBackend
+from ..core.rootfind import void_if_refuted
 from ..core.table import METHOD_TABLE
 from ..methods import get_method
 from ..protocol import Capabilities, Declined
@@ -117,4 +118,4 @@ class NumbaBackend(HostArrayBackend):
             raise Declined("numba evaluates scenes at their stored parameters only (no θ)")
         alg = get_method(method).algorithm(scene, t_min, t_max, knobs, None, ladder=self.settings.ladder)
         compiled = fields.compile_scene(scene)
-        return driver.run_loop(compiled.key, compiled.params, alg, o, d, self.settings)
+        return void_if_refuted(alg, driver.run_loop(compiled.key, compiled.params, alg, o, d, self.settings))

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..base import HostArrayBackend
 from ..core.driver import CompactingSettings
+from ..core.rootfind import void_if_refuted
 from ..core.table import METHOD_TABLE
 from ..methods import get_method
 from ..protocol import Capabilities, Declined
@@ -196,4 +197,4 @@ class WarpBackend(HostArrayBackend):
         if method == "raycast":
             return self._mesh(scene).first_hit(o, d, t_min, t_max)
         alg = get_method(method).algorithm(scene, t_min, t_max, knobs, None, ladder=self.settings.ladder)
-        return self.run_loop(alg, o, d, self.ray_eval(scene))
+        return void_if_refuted(alg, self.run_loop(alg, o, d, self.ray_eval(scene)))
