@@ -20,6 +20,7 @@ from reference.csg import Complement, Difference, Intersection, Union
 from reference.implicits import Scaled
 from reference.primitives import Box, Capsule, Plane, Sphere, Torus
 from reference.transform import Transform
+from tests.conftest import require_method
 
 TOL = 1e-9  # depth agreement of a CONVERGED ray with the crossing it reports
 
@@ -145,14 +146,9 @@ def _solve(backend, method, scene, o, d, t_max, **knobs):
     return p.result(p.run())
 
 
-def _offered(backend, method):
-    if method not in backend.methods():
-        pytest.skip(f"{backend.id} does not offer {method}")
-
-
 @pytest.mark.parametrize("method", ["hybrid_secant", "sphere_trace", "hybrid_chandrupatla"])
 def test_the_two_sphere_gap_gives_no_later_crossing(backend, method):
-    _offered(backend, method)
+    require_method(backend, method)
     scene, o, d = two_sphere_gap()
     res = _solve(backend, method, scene, o, d, 10.0)
     bad = check_guarantee(scene, o, d, res, 10.0, allowance(method, {}))
@@ -172,7 +168,7 @@ def test_thin_walls_at_256_squared(backend, method, seed):
     """256² rays through seeded thin-walled scenes built here: the guarantee, ray by ray."""
     if backend.id.startswith("jax") and seed:
         pytest.skip("jax compiles each scene structure: one seed checks it")
-    _offered(backend, method)
+    require_method(backend, method)
     scene, o, d, intervals = thin_walls_and_intervals(seed)
     res = _solve(backend, method, scene, o.copy(), d.copy(), 10.0)
     bad = check_guarantee(scene, o, d, res, 10.0, allowance(method, {}), intervals)
@@ -224,7 +220,7 @@ def test_a_bound_refuted_on_any_ray_withdraws_every_certificate(backend, method)
     (numpy, numba, Warp; 749 CONVERGED and 32,819 MISS beside it).  Now none is CONVERGED or MISS: they are
     UNCERTIFIED, the CONVERGED ones with their depths.  With the true L declared nothing is
     flagged and the certificates stand."""
-    _offered(backend, method)
+    require_method(backend, method)
     lie, o, d, intervals = understated_walls(1.0)
     res = _solve(backend, method, lie, o.copy(), d.copy(), 10.0)
     st = res.status
@@ -247,7 +243,7 @@ def test_mesh_cameras_at_256_squared_find_the_first_crossing(backend, mesh):
     """The catalog's thin-walled mesh (a 0.008 wall) and torus mesh, at the catalog camera's pose
     with 256² rays: no CONVERGED depth past the first crossing (the mesh's exact first hit), no
     certified MISS on a hitting ray."""
-    _offered(backend, "hybrid_secant")
+    require_method(backend, "hybrid_secant")
     if backend.id.startswith("jax"):
         # jax's timed configuration (its compaction levels), not the tests' untimed one (UNTIMED_LIBS in
         # tests/conftest.py): on one level φ, a host callback for a mesh, runs on all 65,536 rows at every
@@ -269,7 +265,7 @@ def test_sphere_tracing_far_away_does_not_walk_through_the_solid(backend, method
     """A sphere of radius 1e6 seen from 3e6: an iterate rounding to just inside the surface must
     not carry the ray to the far side (jax:cpu reported t = 3,935,805 for a first hit at
     2,032,621), and the catalog's 1e6-scale cases give no CONVERGED depth off the first hit."""
-    _offered(backend, method)
+    require_method(backend, method)
     o = np.array([[0.0, 0.0, 3e6]])
     d = np.array([[-0.0113142158633314, 0.1018279427699826, -0.9947376833068259]])
     d /= np.linalg.norm(d)
@@ -310,7 +306,7 @@ def test_float32_flags_what_it_cannot_resolve(backend, method):
     tracing's probes, whose reach float32's rounding widens to 0.08 there, once skipped a grazed
     sliver of the tube and reported the sphere behind it CONVERGED, 0.72 deep: a crossing found
     after a probe that left more than tol/L uncovered is now UNCERTIFIED."""
-    _offered(backend, method)
+    require_method(backend, method)
     if "float32" not in backend.capabilities.dtypes:
         pytest.skip(f"{backend.id} runs float64 only")
     # (the catalog cases are held to √ε·max(1, T) alone, as they always were; the off-centre ones
@@ -383,7 +379,7 @@ def grazed_shell_rays():
 
 @pytest.mark.parametrize("method", ["hybrid_secant", "hybrid_chandrupatla"])
 def test_a_refinement_landing_on_an_exact_zero_is_not_a_later_crossing(backend, method):
-    _offered(backend, method)
+    require_method(backend, method)
     scene, o, d, t_min = grazed_shell_rays()
     p = backend.prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=t_min, t_max=6.0)
     res = p.result(p.run())
