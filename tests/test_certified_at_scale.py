@@ -220,6 +220,8 @@ def test_a_bound_refuted_on_any_ray_withdraws_every_certificate(backend, method)
     (numpy, numba, Warp; 749 CONVERGED and 32,819 MISS beside it).  Now none is CONVERGED or MISS: they are
     UNCERTIFIED, the CONVERGED ones with their depths.  With the true L declared nothing is
     flagged and the certificates stand."""
+    if backend.id.startswith("jax") and method == "sphere_trace":
+        pytest.skip("jax compiles each scene and method: one method checks the traced withdrawal")
     require_method(backend, method)
     lie, o, d, intervals = understated_walls(1.0)
     res = _solve(backend, method, lie, o.copy(), d.copy(), 10.0)
