@@ -40,9 +40,7 @@ import numpy as np
 
 from ..base import HostArrayBackend
 from ..core.driver import CompactingSettings
-from ..core.rootfind import void_if_refuted
 from ..core.table import METHOD_TABLE
-from ..methods import get_method
 from ..protocol import Capabilities, Declined
 
 #: root methods run with φ as a Warp kernel, and the engine's ray query
@@ -191,10 +189,9 @@ class WarpBackend(HostArrayBackend):
 
     def solve(self, method, scene, o, d, *, t_min, t_max, theta=None, **knobs):
         """``raycast``: the mesh query; a root method: the catalog's algorithm for ``knobs`` run by
-        numpy's compacting driver with φ from Warp."""
+        numpy's compacting driver with φ from Warp (:meth:`impls.base.ArrayBackend.solve`)."""
         if theta is not None:
             raise Declined("warp evaluates scenes at their stored parameters only (no θ)")
         if method == "raycast":
             return self._mesh(scene).first_hit(o, d, t_min, t_max)
-        alg = get_method(method).algorithm(scene, t_min, t_max, knobs, None, ladder=self.settings.ladder)
-        return void_if_refuted(alg, self.run_loop(alg, o, d, self.ray_eval(scene)))
+        return super().solve(method, scene, o, d, t_min=t_min, t_max=t_max, **knobs)
