@@ -7,6 +7,7 @@ import pytest
 
 from impls import Status, registry
 from reference import get_case
+from tests.conformance.common import depth_resolved, sphere_trace_allowance
 from tests.conftest import BACKEND_IDS, require_method
 
 CASE = "sphere.camera.64x64"
@@ -26,9 +27,17 @@ def test_depth_within_1e9_of_exact_at_tight_tolerance(backend):
     res = trace(backend, case, tol=1e-12, max_steps=1000)
     exact = case.exact_t
     hit = np.isfinite(exact)
-    assert np.all(res.status[hit] == Status.CONVERGED)
+    # every hit whose depth float64 resolves to δ along its ray; the silhouette's others may be
+    # UNCERTIFIED (with their depths, checked below)
+    must = depth_resolved("sphere_trace", case.scene, case.origins, case.directions, exact, {"tol": 1e-12})
+    assert must.sum() >= 0.95 * hit.sum()
+    assert np.all(res.status[must] == Status.CONVERGED), res.status_counts()
+    assert np.all(np.isin(res.status[hit], (Status.CONVERGED, Status.UNCERTIFIED)))
     assert np.all(res.status[~hit] == Status.MISS)
     assert np.max(np.abs(res.t[hit] - exact[hit])) <= 1e-9
+    conv = res.status == Status.CONVERGED
+    delta = sphere_trace_allowance(case.scene, case.origins, exact, {"tol": 1e-12})
+    assert np.all(np.abs(res.t[conv] - exact[conv]) <= delta[conv] + 4 * np.finfo(float).eps * np.abs(exact[conv]))
     assert np.all(np.isinf(res.t[~hit]))
     # one φ evaluation at the start and one per step, none for a ray outside the ray bounds
     lo, hi = case.scene.ray_bounds(np, case.origins, case.directions)

@@ -200,25 +200,23 @@ def test_withdrawing_certificates_needs_a_refutation_and_a_bound_taken_on_trust(
         np.testing.assert_array_equal(kept["status"], status)
 
 
+@pytest.mark.parametrize("method", ["hybrid_secant", "sphere_trace"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_float32_far_from_the_origin_converges_only_within_the_rounding(backend, seed):
-    """Thin walls moved 1e4 along x and seen in float32, where φ rounds by ≈ 0.019: ``hybrid_secant``
-    certifies no MISS on a ray that hits (in float32 there, 32,728 certified MISSes beside 32,808
-    UNCERTIFIED rays on seed 1, numpy), and a CONVERGED depth, where it gives one, lies within
-    4·rounding (≈ 0.076, sphere tracing's probe allowance δ) of the first crossing.  ``sphere_trace``
-    is left out: a probe landing within the rounding is retried with twice the reach and the
-    bracket it may call CONVERGED doubles with it (seed 0: a ray 0.23 from its first crossing;
-    docs/methods.md).  Holding it to the base δ broke sphere tracing at tight tolerances in float64,
-    where retries beside a resolved crossing are common, each bracket a few 1e-14 wide; a refinement
-    of the widened bracket is the fix still to write."""
-    method = "hybrid_secant"
-    from impls.core.methods_root import rounding_scale
-
+def test_float32_far_from_the_origin_converges_only_within_the_rounding(backend, seed, method):
+    """Thin walls moved 1e4 along x and seen in float32, where φ rounds by ≈ 0.019: no MISS is
+    certified on a ray that hits (``hybrid_secant``, seed 1, numpy: 32,728 certified MISSes beside
+    32,808 UNCERTIFIED rays), and a CONVERGED depth lies within 4·rounding (≈ 0.076, sphere
+    tracing's allowance δ) of the first crossing.  Sphere tracing failed it before its refinement
+    stage (SphereTrace.step_refine): a probe landing within the rounding was retried with twice the
+    reach and the bracket it called CONVERGED doubled with it (seed 0: a ray 0.23 from its first
+    crossing; seed 1: 997 CONVERGED, 3 beyond δ, now 756 and 0)."""
     if backend.id.startswith("jax") and seed:
         pytest.skip("jax compiles each scene structure: one seed checks it")
     require_method(backend, method)
     if "float32" not in backend.capabilities.dtypes:
         pytest.skip(f"{backend.id} runs no float32")
+    from impls.core.methods_root import rounding_scale
+
     base, o, d = thin_walls(seed)
     scene = Transform(base, None, (1e4, 0.0, 0.0))
     o = o + np.array([1e4, 0.0, 0.0])

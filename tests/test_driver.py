@@ -156,6 +156,50 @@ def test_steps_read_only_what_they_declare(method):
     assert seen == set(alg.stages)
 
 
+def test_sphere_trace_stages_read_what_they_declare_and_the_masked_step_matches_them():
+    """Sphere tracing's two stages (the tracer; the refinement of a probe's bracket wider than δ,
+    SphereTrace.step_refine) read only ``alg.reads(stage)``, and the one step a masked driver runs
+    instead (``step_masked``: one φ evaluation for both) gives the staged drivers' per-ray results.
+    The unit sphere's 64² camera in float32 at the default tol: the hits at slope 0.25–0.5 probe
+    twice (the first probe lands within φ's rounding) and go on to refinement, where those the
+    dtype resolves to δ are CONVERGED and the rest UNCERTIFIED."""
+    from impls.core import rootfind
+    from impls.numpy import derivatives
+
+    case = get_case("sphere.camera.64x64")
+    alg = make_root_finder("sphere_trace", case.scene, case.t_min, case.t_max,
+                           {k.name: k.default for k in METHODS["sphere_trace"].knobs})
+    assert alg.stages == ("step", "step_refine") and alg.masked_stages == ("step_masked",)
+    ev = derivatives.ray_eval(case.scene)
+    o, d = case.origins.astype(np.float32), case.directions.astype(np.float32)
+    s = {key: np.array(v, copy=True) for key, v in alg.init(np, o, d, ev).items()}
+    masked = {key: np.array(v, copy=True) for key, v in s.items()}
+    refined = np.zeros(len(o), bool)
+    for _ in range(alg.max_steps + 1):
+        for k, name in enumerate(alg.stages):
+            rows = np.nonzero((s["status"] == rootfind.IN) & (s["phase"] == k))[0]
+            if not rows.size:
+                continue
+            refined[rows] |= k == 1
+            sub = {key: v[rows] for key, v in s.items()}
+            full = getattr(alg, name)(np, sub, o[rows], d[rows], ev)
+            lean = getattr(alg, name)(np, {key: sub[key] for key in alg.reads(name)}, o[rows], d[rows], ev)
+            for key in lean:
+                np.testing.assert_array_equal(lean[key], full[key], err_msg=f"{name}: {key}")
+            for key, v in full.items():
+                s[key][rows] = v
+        live = masked["status"] == rootfind.IN
+        if live.any():
+            new = alg.step_masked(np, masked, o, d, ev)
+            masked = {key: np.where(live, new[key], v) for key, v in masked.items()}
+        if not (live.any() or (s["status"] == rootfind.IN).any()):
+            break
+    staged, one = rootfind.outputs(np, s), rootfind.outputs(np, masked)
+    for key in rootfind.STATE_OUT:
+        np.testing.assert_array_equal(one[key], staged[key], err_msg=key)
+    assert (staged["status"][refined] == rootfind.CONV).sum() > 10 and (staged["status"][refined] == rootfind.UNC).sum() > 10
+
+
 def test_jax_constant_step_marches_keep_a_larger_smallest_level(monkeypatch):
     """A constant-step march (the march_* methods, whose rays take at most (t_max − t_min)/step
     steps) runs its smallest level at ``last_constant`` rows, the certified methods at ``last``;

@@ -329,9 +329,12 @@ class SphereTrace(_Search):
     (:func:`certified_radius`: |φ|/L less φ's rounding).  Near the surface (the radius within
     δ₀ = max(tol/L, 4·rounding)) a step is a *probe* reaching δ past the sphere (δ = δ₀, doubled
     each time a probe lands where φ is unresolved).  CONVERGED on a resolved sign change against
-    the ray's starting side whose bracket [t + r, t' − r'] is at most max(tol/L, 4·rounding)
-    (× the probe's doublings) wide, the depth the chord's zero in it; a coarser one is
-    UNCERTIFIED (the dtype cannot resolve the depth to tol).  MISS when the next t exceeds t_max
+    the ray's starting side whose bracket [t + r, t' − r'] is at most δ₀ wide, the depth the
+    chord's zero in it; a probe's wider bracket (after retries, or under a mesh's rounding gain)
+    is refined, keeping the first crossing, in the stage ``step_refine`` (:meth:`step_refine`),
+    and is CONVERGED only once it is at most δ₀ wide, else UNCERTIFIED with its depth (the dtype
+    cannot resolve the depth to tol: along a ray at slope s, φ's sign is rounding over a stretch
+    about 2·rounding/s long).  MISS when the next t exceeds t_max
     (or leaves the scene's ray bounds, see :func:`clip_to_bounds`), if no probe stood without a
     sign change on the way (each leaves up to its reach uncovered), else UNCERTIFIED; a crossing
     found after a probe that left more than max(tol/L, 2ε|t|) uncovered is UNCERTIFIED too (with
@@ -357,11 +360,22 @@ class SphereTrace(_Search):
     resolve: bool = False  # φ is a distance bound: its rounding near the surface is L·(point's rounding) (resolution)
     check_inside: bool = False  # L is a declaration taken on trust: check it inside every step (mid_probe)
 
-    stages = ("step",)
+    stages = ("step", "step_refine")
 
     #: a probe that lands within φ's rounding of 0 is repeated with twice the reach, at most this
     #: many times (then the ray is UNCERTIFIED: the dtype cannot resolve where it crosses)
     PROBE_RETRIES = 20
+
+    #: what each stage's step reads, all that a compacting driver carries for it
+    #: (:mod:`impls.core.driver`; ``status`` and ``phase`` are written afresh by every step)
+    READS = {"step": frozenset({"t", "f", "pos", "unc", "wide", "t_prev", "f_prev", "r_prev", "mag", "pm", "omega",
+                                "hi", "iterations", "evals"}),
+             "step_refine": frozenset({"t", "f", "pos", "t_prev", "f_prev", "a", "b", "lo", "mag", "iterations",
+                                       "evals"})}
+
+    def reads(self, stage: str) -> frozenset[str]:
+        """The state entries the step of ``stage`` reads (:data:`READS`)."""
+        return self.READS[stage]
 
     def init(self, xp, o, d, ev, start=None):
         t, hi, status = self.start(xp, o, d) if start is None else start
@@ -373,13 +387,21 @@ class SphereTrace(_Search):
         s = {"t": t, "f": f, "pos": f > 0, "unc": xp.zeros_like(f, dtype=xp.bool),
              "wide": xp.zeros_like(f, dtype=xp.bool), "t_prev": t, "f_prev": f,
              "r_prev": certified_radius(xp, f, t, self.inv_lip, mag, self.rg), "mag": mag,
-             "pm": xp.ones_like(t), "omega": xp.full_like(t, self.omega), "hi": hi,
+             "pm": xp.ones_like(t), "omega": xp.full_like(t, self.omega), "hi": hi, "a": t, "b": t, "lo": t,
              "status": status, "iterations": xp.zeros_like(o[:, 0], dtype=xp.int32),
              "evals": xp.astype(status == IN, xp.int32) * cost, "phase": xp.zeros_like(o[:, 0], dtype=xp.int32)}
         s["status"] = _init_status(xp, status, f, xp.zeros_like(unres), unres)
         return s
 
     def step(self, xp, s, o, d, ev):
+        """One step of the tracer (the stage ``step``): its point (:meth:`_step_point`), φ there,
+        and what follows from it (:meth:`_step_update`)."""
+        p = self._step_point(xp, s)
+        f_new, _, cost = ev(o, d, p["t_eval"], False)
+        return self._step_update(xp, s, o, d, ev, p, f_new, cost)
+
+    def _step_point(self, xp, s) -> dict:
+        """Where a step evaluates φ (``t_eval``), and the quantities its update reads."""
         t, f, om, hi, mag = s["t"], s["f"], s["omega"], s["hi"], s["mag"]
         r = certified_radius(xp, f, t, self.inv_lip, mag, self.rg)
         r_prev = s["r_prev"]  # certified_radius of (f_prev, t_prev): the last step's base radius rb
@@ -410,7 +432,13 @@ class SphereTrace(_Search):
         # which jumped over thin surface under a false L shows its slope; else at the bound's end
         t_far = xp.minimum(t_new, self.t_max if self.probe else hi)
         t_eval = xp.where(out, xp.where(xp.isfinite(t_far), t_far, tb), t_new)
-        f_new, _, cost = ev(o, d, t_eval, False)
+        return dict(t_eval=t_eval, tb=tb, fb=fb, rb=rb, om=om, near=near, spacing=spacing, t_new=t_new, out=out)
+
+    def _step_update(self, xp, s, o, d, ev, p, f_new, cost):
+        """The step's new state from φ at its point (``f_new``, ``cost`` evaluations per ray)."""
+        t, f, hi, mag = s["t"], s["f"], s["hi"], s["mag"]
+        t_eval, tb, fb, rb, om, near, spacing, t_new, out = (
+            p[k] for k in ("t_eval", "tb", "fb", "rb", "om", "near", "spacing", "t_new", "out"))
         iters = s["iterations"] + 1
         fin = xp.isfinite(f_new)
         # φ = +inf on a search with no end: the point left the range where φ is representable, which
@@ -429,9 +457,14 @@ class SphereTrace(_Search):
         # (the generic rounding model, without a mesh's gain: a depth known to a few of those is
         # what the dtype resolves; a probe repeated across an unresolved stretch widens it)
         res0 = 4.0 * resolution(xp, tb, mag, 1.0 if self.resolve else 0.0)
-        allow = s["pm"] * xp.maximum(xp.maximum(self.tol * self.inv_lip, res0), spacing) + slack
-        conv = cross & (gap <= allow) & ~s["wide"]
-        coarse = cross & ~conv & (near | s["wide"])
+        base = xp.maximum(xp.maximum(self.tol * self.inv_lip, res0), spacing)
+        allow = s["pm"] * base + slack
+        conv = cross & (gap <= base + slack) & ~s["wide"]
+        # a probe's bracket wider than δ (its reach doubled by retries, or φ's rounding gain on a
+        # mesh) is shrunk from its far end in the next stage (step_refine); after a wide stand the
+        # crossing is not proved the first, however narrow its bracket
+        refine = cross & ~conv & near & ~s["wide"]
+        coarse = cross & ~conv & s["wide"]
         # a probe landing within φ's rounding says nothing: the ray stays and probes twice as far
         retry = near & unres & ~out
         give_up = retry & (s["pm"] >= 2.0 ** self.PROBE_RETRIES)
@@ -462,9 +495,98 @@ class SphereTrace(_Search):
         with _quiet(xp):
             z = tb + (t_eval - tb) * (fb / (fb - f_new))
         z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
-        t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(stay, t, xp.where(give_up, t_eval, t_new))))
+        t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(
+            stay, t, xp.where(give_up | refine, t_eval, t_new))))
+        # (a refining ray carries its bracket [tb + rb, t_eval − r_new] and, as t and f, its far sample)
+        a = tb + rb
         return _typed(xp, dict(s, t=t_out, f=xp.where(stay, f, f_new), t_prev=tb, f_prev=fb, r_prev=rb, omega=om,
                                pm=xp.where(retry, 2.0 * s["pm"], s["pm"]), status=status, unc=unc, wide=wide,
+                               a=a, b=t_eval - r_new, lo=a, phase=xp.astype(refine, xp.int32),
+                               iterations=iters, evals=s["evals"] + cost), s)
+
+    def step_refine(self, xp, s, o, d, ev):
+        """One refinement step of a probe's crossing bracketed wider than δ = max(tol/L,
+        4·rounding) (its reach doubled by retries across a stretch where φ is unresolved, or a
+        mesh's rounding gain).  The first crossing lies in [a, b]: certified spheres cover the ray
+        up to ``a``, and a resolved sample of the other side, (``t``, ``f``), has its sphere beyond
+        ``b``.  Steps alternate between two samples, one φ evaluation each:
+
+        * the frontier ``a`` itself (even steps, and every step once the search below is spent), a
+          sphere-tracing step: a resolved sample of the start's side moves ``a`` to a + r_a; an
+          unresolved one leaves it (the frontier has reached the stretch where φ's sign is rounding);
+        * c = lo + (b − lo)/2, a bisection from the far end: a resolved sample of the other side
+          moves ``b`` to c − r_c; one of the start's side whose sphere reaches back to ``a`` moves
+          ``a`` to c + r_c; any other (unresolved, or of the start's side beyond ``a``, where a
+          pair of crossings may lie before it) moves only the search's left end ``lo`` to c.
+
+        CONVERGED when b − a ≤ δ, the depth the zero of the chord from the step's base (tb, φ(tb))
+        to (t, f), within [a, b]; UNCERTIFIED with that depth when neither end can move on: the
+        frontier stands at an unresolved sample or crawls (its sphere under 1/:data:`CERTIFY_REACH`
+        of what is left beyond δ) and the stretch left to search, [lo, b], is under δ/4.  The first
+        crossing then lies in a stretch where φ's sign is rounding, about 2·rounding/s long on a
+        ray meeting the surface at slope s (in units of L), which the dtype resolves only to b − a.
+        Each sample's slope from the base is checked (:func:`lipschitz_violated`).  Why this stage:
+        a bracket left as its k-times retried probe found it is only 2^k·δ wide (docs/methods.md)."""
+        p = self._refine_point(xp, s)
+        f_c, _, cost = ev(o, d, p["c"], False)
+        return self._refine_update(xp, s, p, f_c, cost)
+
+    #: the one stage a masked driver (jax's, :mod:`impls.jax.driver`) runs instead of ``stages``
+    masked_stages = ("step_masked",)
+
+    def step_masked(self, xp, s, o, d, ev):
+        """Both stages in one step, for a masked driver, which steps every row of a batch on each
+        iteration: a row in refinement (phase 1) evaluates the refinement's point, any other the
+        tracer's, in one φ evaluation, and takes that stage's update.  The per-ray results are the
+        staged drivers'; the point is one traced φ per loop instead of one per stage (a jax kernel's
+        compile time is mostly its loops' φ)."""
+        rf = s["phase"] == 1
+        p1, p2 = self._step_point(xp, s), self._refine_point(xp, s)
+        f_new, _, cost = ev(o, d, xp.where(rf, p2["c"], p1["t_eval"]), False)
+        n1 = self._step_update(xp, s, o, d, ev, p1, f_new, cost)
+        n2 = self._refine_update(xp, s, p2, f_new, cost)
+        return {k: xp.where(rf, n2[k], n1[k]) for k in n1}
+
+    def _refine_point(self, xp, s) -> dict:
+        """Where a refinement step evaluates φ (``c``), and the quantities its update reads."""
+        t, tb, a, b, lo, mag = s["t"], s["t_prev"], s["a"], s["b"], s["lo"], s["mag"]
+        slack = (4.0 * _eps(t)) * xp.abs(t)
+        spacing = (2.0 * _eps(tb)) * xp.abs(tb)
+        res0 = 4.0 * resolution(xp, tb, mag, 1.0 if self.resolve else 0.0)
+        base = xp.maximum(xp.maximum(self.tol * self.inv_lip, res0), spacing) + slack
+        front = (s["iterations"] % 2 == 0) | (b - lo <= 0.25 * base)
+        return dict(c=xp.where(front, a, lo + 0.5 * (b - lo)), front=front, base=base, slack=slack)
+
+    def _refine_update(self, xp, s, p, f_c, cost):
+        """The refinement step's new state from φ at its point (``f_c``, ``cost`` evaluations per ray)."""
+        t, f, tb, fb, a, b, lo, mag = s["t"], s["f"], s["t_prev"], s["f_prev"], s["a"], s["b"], s["lo"], s["mag"]
+        c, front, base, slack = p["c"], p["front"], p["base"], p["slack"]
+        iters = s["iterations"] + 1
+        fin = xp.isfinite(f_c)
+        r_c, unres = radius_and_unresolved(xp, f_c, c, self.inv_lip, mag, self.rg)
+        other = ~unres & ((f_c > 0) != s["pos"])
+        if self.rg == 0.0:
+            # where φ's rounding is not modelled (not a distance bound) only φ = 0 is unresolved, and
+            # inside a bracket of resolved signs it is taken as the root, as the hybrids' refinement does
+            other = other | (f_c == 0)
+        # a resolved sample of the start's side whose sphere reaches back to the frontier moves it on
+        # (the frontier's own sample always does); one of the other side bounds the crossing before
+        # its sphere (at the frontier itself, where the spheres behind said no crossing, that is
+        # rounding: the bracket closes there)
+        reach = ~unres & ~other & (c - r_c <= a + slack)
+        b_n = xp.where(other, xp.maximum(c - r_c, a), b)
+        a_n = xp.minimum(xp.where(reach, xp.maximum(a, c + r_c), a), b_n)
+        lo_n = xp.minimum(xp.maximum(xp.where(front | other, lo, c), a_n), b_n)
+        t_n, f_n = xp.where(other, c, t), xp.where(other, f_c, f)
+        conv = b_n - a_n <= base
+        stuck = front & (~reach | (a_n <= a) | (r_c * CERTIFY_REACH < b_n - a_n - base))
+        unc = ~conv & stuck & (b_n - lo_n <= 0.25 * base)
+        lipv = lipschitz_violated(xp, fb, f_c, tb, c, self.inv_lip, mag, self.gain)
+        status = _verdict(xp, ~fin, conv, iters >= self.max_steps, lipv=lipv, unc=unc)
+        with _quiet(xp):
+            z = tb + (t_n - tb) * (fb / (fb - f_n))
+        z = xp.minimum(xp.maximum(z, a_n), b_n)
+        return _typed(xp, dict(s, t=xp.where(conv | unc, z, t_n), f=f_n, a=a_n, b=b_n, lo=lo_n, status=status,
                                iterations=iters, evals=s["evals"] + cost), s)
 
 

@@ -126,11 +126,12 @@ def level_sizes(m: int, ratio: int = RATIO, last: int = LAST) -> list[int]:
 def _stage_loops(alg, s: dict, o, d, ev, keep: int, cap: int | None) -> dict:
     """Step the rays of ``s`` stage by stage, each stage while more than ``keep`` of its rays
     are iterating (and, with ``cap``, for at most ``cap`` steps); other rows keep their values."""
-    for k, name in enumerate(alg.stages):
+    masked = getattr(alg, "masked_stages", None)  # (one step for all of the stages: every row in progress)
+    for k, name in enumerate(masked or alg.stages):
         step = getattr(alg, name)
 
         def active(c, k=k):
-            return (c["status"] == rootfind.IN) & (c["phase"] == k)
+            return (c["status"] == rootfind.IN) & (True if masked else c["phase"] == k)
 
         def body(c, step=step, active=active):
             new = step(jnp, c, o, d, ev)
@@ -171,7 +172,8 @@ def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None = None):
     independent of the others."""
     m = sizes[0]
     last = len(sizes) == 1
-    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // len(alg.stages), cap if last else None)
+    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // len(getattr(alg, "masked_stages", None) or alg.stages),
+                     cap if last else None)
     out = rootfind.outputs(jnp, s)
     if last:
         return out, (None if cap is None else (jnp.arange(m), s, o, d))

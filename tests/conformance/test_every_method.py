@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from impls import METHODS, Status, registry
-from tests.conformance.common import SPHERE, hits, plant_bad_rays, run, skip_unless_offered
+from tests.conformance.common import SPHERE, depth_resolved, hits, plant_bad_rays, run, skip_unless_offered
 
 # -- every method, every backend: agreement with numpy (the catalog drives the list) -----------
 
@@ -60,12 +60,14 @@ def test_every_method_runs_in_float32(any_backend, method):
         cos_all = np.abs(np.einsum("ij,ij->i", SPHERE.normal_exact(x), d))
         # a hybrid cannot certify a grazing hit (here |cos| 0.094) to min_step in float32: near the
         # crossing the spheres (σ × distance) fall under φ's float32 rounding, and the ray is UNCERTIFIED;
-        # nor can sphere tracing certify a slanted one (|cos| 0.094, 0.186) to tol = 1e-5: its probes
-        # reach 4 roundings (2.8e-5) past their spheres, and a crossing found after a probe that left
-        # more than tol uncovered is not proved the first
+        # nor can sphere tracing certify a slanted one to its δ = 4 roundings (2.8e-5): along a ray at
+        # slope |cos| φ's sign is rounding over 2 roundings/|cos| (depth_resolved)
         certifying = "min_step" in {k.name for k in METHODS[method].knobs}
-        slanted = 0.2 if method == "sphere_trace" else (0.1 if certifying else 0.0)
-        grazing = hit & (cos_all < slanted) & (r.status == Status.UNCERTIFIED)
+        if method == "sphere_trace":
+            slanted = ~depth_resolved(method, SPHERE, o, d, t, {"tol": 1e-5}, dtype="float32")
+        else:
+            slanted = cos_all < (0.1 if certifying else 0.0)
+        grazing = hit & slanted & (r.status == Status.UNCERTIFIED)
         assert np.all((r.status == Status.CONVERGED) == (hit & ~grazing))
         hit = hit & ~grazing
         # |φ| ≤ tol bounds the depth error only by tol/|cos| (grazing); bracketing bounds it by xtol

@@ -9,7 +9,7 @@ import pytest
 
 from impls import Status
 from reference.rays import normalize
-from tests.conformance.common import ROOT_METHODS, SCENES, TIGHT, camera, run
+from tests.conformance.common import ROOT_METHODS, SCENES, TIGHT, camera, depth_resolved, run
 
 
 def silhouette_rays(ball, n=64, delta_min=1e-12):
@@ -46,7 +46,7 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
         # δ = 1e-8, every backend's loop running as long as its slowest ray): it gets δ ≥ 1e-7,
         # which still puts rays on both sides of the padding (1e-6 of the radius, the band the clip
         # must neither cut a hit from nor add a miss to: reference/raybounds.py) and hits too
-        # grazing to certify (chord < 1e-3 below δ ≈ 2e-7, `graze` below)
+        # grazing to certify (`graze` below)
         o2, d2 = silhouette_rays(ball, delta_min=1e-7 if method == "sphere_trace" else 1e-12)
         o, d = np.concatenate([o, o2]), np.concatenate([d, d2])
     exact = scene.first_hit(o, d, 0.0)
@@ -66,14 +66,14 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     from impls.core.rootfind import PASSING_SLOPE
 
     spheres = scene.children or (scene,)
-    chord = np.max([[b[1] - b[0] if b.size else 0.0 for b in s.ray_intervals(o, d)] for s in spheres], axis=0)
     slope = np.max([[(b[1] - b[0]) / (2 * s.radius) if b.size else 0.0 for b in s.ray_intervals(o, d)]
                     for s in spheres], axis=0)
-    # sphere tracing's: a hit whose chord is so short (grazing, ~1e-8 inside) that φ stays within its
-    # rounding over a stretch wider than tol cannot be bracketed to tol: it may be UNCERTIFIED
+    # sphere tracing's: a hit crossed so obliquely that φ stays within its rounding over a stretch
+    # wider than tol cannot be bracketed to tol: it may be UNCERTIFIED (depth_resolved)
     sure = hit & (slope >= 2 * PASSING_SLOPE) if method in ("hybrid_secant", "hybrid_chandrupatla") else hit
     if method == "sphere_trace":
-        sure = hit & (chord >= 1e-3)
+        sure = depth_resolved(method, scene, o, d, exact, knobs)
+        assert sure[:n_camera].sum() >= 0.8 * hit[:n_camera].sum()
     # a certified MISS needs certified steps all along: a silhouette ray passing closer to the surface
     # than the forced step's reach or the probe's is an uncertified miss (UNCERTIFIED, t = inf)
     near_miss = ~hit & (np.arange(len(o)) >= n_camera)

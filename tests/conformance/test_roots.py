@@ -10,7 +10,8 @@ from impls import METHODS, Status, registry
 from reference import Sphere
 from reference.rays import normalize
 from reference.scene import Field, norm
-from tests.conformance.common import (ROOT_METHODS, SCENES, SPHERE, TIGHT, LambdaField, applicable, camera, run,
+from tests.conformance.common import (ROOT_METHODS, SCENES, SPHERE, TIGHT, LambdaField, applicable, camera,
+                                      depth_resolved, run,
                                       skip_unless_offered, xfail_if_expected)
 
 
@@ -25,7 +26,12 @@ def test_root_depth_against_exact(any_backend, method, scene_name):
     hit = np.isfinite(exact)
     assert hit.any() and (~hit).any()
     r = run(any_backend, method, scene, o, d, **TIGHT[method])
-    assert np.all(r.status[hit] == Status.CONVERGED), r.status_counts()
+    # (sphere tracing's tight tol is below what float64 resolves on the most oblique hits: those
+    # may be UNCERTIFIED, with their depths; depth_resolved says which)
+    must = depth_resolved(method, scene, o, d, exact, TIGHT[method])
+    assert must.sum() >= 0.8 * hit.sum()
+    assert np.all(r.status[must] == Status.CONVERGED), r.status_counts()
+    assert np.all(np.isin(r.status[hit], (Status.CONVERGED, Status.UNCERTIFIED))), r.status_counts()
     assert np.all(r.status[~hit] == Status.MISS), r.status_counts()
     assert np.all(np.isinf(r.t[~hit]))
     err = np.abs(r.t[hit] - exact[hit])
