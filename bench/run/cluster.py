@@ -14,7 +14,14 @@ Timing stays honest:
   the nanny's environment and a worker plugin (:class:`WorkerSetup`), and the client keeps at
   most one task in flight per worker thread (flow control), so a worker never holds a second
   task beside the one it times — which also means that a worker's death marks as suspect only
-  the configuration it was running (dask counts every task a dying worker held);
+  the configuration it was running (dask counts every task a dying worker held).  The client's
+  count alone does not place the tasks: while a dead worker's nanny restarts it, dask moved its
+  task to the worker still running another one, and a configuration that kills its worker then
+  killed a numpy configuration beside it twice, a failed row of another backend (a loaded 2-core
+  machine, tests/test_cluster.py).  So each task also holds a worker resource,
+  :data:`TASK_RESOURCE` (one per worker thread): a local cluster's workers declare it, and a
+  remote cluster's are asked for it where every worker declares it (``dask worker --resources
+  isobench-task=1``; without it, the count alone);
 * the closed-form unit is measured on the worker that times the configuration, beside it (once
   per case and worker process);
 * every row records the worker's :func:`bench.run.environment.machine_key`, address and pid:
@@ -67,6 +74,11 @@ class RunInterrupted(Interrupted):
     tasks): the run stops, keeps what it finished, and is marked incomplete (``--resume``)."""
 
 
+#: the worker resource each task holds (one per worker thread), so that dask never runs two of
+#: them at once on a worker (module docstring)
+TASK_RESOURCE = "isobench-task"
+
+
 def parse_local(text: str) -> int:
     """N of ``local:N`` (N ≥ 1), else ValueError naming ``--cluster`` and the form."""
     if not isinstance(text, str) or not text.startswith(LOCAL):
@@ -114,6 +126,7 @@ class ClusterExecutor:
         self._critical = 0.0
         self._capacity_at = (0.0, 1)
         self._workers_max = 0
+        self.task_resources: dict[str, float] | None = None  # what each task holds (start: TASK_RESOURCE)
 
     # -- life cycle
 
@@ -142,7 +155,7 @@ class ClusterExecutor:
             with dask.config.set(config):
                 self.cluster = LocalCluster(n_workers=self.local, threads_per_worker=1, processes=True,
                                             dashboard_address=None, memory_limit=0,
-                                            env=thread_env(self.threads))
+                                            env=thread_env(self.threads), resources={TASK_RESOURCE: 1})
                 self.client = Client(self.cluster)
             where = f"local:{self.local}"
         else:
@@ -155,6 +168,8 @@ class ClusterExecutor:
         self.client.register_plugin(WorkerSetup(self.threads, self.allocator, self.case_specs, self.backend_specs))
         if self.scheduler is not None:
             self.client.wait_for_workers(1, timeout=60)
+        declared = [w.get("resources", {}).get(TASK_RESOURCE, 0) for w in self.client.scheduler_info()["workers"].values()]
+        self.task_resources = {TASK_RESOURCE: 1} if declared and all(v >= 1 for v in declared) else None
         records = self.client.run(worker_record)
         self._check_workers(records)
         for r in records.values():
@@ -164,6 +179,7 @@ class ClusterExecutor:
             "cluster.allowed_failures": str(dask.config.get("distributed.scheduler.allowed-failures")
                                             if self.allowed_failures is None else self.allowed_failures),
             "cluster.threads_per_worker_library": str(self.threads),
+            "cluster.task_resource": TASK_RESOURCE if self.task_resources else "none (a worker lacks it)",
             "cluster.dask": f"dask {dask.__version__}, distributed {__import__('distributed').__version__}",
         })
         if self.calibrate:
@@ -288,13 +304,14 @@ class ClusterExecutor:
         if job.kind == "reference":
             prev = job.deps[0].result if job.deps else None
             future = self.client.submit(reference_task, *job.args, prev, key=f"isobench-reference-{uuid.uuid4().hex}",
-                                        pure=False, priority=10)
+                                        pure=False, priority=10, resources=self.task_resources)
         else:
             *head, keep_s = job.args
             ref = job.deps[0] if job.deps else None
             seeds = ref.result if ref is not None and ref.result is not None else None
             future = self.client.submit(_config_with_seeds, *head, seeds, keep_s, job.ref_key,
-                                        key=f"isobench-config-{uuid.uuid4().hex}", pure=False)
+                                        key=f"isobench-config-{uuid.uuid4().hex}", pure=False,
+                                        resources=self.task_resources)
         job.submitted = time.perf_counter()
         return future
 

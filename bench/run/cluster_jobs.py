@@ -116,6 +116,7 @@ def retime_rounds(executor, rows: list[dict], todo: list, rounds: int, run_id: s
                     f = executor.client.submit(retime_task, cfg.case.id, cfg.case.version, cfg.backend_id, cfg.method,
                                            cfg.dtype, dict(cfg.knobs), policy, w, rnd, workers=[w],
                                            allow_other_workers=True, pure=False,
+                                           resources=getattr(executor, "task_resources", None),
                                            key=f"isobench-retime-{uuid.uuid4().hex}")
                     inflight[f] = (w, cfg)
             done = wait(list(inflight), return_when="FIRST_COMPLETED").done
