@@ -138,7 +138,7 @@ def test_a_dying_task_never_shares_a_worker_with_another(tmp_path, cluster):
     worker, twice: the first task starts once (it is not killed beside the killer)."""
     from distributed import wait
 
-    from bench.run.cluster import TASK_RESOURCE
+    from bench.run.cluster_jobs import TASK_RESOURCE
 
     assert cluster.task_resources == {TASK_RESOURCE: 1}
     client = cluster.client

@@ -14,14 +14,8 @@ Timing stays honest:
   the nanny's environment and a worker plugin (:class:`WorkerSetup`), and the client keeps at
   most one task in flight per worker thread (flow control), so a worker never holds a second
   task beside the one it times — which also means that a worker's death marks as suspect only
-  the configuration it was running (dask counts every task a dying worker held).  The client's
-  count alone does not place the tasks: while a dead worker's nanny restarts it, dask moved its
-  task to the worker still running another one, and a configuration that kills its worker then
-  killed a numpy configuration beside it twice, a failed row of another backend (a loaded 2-core
-  machine, tests/test_cluster.py).  So each task also holds a worker resource,
-  :data:`TASK_RESOURCE` (one per worker thread): a local cluster's workers declare it, and a
-  remote cluster's are asked for it where every worker declares it (``dask worker --resources
-  isobench-task=1``; without it, the count alone);
+  the configuration it was running (dask counts every task a dying worker held); dask places the
+  tasks, so each also holds a worker resource (:func:`bench.run.cluster_jobs.task_resources`);
 * the closed-form unit is measured on the worker that times the configuration, beside it (once
   per case and worker process);
 * every row records the worker's :func:`bench.run.environment.machine_key`, address and pid:
@@ -57,7 +51,8 @@ from typing import Any, Iterator
 import numpy as np
 from distributed import Client, LocalCluster, wait
 
-from .cluster_jobs import _Job, failure_reason, hung_jobs, plan_jobs, ready_queues, retime_rounds
+from .cluster_jobs import (TASK_RESOURCE, _Job, failure_reason, hung_jobs, plan_jobs, ready_queues, retime_rounds,
+                           task_resources)
 from .cluster_worker import WorkerSetup, _config_with_seeds, _noop, reference_task, thread_env, worker_record
 from .configuration import base_row, failed_rows, over_budget_message
 from .executor import Interrupted
@@ -72,11 +67,6 @@ LOCAL = "local:"
 class RunInterrupted(Interrupted):
     """The cluster went away (no worker for ``lost_after_s``, or the scheduler cancelled the
     tasks): the run stops, keeps what it finished, and is marked incomplete (``--resume``)."""
-
-
-#: the worker resource each task holds (one per worker thread), so that dask never runs two of
-#: them at once on a worker (module docstring)
-TASK_RESOURCE = "isobench-task"
 
 
 def parse_local(text: str) -> int:
@@ -168,8 +158,7 @@ class ClusterExecutor:
         self.client.register_plugin(WorkerSetup(self.threads, self.allocator, self.case_specs, self.backend_specs))
         if self.scheduler is not None:
             self.client.wait_for_workers(1, timeout=60)
-        declared = [w.get("resources", {}).get(TASK_RESOURCE, 0) for w in self.client.scheduler_info()["workers"].values()]
-        self.task_resources = {TASK_RESOURCE: 1} if declared and all(v >= 1 for v in declared) else None
+        self.task_resources = task_resources(self.client)
         records = self.client.run(worker_record)
         self._check_workers(records)
         for r in records.values():

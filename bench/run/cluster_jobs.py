@@ -135,6 +135,20 @@ def retime_rounds(executor, rows: list[dict], todo: list, rounds: int, run_id: s
                     pool(rows[j], extra, cf)
 
 
+#: the worker resource each task holds, one per worker thread, so that dask runs one task at a time
+#: on a worker: without it, dask moved a dead worker's task beside another task, and a configuration
+#: that kills its worker killed a numpy one twice, a failed numpy row (tests/test_cluster.py)
+TASK_RESOURCE = "isobench-task"
+
+
+def task_resources(client) -> dict[str, float] | None:
+    """What each task holds: ``{TASK_RESOURCE: 1}`` where every worker of the cluster declares it (a
+    local cluster's do; a remote one's with ``dask worker --resources isobench-task=1``), else None
+    (the client's count of tasks in flight alone, which does not place them)."""
+    declared = [w.get("resources", {}).get(TASK_RESOURCE, 0) for w in client.scheduler_info()["workers"].values()]
+    return {TASK_RESOURCE: 1} if declared and all(v >= 1 for v in declared) else None
+
+
 def hung_jobs(client, inflight: dict, policy) -> list:
     """``(job, seconds)`` of the configuration tasks in flight (``inflight``: future → job) that
     have run long enough past ``--timeout`` to be hung in native code
