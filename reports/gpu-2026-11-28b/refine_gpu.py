@@ -36,7 +36,9 @@ from reference.transform import Transform
 
 
 def thin_walls(seed: int, side: int):
-    """The thin walls of tests/test_certified_at_scale.py (same seeds, same scene), side² rays."""
+    """The thin walls of tests/test_certified_at_scale.py (same seeds, same scene), side² rays.
+    A copy, not an import: that module imports the test suite's conftest (bench's environment,
+    filelock, hypothesis), which a lent GPU image need not have; this script needs only isobench."""
     rng = np.random.default_rng(seed)
     parts = []
     for _ in range(3):
