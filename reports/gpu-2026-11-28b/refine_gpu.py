@@ -82,6 +82,15 @@ def solve(backend, method, scene, o, d, dtype, t_max):
     return p.result(out), time.perf_counter() - t0
 
 
+def tried(label, bid, method, *args):
+    """``solve(...)``, or None with an ERROR line: a backend's fault costs only its own row."""
+    try:
+        return solve(*args)
+    except Exception as exc:
+        print(f"{label} {bid} {method} ERROR {type(exc).__name__}: {str(exc)[:160]}", flush=True)
+        return None
+
+
 def line(scene, bid, method, res, wall, **bad):
     print(f"{scene:9s} {bid:11s} {method:14s} {wall:7.3f}s {res.status_counts()} "
           + " ".join(f"{k}={v}" for k, v in bad.items()), flush=True)
@@ -107,11 +116,10 @@ def main():
         delta = 32.0 * eps32 * (np.abs(np.where(np.isfinite(exact), exact, 0.0)) + mag) + 4.0 * eps32 * 10.0
         for bid, b in backends.items():
             for method in ("sphere_trace", "hybrid_secant"):
-                try:
-                    res, wall = solve(b, method, scene, of, d, "float32", 10.0)
-                except Exception as exc:  # a backend's fault costs only its own row
-                    print(f"far32.{seed} {bid} {method} ERROR {type(exc).__name__}: {str(exc)[:160]}", flush=True)
+                got = tried(f"far32.{seed}", bid, method, b, method, scene, of, d, "float32", 10.0)
+                if got is None:
                     continue
+                res, wall = got
                 conv = res.status == Status.CONVERGED
                 err = np.abs(res.t[conv] - exact[conv])
                 line(f"far32.{seed}", bid, method, res, wall,
@@ -121,22 +129,20 @@ def main():
         intervals = base.ray_intervals(o, d)
         for bid, b in backends.items():
             for method in ("sphere_trace", "hybrid_secant"):
-                try:
-                    res, wall = solve(b, method, base, o, d, "float64", 10.0)
-                except Exception as exc:
-                    print(f"walls64.{seed} {bid} {method} ERROR {type(exc).__name__}: {str(exc)[:160]}", flush=True)
+                got = tried(f"walls64.{seed}", bid, method, b, method, base, o, d, "float64", 10.0)
+                if got is None:
                     continue
+                res, wall = got
                 line(f"walls64.{seed}", bid, method, res, wall,
                      wrong=guarantee(intervals, res, 1e-10 if method == "sphere_trace" else 1e-4, 10.0))
         if seed == 1:
             liar = DeclaredLipschitz(Scaled(base, 4.0), 1.0)
             for bid, b in backends.items():
                 for method in ("sphere_trace", "hybrid_secant"):
-                    try:
-                        res, wall = solve(b, method, liar, o, d, "float64", 10.0)
-                    except Exception as exc:
-                        print(f"liar {bid} {method} ERROR {type(exc).__name__}: {str(exc)[:160]}", flush=True)
+                    got = tried("liar", bid, method, b, method, liar, o, d, "float64", 10.0)
+                    if got is None:
                         continue
+                    res, wall = got
                     line("liar", bid, method, res, wall,
                          certified=int(np.sum((res.status == Status.CONVERGED) | (res.status == Status.MISS))))
     case = get_case("sphere.camera.64x64")
