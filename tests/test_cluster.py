@@ -167,6 +167,15 @@ def test_a_configuration_that_always_kills_its_worker_is_a_failed_row(tmp_path, 
     assert _configs(df[df["backend"] == "numpy"]) == {(c, "numpy", d, m, k) for c, _, d, m, k in _configs(killer)}
     env = json.loads((tmp_path / "run" / "environment.json").read_text())
     assert env["complete"] == "true" and int(env["cluster.workers_died"]) == 2
+    # both killed workers come back, however long their nannies take on a loaded machine: dask's
+    # LocalCluster closed for good a worker not back within 15 s (lost-worker-timeout), on CI a
+    # third "death" and a worker fewer for the rest of the run
+    from dask import config
+    from dask.utils import parse_timedelta
+
+    assert parse_timedelta(config.get("distributed.deploy.lost-worker-timeout")) >= 3600
+    cluster.client.wait_for_workers(2, timeout=HANG_GUARD_S)
+    assert len(cluster.cluster.workers) == 2
 
 
 @pytest.mark.slow  # a dask cluster of 2 worker processes

@@ -51,8 +51,8 @@ from typing import Any, Iterator
 import numpy as np
 from distributed import Client, LocalCluster, wait
 
-from .cluster_jobs import (TASK_RESOURCE, _Job, failure_reason, hung_jobs, plan_jobs, ready_queues, retime_rounds,
-                           task_resources)
+from .cluster_jobs import (TASK_RESOURCE, _Job, failure_reason, hung_jobs, local_config, plan_jobs, ready_queues,
+                           retime_rounds, task_resources)
 from .cluster_worker import WorkerSetup, _config_with_seeds, _noop, reference_task, thread_env, worker_record
 from .configuration import base_row, failed_rows, over_budget_message
 from .executor import Interrupted
@@ -107,7 +107,7 @@ class ClusterExecutor:
         self.case_specs, self.allowed_failures, self.lost_after_s = tuple(case_specs), allowed_failures, lost_after_s
         self.accuracy_only, self.calibrate = accuracy_only, calibrate
         self.backend_specs = dict(backend_specs or {})  # a plug-in's id → the spec its workers resolve
-        self.cluster = self.client = None
+        self.cluster = self.client = self._config = None
         self._record: dict[str, str] = {}
         self._workers: dict[str, dict] = {}     # address → record (every worker seen)
         self._cf: dict[tuple[str, str], list[float]] = {}   # (worker, case) → closed-form samples
@@ -136,17 +136,11 @@ class ClusterExecutor:
                 raise ValueError(f"--cluster local:{self.local} with --threads {self.threads} needs "
                                  f"{self.local * self.threads} cores, this machine has {os.cpu_count()}: timing needs "
                                  "each worker's cores to itself. Use fewer workers, or --accuracy-only")
-            config = {"distributed.nanny.pre-spawn-environ": {},  # not dask's MALLOC_TRIM_THRESHOLD_: see tune_allocator
-                      # the statistical profiler samples the task thread's stack every 10 ms under the GIL:
-                      # it slowed deep Python code (the rendering integral) several-fold and would bias timings
-                      "distributed.worker.profile.enabled": False}
-            if self.allowed_failures is not None:
-                config["distributed.scheduler.allowed-failures"] = int(self.allowed_failures)
-            with dask.config.set(config):
-                self.cluster = LocalCluster(n_workers=self.local, threads_per_worker=1, processes=True,
-                                            dashboard_address=None, memory_limit=0,
-                                            env=thread_env(self.threads), resources={TASK_RESOURCE: 1})
-                self.client = Client(self.cluster)
+            self._config = dask.config.set(local_config(self.allowed_failures))  # until close()
+            self.cluster = LocalCluster(n_workers=self.local, threads_per_worker=1, processes=True,
+                                        dashboard_address=None, memory_limit=0,
+                                        env=thread_env(self.threads), resources={TASK_RESOURCE: 1})
+            self.client = Client(self.cluster)
             where = f"local:{self.local}"
         else:
             try:
@@ -182,6 +176,9 @@ class ClusterExecutor:
                 except Exception:  # noqa: BLE001 - closing a cluster that is already gone
                     pass
         self.client = self.cluster = None
+        if self._config is not None:
+            self._config.__exit__(None, None, None)
+            self._config = None
 
     def _check_workers(self, records: dict) -> None:
         from .environment import collect

@@ -149,6 +149,28 @@ def task_resources(client) -> dict[str, float] | None:
     return {TASK_RESOURCE: 1} if declared and all(v >= 1 for v in declared) else None
 
 
+def local_config(allowed_failures: int | None) -> dict[str, Any]:
+    """The dask configuration a local cluster runs under, held from its start to its close:
+
+    * ``distributed.nanny.pre-spawn-environ`` empty: not dask's ``MALLOC_TRIM_THRESHOLD_`` (see
+      :func:`bench.run.environment.tune_allocator`);
+    * the statistical profiler off: it samples the task thread's stack every 10 ms under the GIL,
+      slowed deep Python code (the rendering integral) several-fold and would bias timings;
+    * ``distributed.deploy.lost-worker-timeout`` a day: a ``LocalCluster`` closes for good a worker
+      that has not re-registered 15 s (dask's default) after it died, which is meant for batch jobs
+      that are gone; here the worker's nanny is restarting it, and on a loaded machine (CI) that
+      took more than 15 s, so the cluster lost the nanny and its restarted worker (a third worker
+      death counted, a worker fewer for the rest of the run);
+    * ``allowed_failures`` (None: dask's default, 3): worker deaths a task may cause before it fails.
+    """
+    config: dict[str, Any] = {"distributed.nanny.pre-spawn-environ": {},
+                              "distributed.worker.profile.enabled": False,
+                              "distributed.deploy.lost-worker-timeout": "24h"}
+    if allowed_failures is not None:
+        config["distributed.scheduler.allowed-failures"] = int(allowed_failures)
+    return config
+
+
 def hung_jobs(client, inflight: dict, policy) -> list:
     """``(job, seconds)`` of the configuration tasks in flight (``inflight``: future → job) that
     have run long enough past ``--timeout`` to be hung in native code
