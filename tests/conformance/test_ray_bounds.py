@@ -12,14 +12,15 @@ from reference.rays import normalize
 from tests.conformance.common import ROOT_METHODS, SCENES, TIGHT, camera, depth_resolved, run
 
 
-def silhouette_rays(ball, n=64, delta_min=1e-12):
-    """Rays from distance 3 that pass the ball's centre at impact parameters r(1 ± δ), δ from
-    ``delta_min`` to 1e-2 (the rays the clipping's padding must not turn from hits into misses
-    or back), plus rays that miss the ball by a wide margin."""
+def silhouette_rays(ball, n=64, delta_min=1e-12, hit_delta_min=None):
+    """Rays from distance 3 that pass the ball's centre at impact parameters r(1 − δ), δ from
+    ``hit_delta_min`` (default ``delta_min``) to 1e-2, and r(1 + δ), δ from ``delta_min`` to 1e-2
+    (the rays the clipping's padding must not turn from hits into misses or back), plus rays
+    that miss the ball by a wide margin."""
     c, r = ball
     rng = np.random.default_rng(3)
-    delta = np.geomspace(delta_min, 1e-2, n // 2)
-    b = r * np.concatenate([1 - delta, 1 + delta, [1.5, 3.0]])
+    inner = np.geomspace(delta_min if hit_delta_min is None else hit_delta_min, 1e-2, n // 2)
+    b = r * np.concatenate([1 - inner, 1 + np.geomspace(delta_min, 1e-2, n // 2), [1.5, 3.0]])
     u = normalize(rng.normal(size=(b.size, 3)))
     d = normalize(np.cross(u, rng.normal(size=(b.size, 3))))  # ⟂ u
     return c + b[:, None] * u - 3.0 * d, d
@@ -41,13 +42,17 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     o, d = camera(8)
     n_camera = len(o)
     if method in ("sphere_trace", "hybrid_secant", "hybrid_chandrupatla"):
-        # plain sphere tracing certifies a miss that passes δ·r from the surface in ~√(1/δ) steps
-        # (never, when δ·r < tol), and converges on a hit at δ in ~ln(1/tol)/√(2δ) steps (93k at
-        # δ = 1e-8, every backend's loop running as long as its slowest ray): it gets δ ≥ 1e-7,
-        # which still puts rays on both sides of the padding (1e-6 of the radius, the band the clip
-        # must neither cut a hit from nor add a miss to: reference/raybounds.py) and hits too
-        # grazing to certify (`graze` below)
-        o2, d2 = silhouette_rays(ball, delta_min=1e-7 if method == "sphere_trace" else 1e-12)
+        # plain sphere tracing certifies a miss that passes δ·r from the surface in ~1/√δ steps
+        # (never, when δ·r < tol; 14k at δ = 1e-7), and converges on a hit at δ in
+        # ~ln(1/tol)/√(2δ) steps (93k at δ = 1e-8), every backend's loop running as long as its
+        # slowest ray: its misses get δ ≥ 5e-7, which still puts rays on both sides of the padding
+        # (1e-6 of the radius, the band the clip must neither cut a hit from nor add a miss to:
+        # reference/raybounds.py), its hits δ ≥ 1e-5 (3.7k steps), still too grazing to certify
+        # (`graze` below).  (Misses from 1e-7 and hits from 1e-7 took 26–78 s a backend on a 2-core
+        # machine, 3–5 s with these.)  The hybrids' rays inside the band, down to δ = 1e-12, are
+        # clipped by the same code (impls/core/rootfind.py:clip_to_bounds).
+        sphere = method == "sphere_trace"
+        o2, d2 = silhouette_rays(ball, delta_min=5e-7 if sphere else 1e-12, hit_delta_min=1e-5 if sphere else None)
         o, d = np.concatenate([o, o2]), np.concatenate([d, d2])
     exact = scene.first_hit(o, d, 0.0)
     hit = np.isfinite(exact)
