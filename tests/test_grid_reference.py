@@ -188,6 +188,24 @@ def test_case_hits_lie_on_the_surface():
     assert not graz.hit_mask[out].any() and graz.hit_mask[~out].all()
 
 
+@pytest.mark.slow  # 51 exact grid marches of 256 rays
+def test_stored_grazing_offsets_are_the_bisections():
+    """The grazing case's stored tangent offsets (reference/data, read instead of recomputed by
+    every process that builds the case) are what the bisection gives now, within a few ulp (a
+    platform whose sin and cos round differently moves them by that much, a millionth of the 1e-6
+    margin the rays keep), and each splits the rays it offsets: inward hits, outward misses."""
+    from reference import grid
+
+    stored = np.load(grid.GRAZING_OFFSETS)
+    fresh = grid._grazing_offsets()
+    np.testing.assert_allclose(stored, fresh, rtol=8 * EPS, atol=0)
+    dirs, lateral = grid._grazing_family()
+    g = grid.stored_torus_grid(64)
+    for f, hits in ((1 - 1e-9, True), (1 + 1e-9, False)):
+        o = (stored * f)[:, None] * lateral - 3.0 * dirs
+        assert np.array_equal(np.isfinite(g.first_hit(o, dirs)), np.full(len(stored), hits))
+
+
 # -- (b) convergence to an analytic surface --------------------------------------------------------
 def test_sphere_grid_converges_at_second_order():
     """A sphere SDF (r = 0.8) sampled on [−1, 1]³ at 16…128 vertices per axis: the grid's first

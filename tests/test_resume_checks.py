@@ -19,6 +19,7 @@ import pandas as pd
 import pytest
 
 from bench.run.results import read_results
+from tests.conftest import HANG_GUARD_S
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,7 +48,7 @@ RUN = ["--cases", "chcase:CASES", "--case", "user.*,sphere.camera.64x64", "--bac
 def bench(tmp_path, *args, shift="0"):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)]), CHCASE_SHIFT=shift)
     return subprocess.run([sys.executable, "-m", "bench", *args], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=600)
+                          timeout=HANG_GUARD_S)
 
 
 def interrupt(out: Path) -> int:

@@ -14,13 +14,14 @@ from pathlib import Path
 import pytest
 
 from bench.run.rundir import LOCK_FILE, LockHeld, OutError, RunLock, claim_out
+from tests.conftest import HANG_GUARD_S
 
 ROOT = Path(__file__).resolve().parent.parent
 ONE = ["--case", "sphere.camera.64x64", "--method", "sphere_trace", "--backend", "numpy", "--accuracy-only",
        "--no-claims", "--no-progress"]
 
 
-def bench(*args, timeout=600):
+def bench(*args, timeout=HANG_GUARD_S):
     return subprocess.run([sys.executable, "-m", "bench", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout)
 
@@ -82,7 +83,7 @@ def test_two_runs_started_together_into_one_out_one_wins(tmp_path):
     cmd = [sys.executable, "-m", "bench", "run", "--out", str(out), *ONE]
     procs = [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for _ in range(2)]
-    results = [(p.wait(timeout=600), p.stderr.read()) for p in procs]
+    results = [(p.wait(timeout=HANG_GUARD_S), p.stderr.read()) for p in procs]
     codes = sorted(rc for rc, _ in results)
     assert codes == [0, 2], results
     loser = next(err for rc, err in results if rc == 2)

@@ -14,13 +14,14 @@ import pytest
 
 from bench.studies import sampling
 from bench.run.heartbeat import Heartbeat
+from tests.conftest import HANG_GUARD_S
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def bench(*args):
     return subprocess.run([sys.executable, "-m", "bench", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=600)
+                          timeout=HANG_GUARD_S)
 
 
 class Recorder:
