@@ -534,36 +534,61 @@ def _tangent_offsets(grid: GridSDF, centre_dirs, lateral, s_hit: float, s_miss: 
 GRID_SCENE_TAGS = ("grid", "lipschitz")
 
 
-#: the grazing case's tangent offsets, :func:`_grazing_offsets` computed once and stored: the
-#: bisection takes ~2–4 s (51 exact grid marches of 256 rays), paid by every process that built the
-#: case, ``bench cases`` included; tests/test_grid_reference.py recomputes them and compares
-GRAZING_OFFSETS = Path(__file__).with_name("data") / "grid_torus64_grazing_offsets.npy"
+#: the grazing case's tangent offsets, stored with the key of what they were computed from
+#: (:func:`_grazing_key`): the bisection takes ~2–4 s (51 exact grid marches of 256 rays), which
+#: every process that built the case paid, ``bench cases`` included
+GRAZING_OFFSETS = Path(__file__).with_name("data") / "grid_torus64_grazing_offsets.npz"
 
 
 def _grazing_family():
-    """(directions, lateral unit vectors) of the grazing case's 256 rays in the equatorial plane."""
+    """(grid, directions, lateral unit vectors) of the grazing case's 256 rays in the equatorial
+    plane."""
     rng = np.random.default_rng(90)
     m = 256
     phase = rng.uniform(0, 2 * np.pi, m)
     dirs = np.stack([-np.sin(phase), np.cos(phase), np.zeros(m)], axis=1)
     lateral = np.stack([np.cos(phase), np.sin(phase), np.zeros(m)], axis=1)
-    return dirs, lateral
+    return stored_torus_grid(64), dirs, lateral
 
 
-def _grazing_offsets() -> np.ndarray:
+def _grazing_key(grid: GridSDF, dirs, lateral) -> str:
+    """SHA-256 of everything the offsets depend on: the grid's values, origin and spacing, the
+    rays' directions and lateral vectors (a platform whose sin, cos or φ round differently gets
+    another key, and computes its own offsets).  A change of the bisection's code is caught by
+    tests/test_grid_reference.py, which recomputes them."""
+    h = hashlib.sha256()
+    for a in (grid.values, grid.lo, grid.spacing, dirs, lateral):
+        h.update(np.ascontiguousarray(a, np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _grazing_offsets(stored: bool = True) -> np.ndarray:
     """The lateral offsets s* where the grazing family's rays stop hitting the 64³ grid torus
-    (:func:`_tangent_offsets`, computed afresh)."""
-    dirs, lateral = _grazing_family()
-    return _tangent_offsets(stored_torus_grid(64), dirs, lateral, 1.0, 1.5)
+    (:func:`_tangent_offsets`): read from :data:`GRAZING_OFFSETS` where its key is this
+    platform's and ``stored``, else computed."""
+    grid, dirs, lateral = _grazing_family()
+    key = _grazing_key(grid, dirs, lateral)
+    if stored and GRAZING_OFFSETS.exists():
+        with np.load(GRAZING_OFFSETS) as f:
+            if str(f["key"]) == key:
+                return np.array(f["s_star"])
+    return _tangent_offsets(grid, dirs, lateral, 1.0, 1.5)
+
+
+def write_grazing_offsets() -> None:
+    """Recompute :data:`GRAZING_OFFSETS` and store them with their key (atomically):
+    ``python -c "from reference.grid import write_grazing_offsets as w; w()"``."""
+    grid, dirs, lateral = _grazing_family()
+    tmp = GRAZING_OFFSETS.with_suffix(".tmp.npz")
+    np.savez(tmp, s_star=_grazing_offsets(stored=False), key=np.array(_grazing_key(grid, dirs, lateral)))
+    tmp.replace(GRAZING_OFFSETS)
 
 
 def _grazing_rays():
     """Rays in the equatorial plane at (1 ± 1e-6) × the lateral offset where they stop hitting the
-    64³ grid torus (:func:`_tangent_offsets`; stored in :data:`GRAZING_OFFSETS`, computed where the
-    file is missing).  The 1e-6 margin is ~10⁹ times the offsets' own precision (adjacent floats),
-    so a platform whose sin and cos round differently still puts each ray on its side."""
-    dirs, lateral = _grazing_family()
-    s_star = np.load(GRAZING_OFFSETS) if GRAZING_OFFSETS.exists() else _grazing_offsets()
+    64³ grid torus (:func:`_grazing_offsets`)."""
+    _, dirs, lateral = _grazing_family()
+    s_star = _grazing_offsets()
     sgn = np.where(np.arange(len(dirs)) % 2 == 0, 1.0, -1.0)
     s = s_star * (1 + sgn * 1e-6)
     return s[:, None] * lateral - 3.0 * dirs, dirs

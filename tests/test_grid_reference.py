@@ -191,16 +191,17 @@ def test_case_hits_lie_on_the_surface():
 @pytest.mark.slow  # 51 exact grid marches of 256 rays
 def test_stored_grazing_offsets_are_the_bisections():
     """The grazing case's stored tangent offsets (reference/data, read instead of recomputed by
-    every process that builds the case) are what the bisection gives now, within a few ulp (a
-    platform whose sin and cos round differently moves them by that much, a millionth of the 1e-6
-    margin the rays keep), and each splits the rays it offsets: inward hits, outward misses."""
+    every process that builds the case, where their key is this platform's) are bit for bit what
+    the bisection gives now, and each splits the rays it offsets: inward hits, outward misses."""
     from reference import grid
 
-    stored = np.load(grid.GRAZING_OFFSETS)
-    fresh = grid._grazing_offsets()
-    np.testing.assert_allclose(stored, fresh, rtol=8 * EPS, atol=0)
-    dirs, lateral = grid._grazing_family()
-    g = grid.stored_torus_grid(64)
+    g, dirs, lateral = grid._grazing_family()
+    with np.load(grid.GRAZING_OFFSETS) as f:
+        assert str(f["key"]) == grid._grazing_key(g, dirs, lateral), ("stored for other rays or another grid: "
+                                                                    "reference.grid.write_grazing_offsets()")
+        stored = np.array(f["s_star"])
+    np.testing.assert_array_equal(stored, grid._grazing_offsets(stored=False))
+    np.testing.assert_array_equal(grid._grazing_offsets(), stored)
     for f, hits in ((1 - 1e-9, True), (1 + 1e-9, False)):
         o = (stored * f)[:, None] * lateral - 3.0 * dirs
         assert np.array_equal(np.isfinite(g.first_hit(o, dirs)), np.full(len(stored), hits))
