@@ -118,39 +118,33 @@ def test_a_worker_killed_mid_task_loses_and_duplicates_nothing(tmp_path, cluster
     pd.testing.assert_frame_equal(a[ACCURACY_COLUMNS], b[ACCURACY_COLUMNS], check_dtype=False)
 
 
-def _start_then_sleep(path: str, seconds: float) -> int:
-    with open(path, "a") as f:
-        f.write(f"{os.getpid()}\n")
-    time.sleep(seconds)
-    return os.getpid()
-
-
-def _die() -> None:
-    os._exit(1)
-
-
 @pytest.mark.slow  # a dask cluster of 2 worker processes
 def test_a_dying_task_never_shares_a_worker_with_another(tmp_path, cluster):
-    """Each task holds the workers' one TASK_RESOURCE slot, so a task whose worker died is not moved
-    to a worker still running another task (dask did so while the dead worker's nanny restarted
-    it, and a configuration that kills its worker then killed a numpy configuration beside it twice:
-    a failed numpy row, on a loaded 2-core machine).  A 3-second task and a task that kills its
-    worker, twice: the first task starts once (it is not killed beside the killer)."""
-    from distributed import wait
+    """No worker is ever given a task while it runs another, even as a configuration kills its
+    worker: dask's own retry sent the dead worker's task at once to the worker still running a
+    configuration, to wait there, and a worker's death is charged to every task it holds, running
+    or waiting (a configuration that kills its worker failed a numpy row so, on a loaded 2-core
+    machine).  The executor retries it itself, on a free worker thread (cluster_jobs.died_again).
+    The scheduler's assignments are polled every 10 ms through a run whose configurations each
+    take 0.4 s (``Slow``) beside one that kills its worker twice."""
+    shared, done = [], threading.Event()
 
-    from bench.run.cluster_jobs import TASK_RESOURCE
+    def poll():
+        while not done.is_set():
+            shared.extend((w, keys) for w, keys in cluster.client.processing().items() if len(keys) > 1)
+            time.sleep(0.01)
 
-    assert cluster.task_resources == {TASK_RESOURCE: 1}
-    client = cluster.client
-    started = tmp_path / "started"
-    slow = client.submit(_start_then_sleep, str(started), 3.0, pure=False, resources=cluster.task_resources)
-    while not started.exists():  # (the slow task holds its worker before the killer is submitted)
-        time.sleep(0.05)
-    killer = client.submit(_die, pure=False, resources=cluster.task_resources)
-    wait([slow, killer])
-    # (the slow task's result may be lost after it finished: the killer may run on its worker then)
-    assert killer.status == "error"
-    assert len(started.read_text().split()) == 1, "the slow task was killed and rerun beside the killer"
+    watcher = threading.Thread(target=poll, daemon=True)
+    watcher.start()
+    try:
+        df = runner.run(get_suite("quick"), _backends("tests.cluster_backends:Slow", KILLER), tmp_path / "run",
+                        executor=cluster, case_pattern="sphere.far.1e3", methods=["sphere_trace"], policy=ACCURACY)
+    finally:
+        done.set()
+        watcher.join()
+    assert not shared, f"a task waited on a worker behind another: {shared[:3]}"
+    bad = df["outcome"] != "ok"
+    assert bad.sum() == 1 and df.loc[bad, "backend"].tolist() == [KILLER], df.loc[bad, ["backend", "reason"]]
 
 
 @pytest.mark.slow  # a dask cluster of 2 worker processes

@@ -87,8 +87,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "results, resume and the report are those of a run in one process, each row records its worker")
     p.add_argument("--scheduler", metavar="ADDRESS", help="run the configurations on an existing dask cluster "
                    "(e.g. tcp://host:8786); its workers need this isobench and, for timing, --nthreads 1, and should "
-                   "declare --resources isobench-task=1 (then a worker runs one configuration at a time: a "
-                   "configuration that kills its worker costs no other row)")
+                   "declare --resources isobench-task=1 (then a worker runs one configuration at a time; its "
+                   "scheduler's allowed-failures decides when a configuration that kills its worker fails)")
     p.add_argument("--no-progress", action="store_true", help="no live progress bar and no periodic progress lines "
                    "(stage lines and the summary still print; without it, progress is a live bar on a terminal and "
                    "plain lines when piped)")

@@ -12,21 +12,19 @@ Timing stays honest:
 * **one configuration per worker at a time**: a ``LocalCluster`` has N worker processes of one
   thread each, their BLAS/OpenMP/torch/XLA/numba threads fixed (``--threads``, default 1) by
   the nanny's environment and a worker plugin (:class:`WorkerSetup`), and the client keeps at
-  most one task in flight per worker thread (flow control), so a worker never holds a second
-  task beside the one it times — which also means that a worker's death marks as suspect only
-  the configuration it was running (dask counts every task a dying worker held); dask places the
-  tasks, so each also holds a worker resource (:func:`bench.run.cluster_jobs.task_resources`);
+  most one task in flight per worker thread (flow control), and reruns a dead worker's task
+  itself, on a free one (:func:`bench.run.cluster_jobs.died_again`), so a worker never holds a
+  second task beside the one it times, and its death is charged to that one task alone;
 * the closed-form unit is measured on the worker that times the configuration, beside it (once
   per case and worker process);
 * every row records the worker's :func:`bench.run.environment.machine_key`, address and pid:
   ``bench compare`` compares timings only between equal keys.
 
-Faults: a worker that dies mid-task is replaced (its nanny restarts it) and dask reruns the
-task elsewhere; a configuration whose worker dies more than
-``distributed.scheduler.allowed-failures`` times (:class:`distributed.KilledWorker`) becomes a
-failed row with that reason, and the run goes on.  A hang is cut by ``--timeout`` as in one
-process (:func:`bench.run.timing.time_limit` works in a worker's task thread); one in native code,
-which it cannot cut, by :func:`bench.run.cluster_jobs.hung_jobs`.
+Faults: a worker that dies mid-task is replaced (its nanny restarts it) and the task reruns on a
+free worker (:func:`bench.run.cluster_jobs.died_again`); one whose worker died more than its
+allowed failures becomes a failed row with that reason, and the run goes on.  A hang is cut by
+``--timeout`` as in one process (:func:`bench.run.timing.time_limit` works in a worker's task
+thread); one in native code, which it cannot cut, by :func:`bench.run.cluster_jobs.hung_jobs`.
 
 Shared references: a rendering integral (:func:`bench.run.references.exact_color`) is a task of its
 own (:func:`reference_task`), computed once per case × density model × sharpness on some
@@ -51,8 +49,8 @@ from typing import Any, Iterator
 import numpy as np
 from distributed import Client, LocalCluster, wait
 
-from .cluster_jobs import (TASK_RESOURCE, _Job, failure_reason, hung_jobs, local_config, plan_jobs, ready_queues,
-                           retime_rounds, task_resources)
+from .cluster_jobs import (TASK_RESOURCE, _Job, died_again, failure_reason, hung_jobs, local_config, plan_jobs,
+                           ready_queues, requeue, retime_rounds, task_resources)
 from .cluster_worker import WorkerSetup, _config_with_seeds, _noop, reference_task, thread_env, worker_record
 from .configuration import base_row, failed_rows, over_budget_message
 from .executor import Interrupted
@@ -93,8 +91,8 @@ class ClusterExecutor:
     same code; for timed runs each must have one thread, ``dask worker --nthreads 1``).
     ``threads``: library threads per worker; ``allocator``: "tuned" or "default" as ``bench
     run``; ``case_specs``: the ``--cases`` to register on every worker; ``allowed_failures``:
-    worker deaths a configuration may cause before it is a failed row (a ``LocalCluster`` only;
-    None: dask's ``distributed.scheduler.allowed-failures``, 3); ``lost_after_s``: how long the
+    worker deaths a task may cause before it is a failed row (a ``LocalCluster`` only; None: dask's
+    ``distributed.scheduler.allowed-failures``, 3); ``lost_after_s``: how long the
     run waits with no worker at all before it stops incomplete.  Use as a context manager."""
 
     def __init__(self, *, local: int | None = None, scheduler: str | None = None, threads: int = 1,
@@ -107,15 +105,14 @@ class ClusterExecutor:
         self.case_specs, self.allowed_failures, self.lost_after_s = tuple(case_specs), allowed_failures, lost_after_s
         self.accuracy_only, self.calibrate = accuracy_only, calibrate
         self.backend_specs = dict(backend_specs or {})  # a plug-in's id → the spec its workers resolve
-        self.cluster = self.client = self._config = None
+        self.cluster = self.client = self._config = self._retries = None  # _retries: died_again's (local)
         self._record: dict[str, str] = {}
         self._workers: dict[str, dict] = {}     # address → record (every worker seen)
         self._cf: dict[tuple[str, str], list[float]] = {}   # (worker, case) → closed-form samples
         self._overheads: list[float] = []
         self._ref_s: list[float] = []
         self._critical = 0.0
-        self._capacity_at = (0.0, 1)
-        self._workers_max = 0
+        self._capacity_at, self._workers_max = (0.0, 1), 0
         self.task_resources: dict[str, float] | None = None  # what each task holds (start: TASK_RESOURCE)
 
     # -- life cycle
@@ -136,7 +133,9 @@ class ClusterExecutor:
                 raise ValueError(f"--cluster local:{self.local} with --threads {self.threads} needs "
                                  f"{self.local * self.threads} cores, this machine has {os.cpu_count()}: timing needs "
                                  "each worker's cores to itself. Use fewer workers, or --accuracy-only")
-            self._config = dask.config.set(local_config(self.allowed_failures))  # until close()
+            self._retries = int(dask.config.get("distributed.scheduler.allowed-failures")
+                                if self.allowed_failures is None else self.allowed_failures)
+            self._config = dask.config.set(local_config())  # until close()
             self.cluster = LocalCluster(n_workers=self.local, threads_per_worker=1, processes=True,
                                         dashboard_address=None, memory_limit=0,
                                         env=thread_env(self.threads), resources={TASK_RESOURCE: 1})
@@ -160,7 +159,7 @@ class ClusterExecutor:
         self._record.update({
             "cluster": where, "cluster.start_s": f"{time.perf_counter() - t0:.2f}",
             "cluster.allowed_failures": str(dask.config.get("distributed.scheduler.allowed-failures")
-                                            if self.allowed_failures is None else self.allowed_failures),
+                                            if self._retries is None else self._retries),
             "cluster.threads_per_worker_library": str(self.threads),
             "cluster.task_resource": TASK_RESOURCE if self.task_resources else "none (a worker lacks it)",
             "cluster.dask": f"dask {dask.__version__}, distributed {__import__('distributed').__version__}",
@@ -217,12 +216,12 @@ class ClusterExecutor:
         return dt / n
 
     def _capacity(self, fresh: bool = False) -> int:
-        """Worker threads in the cluster now (asked at most every half second)."""
+        """Threads of the running workers (a restarted one registers before it runs), asked ≤ 2×/s."""
         now = time.monotonic()
         if fresh or now - self._capacity_at[0] > 0.5:
-            nthreads = self.client.nthreads()
-            self._capacity_at = (now, sum(nthreads.values()))
-            self._workers_max = max(self._workers_max, len(nthreads))
+            workers = self.client.scheduler_info()["workers"].values()
+            self._capacity_at = (now, sum(w["nthreads"] for w in workers if w.get("status", "running") == "running"))
+            self._workers_max = max(self._workers_max, len(workers))
         return self._capacity_at[1]
 
     # -- the plan
@@ -270,6 +269,10 @@ class ClusterExecutor:
             now = time.perf_counter()
             for future in done:
                 job = inflight.pop(future)
+                if died_again(job, future, self._retries):  # to a free worker thread, as any task
+                    requeue(job, future, ready_refs, ready)
+                    self._capacity(fresh=True)  # (the dead worker's thread is gone: none submitted to it)
+                    continue
                 if job.kind == "reference":
                     self._reference_done(job, future, now)
                     for nxt in waiting.pop(id(job), []):
@@ -310,7 +313,7 @@ class ClusterExecutor:
             self._seen(res, res.get("task_s", 0.0), now - job.submitted)
         else:
             job.result = None  # the configurations compute it themselves (and fail as in one process)
-            job.error = failure_reason(future)
+            job.error = failure_reason(future, job)
 
     def _config_done(self, run_id: str, cfg, backends: dict, job: _Job, future, now: float):
         if future.status == "finished":
@@ -328,7 +331,7 @@ class ClusterExecutor:
         if future.status == "cancelled":
             raise RunInterrupted(f"the scheduler cancelled the task of {cfg.case.id} {cfg.backend_id} {cfg.method} "
                                  f"{knob_string(cfg.knobs)} (scheduler restarted or connection lost)")
-        return failed_rows(run_id, cfg, backends, failure_reason(future)), False
+        return failed_rows(run_id, cfg, backends, failure_reason(future, job)), False
 
     def _ref_chain(self, job: _Job) -> list[float]:
         out = []

@@ -33,6 +33,7 @@ class _Job:
     result: Any = None          # a reference job's future, once done (kept until the plan is done)
     error: str = ""
     task_s: float = 0.0
+    deaths: int = 0             # its workers that died while running it (local cluster: died_again)
 
 
 def plan_jobs(run_id: str, todo: list, backends: dict, policy: TimingPolicy, ref_options: ReferenceOptions,
@@ -135,9 +136,10 @@ def retime_rounds(executor, rows: list[dict], todo: list, rounds: int, run_id: s
                     pool(rows[j], extra, cf)
 
 
-#: the worker resource each task holds, one per worker thread, so that dask runs one task at a time
-#: on a worker: without it, dask moved a dead worker's task beside another task, and a configuration
-#: that kills its worker killed a numpy one twice, a failed numpy row (tests/test_cluster.py)
+#: the worker resource each task holds, one per worker thread, so that a worker runs one task at a
+#: time (a remote worker of several threads too).  The scheduler places by the resources a worker
+#: has, not by those in use, so it does not keep a task from waiting on a busy worker:
+#: :func:`died_again` does, where it matters (a local cluster's retries)
 TASK_RESOURCE = "isobench-task"
 
 
@@ -149,7 +151,7 @@ def task_resources(client) -> dict[str, float] | None:
     return {TASK_RESOURCE: 1} if declared and all(v >= 1 for v in declared) else None
 
 
-def local_config(allowed_failures: int | None) -> dict[str, Any]:
+def local_config() -> dict[str, Any]:
     """The dask configuration a local cluster runs under, held from its start to its close:
 
     * ``distributed.nanny.pre-spawn-environ`` empty: not dask's ``MALLOC_TRIM_THRESHOLD_`` (see
@@ -161,14 +163,11 @@ def local_config(allowed_failures: int | None) -> dict[str, Any]:
       that are gone; here the worker's nanny is restarting it, and on a loaded machine (CI) that
       took more than 15 s, so the cluster lost the nanny and its restarted worker (a third worker
       death counted, a worker fewer for the rest of the run);
-    * ``allowed_failures`` (None: dask's default, 3): worker deaths a task may cause before it fails.
+    * ``distributed.scheduler.allowed-failures`` 0: a task whose worker died fails at once, and the
+      executor decides whether it runs again (:func:`died_again`).
     """
-    config: dict[str, Any] = {"distributed.nanny.pre-spawn-environ": {},
-                              "distributed.worker.profile.enabled": False,
-                              "distributed.deploy.lost-worker-timeout": "24h"}
-    if allowed_failures is not None:
-        config["distributed.scheduler.allowed-failures"] = int(allowed_failures)
-    return config
+    return {"distributed.nanny.pre-spawn-environ": {}, "distributed.worker.profile.enabled": False,
+            "distributed.deploy.lost-worker-timeout": "24h", "distributed.scheduler.allowed-failures": 0}
 
 
 def hung_jobs(client, inflight: dict, policy) -> list:
@@ -199,13 +198,42 @@ def hung_jobs(client, inflight: dict, policy) -> list:
     return out
 
 
-def failure_reason(future) -> str:
+def died_again(job: _Job, future, retries: int | None) -> bool:
+    """Whether ``job``'s task ended because its worker died and is to run again (a death is
+    counted to the job): at most ``retries`` times; None (a remote cluster), never here (its
+    scheduler's ``allowed-failures`` retries it).  On a local cluster dask retries nothing
+    (:func:`local_config`): it resubmitted a dead worker's task at once to the worker still running
+    another, where it waited, and a worker's death is charged to every task sent to it, running or
+    waiting (``distributed.scheduler.Scheduler.valid_workers`` places by the resources a worker has,
+    not by those in use): a configuration that kills its worker failed a numpy row beside it.  The
+    executor resubmits it, like any task, only to a free worker thread."""
+    if retries is None or future.status != "error" or not isinstance(future.exception(), KilledWorker):
+        return False
+    job.deaths += 1
+    return job.deaths <= retries
+
+
+def requeue(job: _Job, future, ready_refs: deque, ready: list) -> None:
+    """Put ``job`` back among the ready jobs (:func:`ready_queues`), its failed future released."""
+    future.release()
+    if job.kind == "reference":
+        ready_refs.append(job)
+    else:
+        heapq.heappush(ready, (job.index, id(job), job))
+
+
+def failure_reason(future, job: _Job | None = None) -> str:
     """The reason of a configuration whose task failed: its worker died too often
-    (:class:`distributed.KilledWorker`), or the exception it raised on the cluster."""
+    (:class:`distributed.KilledWorker`; ``job.deaths`` where the executor counted them,
+    :func:`died_again`), or the exception it raised on the cluster."""
     exc = future.exception()
     if isinstance(exc, KilledWorker):
         last = getattr(getattr(exc, "last_worker", None), "address", "?")
-        return (f"KilledWorker: its worker process died {exc.allowed_failures + 1} times while running it "
-                f"(distributed.scheduler.allowed-failures = {exc.allowed_failures}; last on {last}): a crash, "
-                "abort or out-of-memory kill in this configuration")
+        if job is not None and job.deaths:
+            limit = f"the local cluster's allowed failures = {job.deaths - 1}"
+            n = job.deaths
+        else:
+            limit, n = f"distributed.scheduler.allowed-failures = {exc.allowed_failures}", exc.allowed_failures + 1
+        return (f"KilledWorker: its worker process died {n} times while running it ({limit}; last on {last}): a "
+                "crash, abort or out-of-memory kill in this configuration")
     return f"{type(exc).__name__} (on the cluster): {exc}"
