@@ -118,9 +118,10 @@ def run(args) -> int:
     plugin = _Outcomes(args.backend, fast=args.fast)
     print(f"conformance of {backend.id} ({args.backend}): {SUITE.relative_to(ROOT)}", flush=True)
     # this plugin prints the outcomes: pytest's own terminal output, its random order, its cache
-    # and parallel workers are off (the checks of one backend run in this process, in file order)
+    # and parallel workers are off (the checks of one backend run in this process, in file order);
+    # so is dash's plugin, which imports dash and IPython for nothing (pyproject.toml's addopts)
     argv = [str(SUITE), "-p", "no:terminal", "-p", "no:randomly", "-p", "no:cacheprovider", "-p", "no:xdist",
-            "--rootdir", str(ROOT), "-o", "addopts="]
+            "-p", "no:dash", "--rootdir", str(ROOT), "-o", "addopts="]
     argv += ["-k", args.select] if args.select else []
     code = pytest.main(argv, plugins=[plugin])
     c = plugin.counts
