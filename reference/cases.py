@@ -46,6 +46,15 @@ class Case:
     description: str = ""
     color_frequency: float = 2.0
 
+    def __post_init__(self):
+        # the rays are the truth every row is measured against: read-only views, so that code
+        # writing into them (a backend's in-place "fix-up" of its inputs) raises instead of
+        # changing the case for every other row (the builder's own arrays stay writable)
+        for name in ("origins", "directions"):
+            view = np.asarray(getattr(self, name)).view()
+            view.flags.writeable = False
+            object.__setattr__(self, name, view)
+
     @property
     def n_rays(self) -> int:
         return int(self.origins.shape[0])

@@ -286,6 +286,20 @@ class WrongResultBackend(_WrapsNumpy):
         return Prepared(run=p.run, result=lambda out: (p.result(out).t,))
 
 
+class MutatingBackend(_WrapsNumpy):
+    """Writes into its inputs, as a user's in-place bug would: moves the rays' origins 0.25 along
+    their directions and scales a given ``t_hit`` by 1.01, then solves the moved rays."""
+
+    def methods(self):
+        return ("sphere_trace", "hybrid_secant", "normal")
+
+    def prepare(self, method, scene, origins, directions, **kw):
+        origins += 0.25 * directions
+        if kw.get("t_hit") is not None:
+            kw["t_hit"] *= 1.01
+        return self._inner.prepare(method, scene, origins, directions, **kw)
+
+
 class FloatStatusBackend(_WrapsNumpy):
     """Statuses as float with a fractional value."""
 

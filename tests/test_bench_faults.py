@@ -6,11 +6,14 @@ hang, never a plan: it bounds the configuration in flight, and a run that spends
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import stat
 import time
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from bench.run import runner
@@ -66,6 +69,41 @@ def test_a_faulty_backend_costs_only_its_own_rows(tmp_path, cls, outcome, words)
     assert env["complete"] == "true"
     if cls is fakes.VersionsRaiseBackend:
         assert "planted: versions() is broken" in env["backend.bad.versions_error"]
+
+
+def test_a_backend_writing_into_its_inputs_changes_only_its_own_rows(tmp_path):
+    """A plug-in that moves the rays' origins and scales ``t_hit`` in place, run before numpy on
+    each case: numpy's rows are those of a run without it, the case's rays and depths are
+    unchanged, and the plug-in's own rows show its error.  Before, it was handed the case's own
+    arrays: numpy's sphere_trace rows on the 64² sphere reported errors of 0.25 to 2.0, one
+    more 0.25 for every configuration the plug-in had run before them."""
+    from reference.cases import get_case
+
+    case = get_case(CASE)
+    o0, d0, t0 = case.origins.copy(), case.directions.copy(), case.exact_t.copy()
+    suite = dataclasses.replace(SUITE, methods=("sphere_trace", "hybrid_secant", "normal"),
+                                sweeps={**SUITE.sweeps, "normal": [{}]})
+    mixed = runner.run(suite, {"bad": fakes.MutatingBackend(), "numpy": registry.resolve("numpy")},
+                       tmp_path / "mixed", policy=FAST)
+    alone = runner.run(suite, {"numpy": registry.resolve("numpy")}, tmp_path / "alone", policy=FAST)
+    assert np.array_equal(case.origins, o0) and np.array_equal(case.directions, d0)
+    assert np.array_equal(case.exact_t, t0, equal_nan=True)
+    cols = ["method", "knob", "quantity", "outcome", "error_max", "status_counts"]
+    ours = mixed[mixed["backend"] == "numpy"][cols].sort_values(cols[:3]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(ours, alone[cols].sort_values(cols[:3]).reset_index(drop=True))
+    bad = mixed[mixed["backend"] == "bad"]
+    assert set(bad["method"]) == {"sphere_trace", "hybrid_secant", "normal"}
+    assert (bad["error_max"] > 0.1).all(), bad[["method", "error_max"]]
+
+
+def test_a_cases_rays_are_read_only():
+    from reference.cases import get_case
+
+    case = get_case(CASE)
+    with pytest.raises(ValueError, match="read-only"):
+        case.origins[0, 0] = 1.0
+    with pytest.raises(ValueError, match="read-only"):
+        case.directions += 0.0
 
 
 def test_a_hang_is_bounded_by_the_budget_left_and_the_run_says_it_is_incomplete(tmp_path, monkeypatch):

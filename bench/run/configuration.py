@@ -133,13 +133,16 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     depths, isolating their error from root finding) and time it: (prepared, timing, output).
     What ``prepare`` returns must have callables ``run`` and ``result`` (else BackendFault)."""
     case, spec = cfg.case, get_method(cfg.method)
-    extra = {"t_hit": case.exact_t} if spec.needs_t_hit else {}
+    # the backend gets copies of the rays and depths: one that writes into its inputs (a plug-in's
+    # in-place bug) changes its own configuration's rays, not the case that every later row, of
+    # every backend, is run on and measured against
+    extra = {"t_hit": np.array(case.exact_t)} if spec.needs_t_hit else {}
     if getattr(spec, "needs_color", False):
         # the renderer shades with the very colour field the reference integrates
         extra["color"] = references.color_field(case)
     prep = backend_call(backend, f"backend.prepare({cfg.method!r}, …)", lambda: backend.prepare(
-        cfg.method, case.scene, case.origins, case.directions, dtype=cfg.dtype, t_min=case.t_min,
-        t_max=case.t_max, **extra, **cfg.knobs))
+        cfg.method, case.scene, np.array(case.origins), np.array(case.directions), dtype=cfg.dtype,
+        t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs))
     for name in ("run", "result"):
         if not callable(getattr(prep, name, None)):
             raise BackendFault(f"backend.prepare returned {type(prep).__name__}, which has no callable {name!r} "

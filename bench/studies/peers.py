@@ -281,7 +281,8 @@ def volume_rows(backend_ids, cases: dict, n_samples: int = 256, repeats: int = 5
             skipped.append(f"{bid}: skipped: {b.reason}")
             continue
         for name, (scene, o, d) in cases.items():
-            p = b.prepare(method, scene, o, d, t_min=t_min, t_max=t_max, color=SineColor(), **knobs)
+            # copies: a backend writing into its inputs must not change the next backend's rays
+            p = b.prepare(method, scene, o.copy(), d.copy(), t_min=t_min, t_max=t_max, color=SineColor(), **knobs)
 
             def sync(out, b=b):
                 b.synchronize(out)

@@ -115,7 +115,8 @@ def measure(backend_ids, n_side: int = 1024, method: str = "hybrid_secant", repe
         b = registry.resolve(bid)
         configure_driver(b, threads)
         for name, (scene, o, d) in cases.items():
-            p = b.prepare(method, scene, o, d, t_min=0.0, t_max=t_max, **(knobs or {}))
+            # copies: a backend writing into its inputs must not change the next backend's rays
+            p = b.prepare(method, scene, o.copy(), d.copy(), t_min=0.0, t_max=t_max, **(knobs or {}))
             first, times, units, ratios, out = time_prepared(b, p, o, d, repeats)
             runs.append((name, bid, b.id, p.result(out), {
                 "scene": name, "backend": bid, "method": method, "rays": int(o.shape[0]),

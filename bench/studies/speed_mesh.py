@@ -98,8 +98,9 @@ def _time_backend(b, method: str, dtype: str, case, row: dict, repeats: int):
     from .speed import time_prepared
 
     try:
-        p = b.prepare(method, case.scene, case.origins, case.directions, dtype=dtype, t_min=case.t_min,
-                      t_max=case.t_max)
+        # copies: a backend writing into its inputs must not change the case (read-only) for the next
+        p = b.prepare(method, case.scene, np.array(case.origins), np.array(case.directions), dtype=dtype,
+                      t_min=case.t_min, t_max=case.t_max)
         first, times, units, ratios, out = time_prepared(b, p, case.origins, case.directions, repeats)
         r = p.result(out)
     except Exception as exc:  # one backend's failure is its row
