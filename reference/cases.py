@@ -54,6 +54,7 @@ class Case:
             view = np.asarray(getattr(self, name)).view()
             view.flags.writeable = False
             object.__setattr__(self, name, view)
+        _freeze_arrays(self.scene, set())
 
     @property
     def n_rays(self) -> int:
@@ -265,6 +266,29 @@ class Case:
         from .rendering import SineColor
 
         return SineColor(frequency=self.color_frequency)
+
+
+def _freeze_arrays(value, seen: set) -> None:
+    """Make every numpy array a scene holds read-only (its nodes' attributes, and the dicts,
+    lists and tuples among them, its children included): the scene is the truth every row is
+    measured against, and a backend that wrote into it (its weights, a mesh's vertices, a grid's
+    values) would change it for every row after its own.  A write now raises in that backend."""
+    if id(value) in seen:
+        return
+    seen.add(id(value))
+    if isinstance(value, np.ndarray):
+        value.flags.writeable = False
+    elif isinstance(value, dict):
+        for v in value.values():
+            _freeze_arrays(v, seen)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            _freeze_arrays(v, seen)
+    elif isinstance(value, Field):
+        for v in vars(value).values():
+            _freeze_arrays(v, seen)
+        for child in getattr(value, "children", ()) or ():
+            _freeze_arrays(child, seen)
 
 
 _FACTORIES: dict[str, Callable[[], Case]] = {}

@@ -96,6 +96,27 @@ def test_a_backend_writing_into_its_inputs_changes_only_its_own_rows(tmp_path):
     assert (bad["error_max"] > 0.1).all(), bad[["method", "error_max"]]
 
 
+def test_a_backend_writing_into_the_scene_fails_its_own_rows_only(tmp_path):
+    """A plug-in that scales the MLP's first weight matrix in place: a case's scene arrays are
+    read-only, so its rows fail naming that, numpy's rows (run after it) equal a run without it,
+    and the weights are unchanged."""
+    from reference.cases import get_case
+
+    case = get_case("mlp.camera.32x32")
+    w0 = case.scene.weights["W1"].copy()
+    suite = dataclasses.replace(SUITE, case_pattern="mlp.camera.32x32")
+    mixed = runner.run(suite, {"bad": fakes.SceneMutatingBackend(), "numpy": registry.resolve("numpy")},
+                       tmp_path / "mixed", policy=FAST)
+    alone = runner.run(suite, {"numpy": registry.resolve("numpy")}, tmp_path / "alone", policy=FAST)
+    assert np.array_equal(case.scene.weights["W1"], w0)
+    bad = mixed[mixed["backend"] == "bad"]
+    assert len(bad) and set(bad["outcome"]) == {"failed"}, bad[["outcome", "reason"]]
+    assert bad["reason"].str.contains("read-only").all(), bad["reason"].iloc[0]
+    cols = ["method", "knob", "quantity", "outcome", "error_max", "status_counts"]
+    ours = mixed[mixed["backend"] == "numpy"][cols].sort_values(cols[:3]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(ours, alone[cols].sort_values(cols[:3]).reset_index(drop=True))
+
+
 def test_a_cases_rays_are_read_only():
     from reference.cases import get_case
 
@@ -104,6 +125,12 @@ def test_a_cases_rays_are_read_only():
         case.origins[0, 0] = 1.0
     with pytest.raises(ValueError, match="read-only"):
         case.directions += 0.0
+    # and the arrays its scene holds, children's and containers' included
+    for cid, arrays in (("mlp.camera.32x32", lambda s: s.weights.values()),
+                        ("grid.torus64.camera.32x32", lambda s: (s.values, s.lo, s.spacing)),
+                        ("mesh.torus.camera.16x16", lambda s: (s.vertices, s.faces))):
+        for a in arrays(get_case(cid).scene):
+            assert not a.flags.writeable, cid
 
 
 def test_a_hang_is_bounded_by_the_budget_left_and_the_run_says_it_is_incomplete(tmp_path, monkeypatch):
