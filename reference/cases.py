@@ -285,7 +285,7 @@ def _freeze_arrays(value, seen: set) -> None:
         for v in value:
             _freeze_arrays(v, seen)
     elif isinstance(value, Field):
-        for v in vars(value).values():
+        for v in getattr(value, "__dict__", {}).values():  # (a user's node may have __slots__ only)
             _freeze_arrays(v, seen)
         for child in getattr(value, "children", ()) or ():
             _freeze_arrays(child, seen)
