@@ -310,6 +310,21 @@ class SceneMutatingBackend(_WrapsNumpy):
         return self._inner.prepare(method, scene, origins, directions, **kw)
 
 
+class GlobalStateBackend(_WrapsNumpy):
+    """Changes process-wide library settings in ``prepare``, as a user's library might on import or
+    first use: numpy's floating-point errors raise, and torch's default dtype becomes float32."""
+
+    def prepare(self, *a, **kw):
+        np.seterr(all="raise")
+        try:
+            import torch
+
+            torch.set_default_dtype(torch.float32)
+        except ImportError:
+            pass
+        return super().prepare(*a, **kw)
+
+
 class FloatStatusBackend(_WrapsNumpy):
     """Statuses as float with a fractional value."""
 

@@ -10,6 +10,7 @@ import dataclasses
 import json
 import os
 import stat
+import sys
 import time
 
 import numpy as np
@@ -114,6 +115,33 @@ def test_a_backend_writing_into_the_scene_fails_its_own_rows_only(tmp_path):
     assert bad["reason"].str.contains("read-only").all(), bad["reason"].iloc[0]
     cols = ["method", "knob", "quantity", "outcome", "error_max", "status_counts"]
     ours = mixed[mixed["backend"] == "numpy"][cols].sort_values(cols[:3]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(ours, alone[cols].sort_values(cols[:3]).reset_index(drop=True))
+
+
+def test_a_backend_changing_library_settings_changes_only_its_own_rows(tmp_path):
+    """A plug-in that sets ``np.seterr(all="raise")`` (and torch's default dtype to float32) in
+    ``prepare``, run before numpy on the torus camera, whose marches underflow harmlessly: numpy's
+    rows equal a run without it, and the settings are back after the run.  Before, numpy's
+    sphere_trace and hybrid_secant rows there failed with FloatingPointError (underflow)."""
+    suite = dataclasses.replace(SUITE, case_pattern="torus.camera.32x32")
+    torch = sys.modules.get("torch")
+    before = np.geterr(), (torch.get_default_dtype() if torch is not None else None)
+    if torch is not None:
+        torch.set_default_dtype(torch.float64)  # so that the plug-in's float32 is a change
+    try:
+        mixed = runner.run(suite, {"bad": fakes.GlobalStateBackend(), "numpy": registry.resolve("numpy")},
+                           tmp_path / "mixed", policy=FAST)
+        assert np.geterr() == before[0]
+        if torch is not None:
+            assert torch.get_default_dtype() == torch.float64
+    finally:
+        np.seterr(**before[0])
+        if torch is not None:
+            torch.set_default_dtype(before[1])
+    alone = runner.run(suite, {"numpy": registry.resolve("numpy")}, tmp_path / "alone", policy=FAST)
+    cols = ["method", "knob", "quantity", "outcome", "error_max", "status_counts"]
+    ours = mixed[mixed["backend"] == "numpy"][cols].sort_values(cols[:3]).reset_index(drop=True)
+    assert set(ours["outcome"]) == {"ok"}, mixed[mixed["backend"] == "numpy"][["method", "reason"]]
     pd.testing.assert_frame_equal(ours, alone[cols].sort_values(cols[:3]).reset_index(drop=True))
 
 

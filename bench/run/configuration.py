@@ -20,7 +20,8 @@ from reference import Case
 from reference.quadric import ray_sphere_roots
 
 from . import environment, references
-from .contract import BackendFault, backend_call, backend_dtypes, backend_methods, check_result, compile_seconds, status_counts
+from .contract import (BackendFault, backend_call, backend_dtypes, backend_methods, check_result, compile_seconds,
+                       library_state_kept, status_counts)
 from .metrics import measure_accuracy, primary_quantity
 from .plan import Config, applies
 from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string
@@ -161,6 +162,15 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
 
 def run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
             cache: dict | None = None, limit: tuple[float, str] | None = None) -> list[dict]:
+    """:func:`_run_one`, and afterwards the process-wide library settings as they were before it
+    (:func:`bench.run.contract.library_state_kept`): a backend's change of them is its own
+    configuration's, not every later row's."""
+    with library_state_kept():
+        return _run_one(run_id, cfg, backend, policy, cf_time, cache, limit)
+
+
+def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_time: float,
+             cache: dict | None = None, limit: tuple[float, str] | None = None) -> list[dict]:
     """Rows for one configuration (one per quantity; one row when skipped or failed).  Never
     raises for what the backend does (exceptions, contract breaches, hangs past the limit):
     those are failed rows with the reason.  ``limit``: (seconds, what) bounding the configuration

@@ -5,7 +5,9 @@ the backend that configuration's row and nothing else."""
 
 from __future__ import annotations
 
-from typing import Any, Callable
+import contextlib
+import sys
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -18,6 +20,30 @@ class BackendFault(ValueError):
     """A backend broke the :class:`impls.protocol.Backend` contract (a wrong type, shape, dtype or
     status code, a missing attribute, a method that raised): its configuration is a failed row
     with this message, and the run goes on."""
+
+
+@contextlib.contextmanager
+def library_state_kept() -> Iterator[None]:
+    """Run a configuration and then put back the process-wide settings a backend's code can change
+    for every row after its own: numpy's floating-point error handling (a plug-in's
+    ``np.seterr(all="raise")`` made numpy's own rows fail with FloatingPointError), torch's default
+    dtype and thread count, jax's ``jax_enable_x64``.  Libraries not yet imported are not imported.
+    Within the configuration the change stands, so it costs that configuration's rows at most."""
+    err = np.geterr()
+    torch, jax = sys.modules.get("torch"), sys.modules.get("jax")
+    torch_state = (torch.get_default_dtype(), torch.get_num_threads()) if torch is not None else None
+    x64 = bool(jax.config.jax_enable_x64) if jax is not None else None
+    try:
+        yield
+    finally:
+        np.seterr(**err)
+        if torch_state is not None:
+            if torch.get_default_dtype() != torch_state[0]:
+                torch.set_default_dtype(torch_state[0])
+            if torch.get_num_threads() != torch_state[1]:
+                torch.set_num_threads(torch_state[1])
+        if x64 is not None and bool(jax.config.jax_enable_x64) != x64:
+            jax.config.update("jax_enable_x64", x64)
 
 
 def backend_call(backend: Any, what: str, fn: Callable[[], Any]) -> Any:
