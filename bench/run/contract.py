@@ -31,8 +31,14 @@ def library_state_kept() -> Iterator[None]:
     Within the configuration the change stands, so it costs that configuration's rows at most."""
     err = np.geterr()
     torch, jax = sys.modules.get("torch"), sys.modules.get("jax")
-    torch_state = (torch.get_default_dtype(), torch.get_num_threads()) if torch is not None else None
-    x64 = bool(jax.config.jax_enable_x64) if jax is not None else None
+    try:  # (a stand-in module in sys.modules, as tests plant, is left alone)
+        torch_state = (torch.get_default_dtype(), torch.get_num_threads()) if torch is not None else None
+    except AttributeError:
+        torch_state = None
+    try:
+        x64 = bool(jax.config.jax_enable_x64) if jax is not None else None
+    except AttributeError:
+        x64 = None
     try:
         yield
     finally:
