@@ -183,7 +183,9 @@ def _check(scene, o, d, t_min, t_max, n_samples):
         raise ValueError(f"scene must be a Field, got {type(scene).__name__}; wrap a function in CallableField")
     o, d = _points(o, "o"), _points(d, "d")
     if not (math.isfinite(t_min) and math.isfinite(t_max) and t_min < t_max):
-        raise ValueError(f"need finite t_min < t_max, got t_min={t_min}, t_max={t_max}")
+        raise ValueError(f"need finite t_min < t_max, got t_min={t_min}, t_max={t_max}: the numerical reference "
+                         "samples the whole interval, so a scene without closed-form hits needs a finite t_max "
+                         "(the depth past which a ray counts as a miss)")
     if int(n_samples) < 2:
         raise ValueError(f"n_samples must be ≥ 2, got {n_samples}")
     return o, d
