@@ -177,7 +177,7 @@ def backend(request):
 #: leaves the other workers idle until it ends.  Started first, the long files run beside the many
 #: short ones.  (Only the order changes; every file still runs whole, its own tests in order.)  For
 #: the same reason the conformance suite is a folder of files (tests/conformance/), not one file.
-LONGEST_FILES = ("test_cli.py", "test_ray_bounds.py", "test_certified_at_scale.py", "test_rootfind_certified.py",
+LONGEST_FILES = ("test_certified_at_scale.py", "test_cli.py", "test_rootfind_certified.py", "test_ray_bounds.py",
                  "test_renderers.py", "test_roots.py", "test_driver.py", "test_compile_cache.py",
                  "test_every_method.py", "test_jax_kernel_reuse.py", "test_status_contract.py",
                  "test_reference_derivatives.py", "test_backends_autodiff.py", "test_plugin.py",
