@@ -184,8 +184,8 @@ def _check(scene, o, d, t_min, t_max, n_samples):
     o, d = _points(o, "o"), _points(d, "d")
     if not (math.isfinite(t_min) and math.isfinite(t_max) and t_min < t_max):
         raise ValueError(f"need finite t_min < t_max, got t_min={t_min}, t_max={t_max}: the numerical reference "
-                         "samples the whole interval, so a scene without closed-form hits needs a finite t_max "
-                         "(the depth past which a ray counts as a miss)")
+                         "samples the whole interval, so a case whose scene has no closed-form hits needs both ends "
+                         "finite (t_max: the depth past which a ray counts as a miss)")
     if int(n_samples) < 2:
         raise ValueError(f"n_samples must be ≥ 2, got {n_samples}")
     return o, d
