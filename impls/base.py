@@ -10,6 +10,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .core.methods_root import step_field
 from .core.param_grad import python_fori
 from .core.rootfind import void_if_refuted
 from .core.table import METHOD_TABLE
@@ -168,7 +169,11 @@ class ArrayBackend:
               **knobs: Any) -> dict:
         """Root method ``method`` on rays ``o``, ``d`` (native arrays) with validated ``knobs``:
         its algorithm (``MethodSpec.algorithm``) run by this backend's loop driver, its certificates
-        withdrawn where a ray refuted a bound taken on trust (:func:`impls.core.rootfind.void_if_refuted`)."""
+        withdrawn where a ray refuted a bound taken on trust (:func:`impls.core.rootfind.void_if_refuted`).
+        At the stored parameters it marches on the scene's step field
+        (:func:`impls.core.methods_root.step_field`: the same surface, CSG operands at their own bounds)."""
+        if theta is None:
+            scene = step_field(scene)
         alg = get_method(method).algorithm(scene, t_min, t_max, knobs, theta, ladder=self.settings.ladder)
         return void_if_refuted(alg, self.run_loop(alg, o, d, self.ray_eval(scene, theta)))
 

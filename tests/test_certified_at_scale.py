@@ -260,10 +260,11 @@ def test_random_csg_trees_at_256_squared(backend, method, seed):
     res = p.result(p.run())
     bad = check_guarantee(scene, o, d, res, 8.0, allowance(method, {}), intervals, t_min=t_min)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
-    # and they decide almost every ray, CONVERGED or MISS.  Not sphere tracing where the bound is
-    # loose: seed 4's ellipsoid (axes down to 0.18) states L = 251 over its domain (radius 4), so the
-    # union's steps are |φ|/251, and 12,280 of its 65,536 rays spend sphere tracing's 512 steps
-    # (MAX_ITER, 81 % decided on numpy); the hybrids' over-relaxed steps decide 98.5 %
+    # and they decide almost every ray, CONVERGED or MISS.  Not sphere tracing where a bound is
+    # loose: seed 4's ellipsoid (axes down to 0.18) states L = 251 over its domain (radius 4), so its
+    # own steps are |φ|/251 (the other operands step at their own bounds, impls.core.methods_root.
+    # step_field), and 10,831 of the 65,536 rays spend sphere tracing's 512 steps near it (MAX_ITER,
+    # 83.5 % decided on numpy); the hybrids' over-relaxed steps decide 99.3 %
     loose = method == "sphere_trace" and scene.info.lipschitz > 100
     assert np.mean(np.isin(res.status, (Status.CONVERGED, Status.MISS))) > (0.75 if loose else 0.98)
 

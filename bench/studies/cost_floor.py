@@ -1,5 +1,7 @@
 """The floor under a certified root finder's cost: the fewest φ evaluations per ray that any method
-relying only on the Lipschitz bound L could spend to certify its answer.
+relying only on the Lipschitz bound L could spend to certify its answer.  The bound is the one the
+root finders step by: that of the scene's step field (:func:`impls.core.methods_root.step_field`,
+CSG operands at their own bounds; the scene itself wherever its leaves' bounds agree).
 
 A certified method proves "no crossing before the bracket" by unbounding spheres: a sample at t
 with r = |φ(t)|/L shows no surface in [t − r, t + r].  To report CONVERGED it must cover the ray
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from impls.core.methods_root import step_field
+
 #: bisection steps locating each greedy sample (the bracket starts ≤ 2·(hi − lo) wide: 60 halvings
 #: place it to 2⁻⁶⁰ of that, far below min_step)
 BISECTIONS = 60
@@ -29,6 +33,7 @@ BISECTIONS = 60
 def greedy_cover(scene, o: np.ndarray, d: np.ndarray, lo: np.ndarray, end: np.ndarray,
                  max_samples: int = 100_000) -> np.ndarray:
     """Per ray, the fewest samples whose unbounding spheres cover [lo, end] (0 where lo ≥ end)."""
+    scene = step_field(scene)
     inv_lip = 1.0 / float(scene.info.lipschitz)
     x = lo.astype(np.float64).copy()
     count = np.zeros(len(o), dtype=np.int64)

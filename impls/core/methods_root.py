@@ -7,6 +7,7 @@ loop driver's choice of ladder samples for the knob value -1."""
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 
@@ -14,6 +15,95 @@ from reference.scene import user_defined
 
 from .chandrupatla import MarchChandrupatla
 from .rootfind import REFINERS, Bisect, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
+
+
+#: scene → its step field (:func:`step_field`), computed once per scene object
+_STEP_FIELDS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_ITSELF = object()
+
+
+def step_field(scene):
+    """The field the certified root finders march on: the same surface as ``scene``, with each
+    CSG operand's value divided by that operand's own Lipschitz bound, so that one steep operand
+    no longer shortens every step (``scene`` itself, the very object, where that changes nothing).
+
+    Math.  Let the scene be a tree of union (min), intersection (max), difference (max(a, −b)),
+    complement (−), rigid transform and positive scaling k·φ over leaves φᵢ with bounds Lᵢ (every
+    other node is a leaf).  Replace each leaf by (L*/Lᵢ)·φᵢ, L* = minᵢ Lᵢ, and drop the scalings.
+    Each term (L*/Lᵢ)·φᵢ is L*-Lipschitz and has the sign of φᵢ; min, max, negation and rigid
+    motions keep both, so the result s is L*-Lipschitz with sign(s) = sign(φ) everywhere: the
+    same inside, outside and surface.  A step |s|/L* is therefore certified exactly as |φ|/L is,
+    and is never shorter where the leaves' bounds differ: in a union of all-positive φᵢ it is
+    minᵢ φᵢ/Lᵢ, where φ/maxᵢLᵢ was taken before (docs/methods.md, "Certified steps on CSG").
+    Where every leaf's bound with the scalings above it is the same (one leaf; CSG of exact
+    SDFs) s = φ·L*/L, and the scene is returned unchanged.  The bounds are the leaves' stated
+    ones, so a leaf taking its bound on trust is checked as before: s is checked against L*
+    along every ray, and a steeper leaf makes s steeper than L* there.
+
+    Only the root finders' march and refinement read s, at the stored parameters: hits are the
+    same zeros, and normals, shading and dt/dθ keep evaluating the scene (``ArrayBackend.solve``).
+    The factors L*/Lᵢ ≤ 1 are :class:`reference.implicits.Scaled` nodes, which every backend
+    compiles; a leaf without a bound leaves the scene as it is (no step rule applies)."""
+    try:
+        got = _STEP_FIELDS.get(scene)
+    except TypeError:  # not weak-referenceable: a user's object; computed each time
+        got = None
+    if got is None:
+        got = _normalized(scene)
+        try:
+            # the scene itself is stored as a marker: a value referring to its key would keep it alive
+            _STEP_FIELDS[scene] = _ITSELF if got is scene else got
+        except TypeError:
+            pass
+    return scene if got is _ITSELF else got
+
+
+def _leaves(node, k: float, out: list) -> None:
+    """(leaf, product of the scalings above it) of every leaf of ``node`` (:func:`step_field`)."""
+    from reference.csg import Complement, Difference, Intersection, Union
+    from reference.implicits import Scaled
+    from reference.transform import Transform
+
+    t = type(node)
+    if t is Scaled:
+        _leaves(node.child, k * float(node.scale), out)
+    elif t in (Union, Intersection, Difference, Complement, Transform):
+        for c in node.children:
+            _leaves(c, k, out)
+    else:
+        out.append((node, k))
+
+
+def _rebuild(node, lstar: float):
+    from reference.csg import Complement, Difference, Intersection, Union
+    from reference.implicits import Scaled
+    from reference.transform import Transform
+
+    t = type(node)
+    if t is Scaled:
+        return _rebuild(node.child, lstar)
+    if t in (Union, Intersection):
+        return t(*(_rebuild(c, lstar) for c in node.children))
+    if t is Difference:
+        return Difference(*(_rebuild(c, lstar) for c in node.children))
+    if t is Complement:
+        return Complement(_rebuild(node.child, lstar))
+    if t is Transform:
+        return Transform(_rebuild(node.child, lstar), node.rotation, node.translation)
+    factor = lstar / float(node.info.lipschitz)
+    return node if factor == 1.0 else Scaled(child=node, scale=factor)
+
+
+def _normalized(scene):
+    leaves: list = []
+    _leaves(scene, 1.0, leaves)
+    bounds = [getattr(getattr(n, "info", None), "lipschitz", None) for n, _ in leaves]
+    if len(leaves) < 2 or any(b is None or not (math.isfinite(b) and b > 0) for b in bounds):
+        return scene
+    effective = {k * float(b) for (_, k), b in zip(leaves, bounds)}
+    if len(effective) == 1:
+        return scene
+    return _rebuild(scene, min(float(b) for b in bounds))
 
 
 def lipschitz_step(scene) -> float:

@@ -27,6 +27,7 @@ import warnings
 import numpy as np
 
 from ..base import HostArrayBackend
+from ..core.methods_root import step_field
 from ..core.rootfind import void_if_refuted
 from ..core.table import METHOD_TABLE
 from ..methods import get_method
@@ -116,6 +117,7 @@ class NumbaBackend(HostArrayBackend):
         the driver's ladder choice for ``ladder = -1``), run by the compiled per-ray driver."""
         if theta is not None:
             raise Declined("numba evaluates scenes at their stored parameters only (no θ)")
+        scene = step_field(scene)  # the same surface, CSG operands at their own bounds
         alg = get_method(method).algorithm(scene, t_min, t_max, knobs, None, ladder=self.settings.ladder)
         compiled = fields.compile_scene(scene)
         return void_if_refuted(alg, driver.run_loop(compiled.key, compiled.params, alg, o, d, self.settings))
