@@ -152,3 +152,41 @@ def test_the_memo_does_not_keep_scenes_alive():
         del scene
         gc.collect()
         assert ref() is None
+
+
+def _gyroid_ball(x, xp):
+    """A gyroid sheet cut to a ball: |∇| ≤ 4√6 (the gyroid's 4·√6 bound at frequency 4)."""
+    X, Y, Z = 4.0 * x[..., 0], 4.0 * x[..., 1], 4.0 * x[..., 2]
+    g = xp.sin(X) * xp.cos(Y) + xp.sin(Y) * xp.cos(Z) + xp.sin(Z) * xp.cos(X)
+    return xp.maximum(xp.abs(g) - 0.3, xp.sqrt(xp.sum(x * x, axis=-1)) - 0.8)
+
+
+@pytest.mark.parametrize("backend_id", ["numpy", "torch"])
+def test_an_understated_user_operand_is_refuted_through_the_step_field(backend_id):
+    """A user's gyroid (true slope up to 4√6 ≈ 9.8) declared 3-Lipschitz, in a union with a sphere
+    (L = 1): the step field steps the gyroid at φ/3 against L* = 1, where its slope shows above 1 on
+    some rays, and then no ray of the call keeps a certificate (CONVERGED or MISS).  Declared at its
+    true bound the same union keeps its certificates, with no false hit or certified false miss."""
+    from impls.registry import resolve
+    from reference.numerical import CallableField, first_hit_numeric
+
+    o, d = rays.pinhole(eye=(0.6, 0.5, 3.5), look_at=(0.6, 0.0, 0.0), up=(0, 1, 0), fov_deg=50, width=64, height=64)
+    b = resolve(backend_id)
+    for declared, lie in ((3.0, True), (4.0 * np.sqrt(6.0), False)):
+        scene = Union(CallableField(_gyroid_ball, lipschitz=declared, name=f"gyroid{declared:g}"),
+                      Sphere(center=(1.6, 0.0, 0.0), radius=0.5))
+        assert step_field(scene) is not scene
+        p = b.prepare("hybrid_secant", scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=7.0)
+        st = p.result(p.run()).status
+        certified = np.isin(st, (Status.CONVERGED, Status.MISS))
+        if lie:
+            assert np.any(st == Status.LIPSCHITZ_VIOLATED) and not certified.any()
+        else:
+            assert not np.any(st == Status.LIPSCHITZ_VIOLATED) and certified.mean() > 0.99
+            ref, err = first_hit_numeric(scene, o, d, 0.0, 7.0)
+            t = p.result(p.run()).t
+            judged = np.isfinite(err)  # a NaN bound: a tangency the reference could not resolve
+            miss, hit = (st == Status.MISS) & judged, (st == Status.CONVERGED) & judged
+            assert np.all(np.isinf(ref[miss])), "a certified MISS on a ray that hits"
+            ok = np.isfinite(ref[hit]) & (np.abs(t[hit] - ref[hit]) <= allowance("hybrid_secant", {}) + err[hit])
+            assert ok.all(), (t[hit][~ok][:5], ref[hit][~ok][:5])

@@ -75,6 +75,7 @@ def _leaves(node, k: float, out: list) -> None:
 
 
 def _rebuild(node, lstar: float):
+    """``node`` with each leaf scaled by ``lstar`` over its bound and the scalings dropped (:func:`step_field`)."""
     from reference.csg import Complement, Difference, Intersection, Union
     from reference.implicits import Scaled
     from reference.transform import Transform
@@ -95,15 +96,20 @@ def _rebuild(node, lstar: float):
 
 
 def _normalized(scene):
+    """The step field of ``scene`` (:func:`step_field`), built anew."""
     leaves: list = []
     _leaves(scene, 1.0, leaves)
-    bounds = [getattr(getattr(n, "info", None), "lipschitz", None) for n, _ in leaves]
-    if len(leaves) < 2 or any(b is None or not (math.isfinite(b) and b > 0) for b in bounds):
+    if len(leaves) < 2:
         return scene
-    effective = {k * float(b) for (_, k), b in zip(leaves, bounds)}
-    if len(effective) == 1:
+    try:
+        bounds = [float(n.info.lipschitz) for n, _ in leaves]
+    except Exception:  # noqa: BLE001 - a leaf without a numeric bound (None, a user's odd info): no step rule here
         return scene
-    return _rebuild(scene, min(float(b) for b in bounds))
+    if not all(math.isfinite(b) and b > 0 for b in bounds):
+        return scene
+    if len({k * b for (_, k), b in zip(leaves, bounds)}) == 1:
+        return scene
+    return _rebuild(scene, min(bounds))
 
 
 def lipschitz_step(scene) -> float:
