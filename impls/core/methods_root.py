@@ -11,7 +11,10 @@ import weakref
 
 import numpy as np
 
+from reference.csg import Complement, Difference, Intersection, Union
+from reference.implicits import Scaled
 from reference.scene import user_defined
+from reference.transform import Transform
 
 from .chandrupatla import MarchChandrupatla
 from .rootfind import REFINERS, Bisect, CertifiedStep, ConstantStep, MarchRefine, SphereTrace
@@ -60,16 +63,16 @@ def step_field(scene):
     return scene if got is _ITSELF else got
 
 
+#: the nodes the step field passes through (:func:`step_field`): sign-keeping combinations of their
+#: children; every other node is a leaf
+_COMBINATIONS = (Union, Intersection, Difference, Complement, Transform)
+
+
 def _leaves(node, k: float, out: list) -> None:
     """(leaf, product of the scalings above it) of every leaf of ``node`` (:func:`step_field`)."""
-    from reference.csg import Complement, Difference, Intersection, Union
-    from reference.implicits import Scaled
-    from reference.transform import Transform
-
-    t = type(node)
-    if t is Scaled:
+    if type(node) is Scaled:
         _leaves(node.child, k * float(node.scale), out)
-    elif t in (Union, Intersection, Difference, Complement, Transform):
+    elif type(node) in _COMBINATIONS:
         for c in node.children:
             _leaves(c, k, out)
     else:
@@ -77,22 +80,12 @@ def _leaves(node, k: float, out: list) -> None:
 
 
 def _rebuild(node, lstar: float):
-    """``node`` with each leaf scaled by ``lstar`` over its bound and the scalings dropped (:func:`step_field`)."""
-    from reference.csg import Complement, Difference, Intersection, Union
-    from reference.implicits import Scaled
-    from reference.transform import Transform
-
-    t = type(node)
-    if t is Scaled:
+    """``node`` with each leaf scaled by ``lstar`` over its bound and the scalings dropped
+    (:func:`step_field`); combinations are rebuilt by their own ``Field._rebuild``."""
+    if type(node) is Scaled:
         return _rebuild(node.child, lstar)
-    if t in (Union, Intersection):
-        return t(*(_rebuild(c, lstar) for c in node.children))
-    if t is Difference:
-        return Difference(*(_rebuild(c, lstar) for c in node.children))
-    if t is Complement:
-        return Complement(_rebuild(node.child, lstar))
-    if t is Transform:
-        return Transform(_rebuild(node.child, lstar), node.rotation, node.translation)
+    if type(node) in _COMBINATIONS:
+        return node._rebuild(node.own_params(), tuple(_rebuild(c, lstar) for c in node.children))
     factor = lstar / float(node.info.lipschitz)
     return node if factor == 1.0 else Scaled(child=node, scale=factor)
 
