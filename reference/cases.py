@@ -477,6 +477,9 @@ class DeclaredLipschitz(Field):
     def bounding_sphere(self):
         return self.child.bounding_sphere()
 
+    def domain_hulls(self):
+        return self.child.domain_hulls()  # the same surface, and the declaration is for the child's domain
+
     def ray_bounds(self, xp, o, d):
         return self.child.ray_bounds(xp, o, d)
 

@@ -58,6 +58,14 @@ class AlgebraicSphere(Field):
     def bounding_sphere(self):
         return np.array(self.center), self.radius
 
+    def domain_hulls(self):
+        """(the sphere itself, the domain ball |x − c| ≤ D) as exact SDFs; None unless r < D."""
+        from .primitives import Sphere
+
+        if not self.radius < self.domain_radius:
+            return None
+        return Sphere(center=self.center, radius=self.radius), Sphere(center=self.center, radius=self.domain_radius)
+
     def _eval(self, x, xp, cursor):
         c = cursor.take(self.own_params()["center"])
         r = cursor.take(self.own_params()["radius"])
@@ -107,6 +115,14 @@ class Ellipsoid(Field):
 
     def bounding_sphere(self):
         return np.zeros(3), max(self.axes)
+
+    def domain_hulls(self):
+        """(the ball of radius maxᵢ aᵢ, the domain ball |x| ≤ D) as exact SDFs; None unless maxᵢ aᵢ < D."""
+        from .primitives import Sphere
+
+        if not max(self.axes) < self.domain_radius:
+            return None
+        return Sphere(radius=max(self.axes)), Sphere(radius=self.domain_radius)
 
     def ray_bounds(self, xp, o, d):
         return raybounds.box_chord(xp, o, d, self.axes, max(self.axes))  # its bounding box

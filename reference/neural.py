@@ -540,6 +540,18 @@ class NeuralSDF(Field):
         lo, hi = self.surface_box
         return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
 
+    def domain_hulls(self):
+        """(the certified box B, the box the local and measured bounds are stated on) as exact
+        box SDFs (B grown by 10⁻³ of the domain's diagonal: strictly inside); None for the
+        spectral bound, which holds everywhere."""
+        from .primitives import Box
+        from .transform import Transform
+
+        if self.lipschitz_mode == "spectral":
+            return None
+        boxes = (self.surface_box, self.local_box)
+        return tuple(Transform(Box(half_size=tuple(0.5 * (hi - lo))), translation=0.5 * (lo + hi)) for lo, hi in boxes)
+
     def ray_bounds(self, xp, o, d):
         """The slab test of the certified box B (:attr:`surface_box`), padded against rounding
         (:func:`reference.raybounds.box_chord`)."""

@@ -216,6 +216,18 @@ class Field:
         return 1.0
 
     # -- bounds ------------------------------------------------------------------------------
+    def domain_hulls(self) -> tuple["Field", "Field"] | None:
+        """For a node whose Lipschitz bound holds on a domain only (``info.domain``), two exact
+        SDFs of convex sets, ``(inner, outer)``: ``inner`` contains every point where φ ≤ 0 and
+        lies strictly inside ``outer``, and ``outer`` lies inside the domain; ``None`` where no
+        such pair is known (the default; always for a bound that holds everywhere).
+
+        With them the root finders' step field bounds the node everywhere
+        (:func:`impls.core.methods_root.step_field`): max(min(φ/L, −d_outer), d_inner) has φ's
+        sign, and is 1-Lipschitz on all of ℝ³ while φ is L-Lipschitz on ``outer``.  The pair is
+        that of the stored parameters."""
+        return None
+
     def bounding_sphere(self) -> tuple[np.ndarray, float] | None:
         """A ball ``(centre (3,), radius)`` that contains every point where φ ≤ 0, or ``None``
         when the solid is unbounded or no such ball is known (the default).

@@ -13,7 +13,7 @@ import numpy as np
 
 from reference.csg import Complement, Difference, Intersection, Union
 from reference.implicits import Scaled
-from reference.scene import user_defined
+from reference.scene import Field, user_defined
 from reference.transform import Transform
 
 from .chandrupatla import MarchChandrupatla
@@ -43,12 +43,29 @@ def step_field(scene):
     ones, so a leaf taking its bound on trust is checked as before: s is checked against L*
     along every ray, and a steeper leaf makes s steeper than L* there.
 
+    A leaf whose bound Lᵢ holds on a domain only (``SceneInfo.domain``: the ellipsoid, the
+    algebraic sphere, a neural SDF's local bound) is no bound on φᵢ beyond it, where φᵢ/Lᵢ can
+    exceed the distance to the leaf: in a tree, where the ray bounds do not clip the search to
+    the leaf's domain, its term (L*/Lᵢ)φᵢ, and φ/L itself, would certify steps across the leaf
+    from outside (an algebraic sphere ∪ a floor 380 below it, seen from 20 above: φ/L steps
+    50 across the sphere and 1,044 of 4,096 rays CONVERGED on the floor).  Such a leaf's term is
+    L*·max(min(φᵢ/Lᵢ, −d_out), d_in), d_in and d_out the exact SDFs of its
+    :meth:`reference.scene.Field.domain_hulls` (convex; d_in ≤ 0 wherever φᵢ ≤ 0, in strictly
+    inside out, out inside the domain).  It has φᵢ's sign: where φᵢ < 0, d_in ≤ 0 and
+    −d_out > 0; where φᵢ > 0 inside in, −d_out > 0 again; outside in, d_in > 0.  It is
+    L*-Lipschitz on all of ℝ³: min(φᵢ/Lᵢ, −d_out) > d_in only on the convex set
+    {d_in + d_out < 0} ⊆ out, where all three terms are 1-Lipschitz (×L*), and elsewhere the
+    term is L*·d_in; the term is continuous, so a segment split at that set's boundary is
+    L*-Lipschitz piece by piece.  Steps far from the leaf are distances to ``inner``; from a
+    face of ``inner`` inwards the cap −d_out (≥ the gap between the hulls plus the depth) grows
+    the step geometrically.  Every tree holding such a leaf is rewritten, whatever the bounds; a
+    tree with a domain-bound leaf that states no hulls (a user's node) keeps φ/L, as before.
+
     Only the root finders' march and refinement read s, at the stored parameters: hits are the
     same zeros, and normals, shading and dt/dθ keep evaluating the scene (``ArrayBackend.solve``).
-    The factors L*/Lᵢ ≤ 1 are :class:`reference.implicits.Scaled` nodes, which every backend
-    compiles.  A leaf without a bound leaves the scene as it is (no step rule applies), and so
-    does a leaf whose bound holds on a domain only (``SceneInfo.domain``: the ellipsoid, the
-    algebraic sphere), which is no bound on φᵢ beyond that domain."""
+    The factors are :class:`reference.implicits.Scaled` nodes and the hulls spheres and boxes,
+    which every backend compiles.  A leaf without a bound leaves the scene as it is (no step
+    rule applies); so does a single leaf (its ray bounds lie inside any domain it states)."""
     try:
         got = _STEP_FIELDS.get(scene)
     except TypeError:  # not weak-referenceable: a user's object; computed each time
@@ -79,15 +96,40 @@ def _leaves(node, k: float, out: list) -> None:
         out.append((node, k))
 
 
+def _times(node, k: float):
+    """k·``node`` (``node`` itself for k = 1)."""
+    return node if k == 1.0 else Scaled(child=node, scale=k)
+
+
+def _hulls(leaf):
+    """The leaf's :meth:`reference.scene.Field.domain_hulls` where its bound holds on a domain
+    only (None: a user's node states none, its own call failed, or a hull is not a node stating
+    an exact SDF, which the term's bound needs), else ()."""
+    if getattr(leaf.info, "domain", None) is None:
+        return ()
+    try:
+        got = leaf.domain_hulls()
+        inner, outer = got
+    except Exception:  # noqa: BLE001 - a user's node without the method, or a wrong answer: no hulls
+        return None
+    ok = all(isinstance(h, Field) and getattr(h.info, "exact_sdf", False) for h in (inner, outer))
+    return (inner, outer) if ok else None
+
+
 def _rebuild(node, lstar: float):
-    """``node`` with each leaf scaled by ``lstar`` over its bound and the scalings dropped
-    (:func:`step_field`); combinations are rebuilt by their own ``Field._rebuild``."""
+    """``node`` with each leaf scaled by ``lstar`` over its bound (a domain-bound leaf bounded
+    everywhere by its hulls) and the scalings dropped (:func:`step_field`); combinations are
+    rebuilt by their own ``Field._rebuild``."""
     if type(node) is Scaled:
         return _rebuild(node.child, lstar)
     if type(node) in _COMBINATIONS:
         return node._rebuild(node.own_params(), tuple(_rebuild(c, lstar) for c in node.children))
-    factor = lstar / float(node.info.lipschitz)
-    return node if factor == 1.0 else Scaled(child=node, scale=factor)
+    term = _times(node, lstar / float(node.info.lipschitz))
+    hulls = _hulls(node)
+    if not hulls:
+        return term
+    inner, outer = hulls
+    return Intersection(Union(term, _times(Complement(outer), lstar)), _times(inner, lstar))
 
 
 def _normalized(scene):
@@ -102,14 +144,11 @@ def _normalized(scene):
         return scene
     if not all(math.isfinite(b) and b > 0 for b in bounds):
         return scene
-    if any(getattr(n.info, "domain", None) is not None for n, _ in leaves):
-        # a bound stated on a domain only (an ellipsoid's, an algebraic sphere's on |x| ≤ R) is no
-        # bound beyond it, where φᵢ/Lᵢ can exceed the distance to the leaf: alone among operands
-        # whose own bounds hold everywhere, such a term would certify steps across the leaf from
-        # outside its domain (a half-space beside an ellipsoid, seen from 10 away: 1,044 of 4,096
-        # rays CONVERGED on the half-space behind it).  Such scenes keep φ/L.
+    hulls = [_hulls(n) for n, _ in leaves]
+    if any(h is None for h in hulls):
+        # a domain-bound leaf without hulls: no term bounds it beyond its domain (docstring)
         return scene
-    if len({k * b for (_, k), b in zip(leaves, bounds)}) == 1:
+    if not any(hulls) and len({k * b for (_, k), b in zip(leaves, bounds)}) == 1:
         return scene
     return _rebuild(scene, min(bounds))
 
