@@ -65,7 +65,8 @@ def step_field(scene):
     same zeros, and normals, shading and dt/dθ keep evaluating the scene (``ArrayBackend.solve``).
     The factors are :class:`reference.implicits.Scaled` nodes and the hulls spheres and boxes,
     which every backend compiles.  A leaf without a bound leaves the scene as it is (no step
-    rule applies); so does a single leaf (its ray bounds lie inside any domain it states)."""
+    rule applies); so does a single leaf (its ray bounds lie inside any domain it states), unless
+    a complement above it makes them the whole line."""
     try:
         got = _STEP_FIELDS.get(scene)
     except TypeError:  # not weak-referenceable: a user's object; computed each time
@@ -136,7 +137,7 @@ def _normalized(scene):
     """The step field of ``scene`` (:func:`step_field`), built anew."""
     leaves: list = []
     _leaves(scene, 1.0, leaves)
-    if len(leaves) < 2:
+    if not leaves:
         return scene
     try:
         bounds = [float(n.info.lipschitz) for n, _ in leaves]
@@ -148,7 +149,12 @@ def _normalized(scene):
     if any(h is None for h in hulls):
         # a domain-bound leaf without hulls: no term bounds it beyond its domain (docstring)
         return scene
-    if not any(hulls) and len({k * b for (_, k), b in zip(leaves, bounds)}) == 1:
+    if any(hulls):
+        # a single leaf's own ray bounds keep the search inside its domain; a complement's (the
+        # whole line) do not: from outside the domain φ/L steps across the leaf there too
+        if len(leaves) == 1 and not any(type(n) is Complement for n in scene.walk()):
+            return scene
+    elif len({k * b for (_, k), b in zip(leaves, bounds)}) == 1:
         return scene
     return _rebuild(scene, min(bounds))
 
