@@ -267,11 +267,11 @@ def test_random_csg_trees_at_256_squared(backend, method, seed):
     bad = check_guarantee(scene, o, d, res, 8.0, allowance(method, {}), intervals, t_min=t_min)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
     # and they decide almost every ray, CONVERGED or MISS.  Not sphere tracing where the bound is
-    # loose: seed 4's ellipsoid (axes down to 0.18) states L = 251 over its domain (radius 4), so the
-    # union's steps are |φ|/251, and 12,280 of its 65,536 rays spend sphere tracing's 512 steps
-    # (MAX_ITER, 81 % decided on numpy); the hybrids' over-relaxed steps decide 98.5 %.  (A bound
-    # stated on a domain only is no bound beyond it, so such a scene is not stepped operand by
-    # operand: impls.core.methods_root.step_field)
+    # loose: seed 4's ellipsoid (axes down to 0.18) states L = 251 over its domain (radius 4).  Its
+    # operands are stepped at their own bounds (impls.core.methods_root.step_field, the ellipsoid
+    # within its hulls), but the rays near the ellipsoid still step |φ|/251 there: 83 % decided on
+    # numpy (81 % when the whole union was stepped at 251), the rest MAX_ITER; the hybrids' over-
+    # relaxed steps decide 99.5 % (98.5 %).
     loose = method == "sphere_trace" and scene.info.lipschitz > 100
     assert np.mean(np.isin(res.status, (Status.CONVERGED, Status.MISS))) > (0.75 if loose else 0.98)
 
