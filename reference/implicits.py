@@ -125,7 +125,24 @@ class Ellipsoid(Field):
         return Sphere(radius=max(self.axes)), Sphere(radius=self.domain_radius)
 
     def ray_bounds(self, xp, o, d):
-        return raybounds.box_chord(xp, o, d, self.axes, max(self.axes))  # its bounding box
+        """The chord of its bounding box |xᵢ| ≤ aᵢ, met with that of the ball |x| ≤
+        :meth:`search_radius` where the box's corners reach past the domain: L holds on the domain
+        only, and a step from a corner outside it could cross a grazing chord of the surface
+        (axes (3, 3, 3) in |x| ≤ 3.3, seen from (10, 10, 10): 1,596 of 16,384 rays
+        LIPSCHITZ_VIOLATED on the box alone)."""
+        box = raybounds.box_chord(xp, o, d, self.axes, max(self.axes))
+        r = self.search_radius()
+        return box if r is None else raybounds.meet(xp, box, raybounds.ball_chord(xp, o, d, np.zeros(3), r))
+
+    def search_radius(self) -> float | None:
+        """(1 − 10⁻⁵)·D where the bounding box's corners (|a|, padded) reach past the domain
+        |x| ≤ D and the surface (within |x| ≤ maxᵢ aᵢ) lies inside that ball; else None (the box
+        alone).  The margin keeps the ball's padded chord (10⁻⁶ of its radius, plus rounding)
+        inside the domain."""
+        radius = (1.0 - 1e-5) * self.domain_radius
+        if float(np.linalg.norm(self.axes)) * (1.0 + 1e-5) < self.domain_radius or not max(self.axes) < radius:
+            return None
+        return radius
 
     def _eval(self, x, xp, cursor):
         a = cursor.take(self.own_params()["axes"])

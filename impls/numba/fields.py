@@ -251,8 +251,9 @@ def _bounds(w: _Writer, node, o, d) -> tuple[str, str]:
     if kind == "cylinder":
         r, h = node.radius, node.half_height
         return _box(w, o, d, (r, r, h), node.bounding_sphere()[1])
-    if kind == "ellipsoid":
-        return _box(w, o, d, node.axes, max(node.axes))
+    if kind == "ellipsoid":  # as reference.implicits.Ellipsoid.ray_bounds
+        box, r = _box(w, o, d, node.axes, max(node.axes)), node.search_radius()
+        return box if r is None else _meet(w, box, _ball(w, o, d, (0.0, 0.0, 0.0), r))
     if kind == "torus":
         size = node.major + node.minor
         ball = _ball(w, o, d, (0.0, 0.0, 0.0), size)
