@@ -47,6 +47,11 @@ class AlgebraicSphere(Field):
         object.__setattr__(self, "center", tuple(_vec3("center", self.center).tolist()))
         object.__setattr__(self, "radius", _positive("radius", self.radius))
         object.__setattr__(self, "domain_radius", _positive("domain_radius", self.domain_radius))
+        if not self.radius < self.domain_radius:
+            # the bound 2D holds on |x − c| ≤ D only: a surface reaching past it is not bounded there
+            raise ValueError(f"domain_radius must exceed radius (the bound 2·domain_radius holds on |x − c| ≤ "
+                             f"domain_radius, which must hold the surface), got radius={self.radius:g}, "
+                             f"domain_radius={self.domain_radius:g}: pass a larger domain_radius")
 
     def own_params(self):
         return {"center": np.array(self.center), "radius": np.array(self.radius)}
@@ -59,11 +64,9 @@ class AlgebraicSphere(Field):
         return np.array(self.center), self.radius
 
     def domain_hulls(self):
-        """(the sphere itself, the domain ball |x − c| ≤ D) as exact SDFs; None unless r < D."""
+        """(the sphere itself, the domain ball |x − c| ≤ D) as exact SDFs (r < D, checked on construction)."""
         from .primitives import Sphere
 
-        if not self.radius < self.domain_radius:
-            return None
         return Sphere(center=self.center, radius=self.radius), Sphere(center=self.center, radius=self.domain_radius)
 
     def _eval(self, x, xp, cursor):
@@ -105,6 +108,11 @@ class Ellipsoid(Field):
             raise ValueError(f"axes must be 3 numbers > 0, got {self.axes!r}")
         object.__setattr__(self, "axes", tuple(a.tolist()))
         object.__setattr__(self, "domain_radius", _positive("domain_radius", self.domain_radius))
+        if not max(self.axes) < self.domain_radius:
+            # the bound 2D/a_min² holds on |x| ≤ D only: a surface reaching past it is not bounded there
+            raise ValueError(f"domain_radius must exceed the longest axis (the bound holds on |x| ≤ domain_radius, "
+                             f"which must hold the surface), got axes={self.axes!r}, "
+                             f"domain_radius={self.domain_radius:g}: pass a larger domain_radius")
 
     def own_params(self):
         return {"axes": np.array(self.axes)}
@@ -117,11 +125,10 @@ class Ellipsoid(Field):
         return np.zeros(3), max(self.axes)
 
     def domain_hulls(self):
-        """(the ball of radius maxᵢ aᵢ, the domain ball |x| ≤ D) as exact SDFs; None unless maxᵢ aᵢ < D."""
+        """(the ball of radius maxᵢ aᵢ, the domain ball |x| ≤ D) as exact SDFs (maxᵢ aᵢ < D, checked on
+        construction)."""
         from .primitives import Sphere
 
-        if not max(self.axes) < self.domain_radius:
-            return None
         return Sphere(radius=max(self.axes)), Sphere(radius=self.domain_radius)
 
     def ray_bounds(self, xp, o, d):

@@ -290,8 +290,8 @@ def test_a_neural_sdf_local_bound_is_stepped_within_its_boxes():
 
 def test_a_domain_bound_leaf_without_hulls_keeps_the_scene():
     """A user's node whose bound holds on a domain it states in words only (no
-    :meth:`~reference.scene.Field.domain_hulls`), or whose hulls call fails, and an ellipsoid whose
-    axis reaches its domain's edge: no term bounds them beyond the domain, and the tree keeps φ/L."""
+    :meth:`~reference.scene.Field.domain_hulls`), or whose hulls call fails: no term bounds them
+    beyond the domain, and the tree keeps φ/L."""
     import dataclasses
 
     class Walled(Sphere):  # a user's subclass: its bound stated on |x| ≤ 2
@@ -303,9 +303,21 @@ def test_a_domain_bound_leaf_without_hulls_keeps_the_scene():
         def domain_hulls(self):
             raise RuntimeError("no hulls here")
 
-    for leaf in (Walled(radius=0.5), Failing(radius=0.5), Ellipsoid(axes=(4.0, 1.0, 1.0))):
+    for leaf in (Walled(radius=0.5), Failing(radius=0.5)):
         scene = Union(leaf, Box((0.1, 0.5, 0.5)))
         assert step_field(scene) is scene, type(leaf).__name__
+
+
+def test_a_surface_reaching_past_its_domain_is_refused():
+    """The library's domain-bound leaves hold their surface inside their domain, or are refused
+    with an error naming ``domain_radius`` (a bound that does not hold on the surface bounds
+    nothing there): so their hulls always exist."""
+    from reference.implicits import AlgebraicSphere
+
+    for make in (lambda: Ellipsoid(axes=(4.0, 1.0, 1.0)), lambda: AlgebraicSphere(radius=5.0)):
+        with pytest.raises(ValueError, match="domain_radius must exceed"):
+            make()
+    assert Ellipsoid(axes=(4.0, 1.0, 1.0), domain_radius=4.5).domain_hulls() is not None
 
 
 def test_a_users_domain_bound_leaf_without_hulls_is_flagged_from_outside_its_domain():
