@@ -19,7 +19,7 @@ from reference.implicits import Ellipsoid, Scaled
 from reference.primitives import Box, Sphere
 from reference.transform import Transform
 from tests.conftest import require_method
-from tests.test_certified_at_scale import allowance, check_guarantee, random_camera
+from tests.test_certified_at_scale import _solve, allowance, check_guarantee, random_camera
 
 
 def _mixed_leaf(rng):
@@ -54,6 +54,16 @@ def mixed_scene(seed: int, side: int = 256):
     return (scene, *random_camera(rng, scene, side))
 
 
+def assert_sign_and_slope(scene, s, x, y, lstar: float, slack=0.0):
+    """sign(s) = sign(φ) at the points ``x``, and every slope of s sampled on the pairs (x, y) at
+    most L*·(1 + 10⁻⁹) + ``slack`` (rounding, a number or one per pair).  Returns (φ(x), s(x))."""
+    phi, sx, sy = scene.value(x, np), s.value(x, np), s.value(y, np)
+    np.testing.assert_array_equal(np.sign(sx), np.sign(phi))
+    slope = np.abs(sx - sy) / np.linalg.norm(x - y, axis=1)
+    assert np.all(slope <= lstar * (1 + 1e-9) + slack), (slope.max(), lstar)
+    return phi, sx
+
+
 def test_the_catalog_scenes_march_on_themselves():
     """Every catalog scene is a single leaf or its leaves share one bound (with the scalings above
     them) and hold everywhere, so its step field is the scene object itself: the baseline's rows
@@ -77,10 +87,7 @@ def test_the_step_field_keeps_the_sign_and_its_bound(seed):
     rng = np.random.default_rng(seed)
     x = rng.uniform(-1.5, 1.5, (20000, 3))
     y = x + rng.normal(size=x.shape) * 10 ** rng.uniform(-6, 0, (x.shape[0], 1))
-    phi, sx, sy = scene.value(x, np), s.value(x, np), s.value(y, np)
-    np.testing.assert_array_equal(np.sign(sx), np.sign(phi))
-    slope = np.abs(sx - sy) / np.linalg.norm(x - y, axis=1)
-    assert slope.max() <= lstar * (1 + 1e-9) + 1e-12 / np.linalg.norm(x - y, axis=1).min(), (slope.max(), lstar)
+    phi, sx = assert_sign_and_slope(scene, s, x, y, lstar, 1e-12 / np.linalg.norm(x - y, axis=1).min())
     assert np.all(np.abs(sx) / lstar >= np.abs(phi) / lip * (1 - 1e-12))
 
 
@@ -142,8 +149,7 @@ def test_a_leaf_seen_from_outside_its_domain_is_not_stepped_across(backend, meth
     at MAX_ITER (8 of 65,536, numpy; on the leaf alone, at its own φ/L, 460 and 104)."""
     require_method(backend, method)
     scene, o, d, intervals = _leaf_above_a_far_floor(leaf)
-    p = backend.prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=600.0)
-    res = p.result(p.run())
+    res = _solve(backend, method, scene, o.copy(), d.copy(), 600.0)
     bad = check_guarantee(scene, o, d, res, 600.0, allowance(method, {}), intervals)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
     assert np.mean(np.isin(res.status, (Status.CONVERGED, Status.MISS))) >= 0.999, np.unique(res.status, return_counts=True)
@@ -172,16 +178,13 @@ def test_a_domain_bound_leaf_is_stepped_within_its_hulls(leaf):
     rng = np.random.default_rng(7)
     x = rng.normal(size=(20000, 3)) * rng.uniform(0, 30, (20000, 1))
     y = x + rng.normal(size=x.shape) * 10 ** rng.uniform(-6, 1, (x.shape[0], 1))
-    sx, sy = s.value(x, np), s.value(y, np)
-    np.testing.assert_array_equal(np.sign(sx), np.sign(scene.value(x, np)))
+    assert_sign_and_slope(scene, s, x, y, 1.0)
     dist = np.linalg.norm(x - y, axis=1)
-    assert np.max(np.abs(sx - sy) / dist) <= 1.0 + 1e-9
     assert np.max(np.abs(shape.value(x, np) - shape.value(y, np)) / dist) > 10 * shape.info.lipschitz
     o, d = rays.pinhole(eye=(0.0, 0.0, 10.0), look_at=(0, 0, 0), fov_deg=10, width=64, height=64)
     first = np.asarray(scene.first_hit(o, d, 0.0), np.float64)
     for method in ("sphere_trace", "hybrid_secant"):
-        p = resolve("numpy").prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=30.0)
-        res = p.result(p.run())
+        res = _solve(resolve("numpy"), method, scene, o.copy(), d.copy(), 30.0)
         conv = res.status == Status.CONVERGED
         assert conv.sum() > 4000 and np.all(np.abs(res.t[conv] - first[conv]) < 1e-6), method
 
@@ -199,8 +202,7 @@ def test_a_complemented_domain_leaf_is_stepped_within_its_hulls(leaf):
     o, d = rays.pinhole(eye=(0.0, 0.0, 20.0), look_at=(0, 0, 0), fov_deg=10, width=64, height=64)
     intervals = scene.ray_intervals(o, d)
     for method in ("sphere_trace", "hybrid_secant"):
-        p = resolve("numpy").prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=600.0)
-        res = p.result(p.run())
+        res = _solve(resolve("numpy"), method, scene, o.copy(), d.copy(), 600.0)
         bad = check_guarantee(scene, o, d, res, 600.0, allowance(method, {}), intervals)
         assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
         assert np.all(np.isin(res.status, (Status.CONVERGED, Status.MISS))), method
@@ -223,8 +225,7 @@ def test_an_ellipsoid_in_a_tight_domain_is_searched_inside_it(backend, method):
     assert scene.search_radius() == pytest.approx(3.3 * (1 - 1e-5))
     o, d = rays.pinhole(eye=(10.0, 10.0, 10.0), look_at=(0, 0, 0), fov_deg=25, width=256, height=256)
     intervals = scene.ray_intervals(o, d)
-    p = backend.prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=40.0)
-    res = p.result(p.run())
+    res = _solve(backend, method, scene, o.copy(), d.copy(), 40.0)
     bad = check_guarantee(scene, o, d, res, 40.0, allowance(method, {}), intervals)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
     undecided = ~np.isin(res.status, (Status.CONVERGED, Status.MISS))
@@ -263,11 +264,8 @@ def test_the_step_field_bounds_domain_leaves_everywhere(seed):
     x = rng.normal(size=(20000, 3)) * rng.uniform(0, 25, (20000, 1))
     y = x + rng.normal(size=x.shape) * 10 ** rng.uniform(-6, 0.5, (x.shape[0], 1))
     sx, sy = s.value(x, np), s.value(y, np)
-    np.testing.assert_array_equal(np.sign(sx), np.sign(scene.value(x, np)))
-    dist = np.linalg.norm(x - y, axis=1)
-    slope = np.abs(sx - sy) / dist
-    slack = 1e-13 * (np.abs(sx) + np.abs(sy) + lstar * (np.linalg.norm(x, axis=1) + 1)) / dist
-    assert np.all(slope <= lstar * (1 + 1e-9) + slack), (slope.max(), lstar)
+    slack = 1e-13 * (np.abs(sx) + np.abs(sy) + lstar * (np.linalg.norm(x, axis=1) + 1)) / np.linalg.norm(x - y, axis=1)
+    assert_sign_and_slope(scene, s, x, y, lstar, slack)
 
 
 def test_a_neural_sdf_local_bound_is_stepped_within_its_boxes():
@@ -283,9 +281,7 @@ def test_a_neural_sdf_local_bound_is_stepped_within_its_boxes():
     rng = np.random.default_rng(3)
     x = rng.uniform(-20, 20, (20000, 3)) * rng.uniform(0, 1, (20000, 1))
     y = x + rng.normal(size=x.shape) * 10 ** rng.uniform(-6, 0.5, (x.shape[0], 1))
-    sx, sy = s.value(x, np), s.value(y, np)
-    np.testing.assert_array_equal(np.sign(sx), np.sign(scene.value(x, np)))
-    assert np.max(np.abs(sx - sy) / np.linalg.norm(x - y, axis=1)) <= 1.0 + 1e-9
+    assert_sign_and_slope(scene, s, x, y, 1.0)
 
 
 def test_a_domain_bound_leaf_without_hulls_keeps_the_scene():
@@ -340,8 +336,7 @@ def test_a_users_domain_bound_leaf_without_hulls_is_flagged_from_outside_its_dom
         assert (step_field(scene) is not scene) == rewritten
         first = np.asarray(scene.first_hit(o, d, 0.0), np.float64)
         for method in ("sphere_trace", "hybrid_secant"):
-            p = resolve("numpy").prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=600.0)
-            res = p.result(p.run())
+            res = _solve(resolve("numpy"), method, scene, o.copy(), d.copy(), 600.0)
             conv = res.status == Status.CONVERGED
             assert np.all(np.abs(res.t[conv] - first[conv]) < 1e-6), (type(leaf).__name__, method)
             if rewritten:
@@ -393,8 +388,7 @@ def test_one_steep_operand_no_longer_stalls_the_scene(backend, method):
     512 steps on each of the 8,580 rays that hit the sphere (86.9 % decided, numpy)."""
     require_method(backend, method)
     scene, o, d, intervals = _sphere_beside_a_steep_operand()
-    p = backend.prepare(method, scene, o.copy(), d.copy(), dtype="float64", t_min=0.0, t_max=8.0)
-    res = p.result(p.run())
+    res = _solve(backend, method, scene, o.copy(), d.copy(), 8.0)
     bad = check_guarantee(scene, o, d, res, 8.0, allowance(method, {}), intervals)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
     assert np.all(np.isin(res.status, (Status.CONVERGED, Status.MISS))), np.unique(res.status, return_counts=True)

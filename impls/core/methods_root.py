@@ -117,19 +117,18 @@ def _hulls(leaf):
     return (inner, outer) if ok else None
 
 
-def _rebuild(node, lstar: float):
+def _rebuild(node, lstar: float, hulls: dict):
     """``node`` with each leaf scaled by ``lstar`` over its bound (a domain-bound leaf bounded
-    everywhere by its hulls) and the scalings dropped (:func:`step_field`); combinations are
-    rebuilt by their own ``Field._rebuild``."""
+    everywhere by its hulls, ``hulls``: id(leaf) → :func:`_hulls`) and the scalings dropped
+    (:func:`step_field`); combinations are rebuilt by their own ``Field._rebuild``."""
     if type(node) is Scaled:
-        return _rebuild(node.child, lstar)
+        return _rebuild(node.child, lstar, hulls)
     if type(node) in _COMBINATIONS:
-        return node._rebuild(node.own_params(), tuple(_rebuild(c, lstar) for c in node.children))
+        return node._rebuild(node.own_params(), tuple(_rebuild(c, lstar, hulls) for c in node.children))
     term = _times(node, lstar / float(node.info.lipschitz))
-    hulls = _hulls(node)
-    if not hulls:
+    if not hulls[id(node)]:
         return term
-    inner, outer = hulls
+    inner, outer = hulls[id(node)]
     return Intersection(Union(term, _times(Complement(outer), lstar)), _times(inner, lstar))
 
 
@@ -145,18 +144,18 @@ def _normalized(scene):
         return scene
     if not all(math.isfinite(b) and b > 0 for b in bounds):
         return scene
-    hulls = [_hulls(n) for n, _ in leaves]
-    if any(h is None for h in hulls):
+    hulls = {id(n): _hulls(n) for n, _ in leaves}
+    if any(h is None for h in hulls.values()):
         # a domain-bound leaf without hulls: no term bounds it beyond its domain (docstring)
         return scene
-    if any(hulls):
+    if any(hulls.values()):
         # a single leaf's own ray bounds keep the search inside its domain; a complement's (the
         # whole line) do not: from outside the domain φ/L steps across the leaf there too
         if len(leaves) == 1 and not any(type(n) is Complement for n in scene.walk()):
             return scene
     elif len({k * b for (_, k), b in zip(leaves, bounds)}) == 1:
         return scene
-    return _rebuild(scene, min(bounds))
+    return _rebuild(scene, min(bounds), hulls)
 
 
 def lipschitz_step(scene) -> float:
