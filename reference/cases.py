@@ -489,6 +489,9 @@ class DeclaredLipschitz(Field):
     def ray_intervals(self, o, d):
         return self.child.ray_intervals(o, d)
 
+    def ray_interval_batch(self, o, d):
+        return self.child.ray_interval_batch(o, d)
+
     def first_hit(self, o, d, t_min: float = 0.0):
         return self.child.first_hit(o, d, t_min)
 

@@ -73,7 +73,7 @@ class _NAry(_Combination):
     """min (union) or max (intersection) over the children."""
 
     _pick = None  # np.argmin / np.argmax
-    _set_op = None
+    _batch_op = None
     _xp_op = ""  # "minimum" / "maximum"
 
     def __init__(self, *children: Field):
@@ -114,9 +114,8 @@ class _NAry(_Combination):
                 k1[sel], k2[sel] = c.curvatures_exact(np.asarray(x, np.float64)[sel])
         return k1, k2
 
-    def ray_intervals(self, o, d):
-        per = [c.ray_intervals(o, d) for c in self._children]
-        return [functools.reduce(type(self)._set_op, ray) for ray in zip(*per)]
+    def ray_interval_batch(self, o, d):
+        return functools.reduce(type(self)._batch_op, (c.ray_interval_batch(o, d) for c in self._children))
 
 
 class Union(_NAry):
@@ -124,7 +123,7 @@ class Union(_NAry):
 
     kind = "union"
     _pick = staticmethod(np.argmin)
-    _set_op = staticmethod(iv.union)
+    _batch_op = staticmethod(iv.batch_union)
     _xp_op = "minimum"
 
     def bounding_sphere(self):
@@ -162,7 +161,7 @@ class Intersection(_NAry):
 
     kind = "intersection"
     _pick = staticmethod(np.argmax)
-    _set_op = staticmethod(iv.intersection)
+    _batch_op = staticmethod(iv.batch_intersection)
     _xp_op = "maximum"
 
     def bounding_sphere(self):
@@ -205,8 +204,8 @@ class Complement(Field):
         k1, k2 = self.child.curvatures_exact(x)
         return -k2, -k1
 
-    def ray_intervals(self, o, d):
-        return [iv.complement(b) for b in self.child.ray_intervals(o, d)]
+    def ray_interval_batch(self, o, d):
+        return iv.batch_complement(self.child.ray_interval_batch(o, d))
 
 
 class Difference(_Combination):
@@ -228,8 +227,8 @@ class Difference(_Combination):
     def curvatures_exact(self, x):
         return self._as_intersection.curvatures_exact(x)
 
-    def ray_intervals(self, o, d):
-        return self._as_intersection.ray_intervals(o, d)
+    def ray_interval_batch(self, o, d):
+        return self._as_intersection.ray_interval_batch(o, d)
 
     def bounding_sphere(self):
         return self._as_intersection.bounding_sphere()  # a's ball (a complement is unbounded)

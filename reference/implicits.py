@@ -75,8 +75,8 @@ class AlgebraicSphere(Field):
         v = x - c
         return sum_last(xp, v * v) - r * r
 
-    def ray_intervals(self, o, d):
-        return iv.from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
+    def ray_interval_batch(self, o, d):
+        return iv.batch_from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
 
     def _jet(self, x):
         v = x - np.asarray(self.center)
@@ -156,9 +156,9 @@ class Ellipsoid(Field):
         y = x / a
         return sum_last(xp, y * y) - 1.0
 
-    def ray_intervals(self, o, d):
+    def ray_interval_batch(self, o, d):
         a = np.asarray(self.axes)
-        return iv.from_bounds(*ray_sphere_roots(_points(o, "o") / a, _points(d, "d") / a, np.zeros(3), 1.0))
+        return iv.batch_from_bounds(*ray_sphere_roots(_points(o, "o") / a, _points(d, "d") / a, np.zeros(3), 1.0))
 
     def _jet(self, x):
         a = np.asarray(self.axes)
@@ -212,6 +212,9 @@ class Scaled(Field):
 
     def ray_intervals(self, o, d):
         return self.child.ray_intervals(o, d)
+
+    def ray_interval_batch(self, o, d):
+        return self.child.ray_interval_batch(o, d)
 
     def first_hit(self, o, d, t_min: float = 0.0):
         return self.child.first_hit(o, d, t_min)

@@ -104,8 +104,8 @@ class Sphere(Field):
         return norm(xp, x - c) - r
 
     # exact answers -------------------------------------------------------------------------
-    def ray_intervals(self, o, d):
-        return iv.from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
+    def ray_interval_batch(self, o, d):
+        return iv.batch_from_bounds(*ray_sphere_roots(o, d, self.center, self.radius))
 
     def certified_roots(self, o, d):
         """Real roots exist iff the discriminant (f·d)² − (d·d)(f·f − r²), f = o − c, is ≥ 0:
@@ -187,7 +187,7 @@ class Plane(Field):
         h = cursor.take(self.own_params()["offset"])
         return sum_last(xp, x * const(xp, x, np.asarray(self.normal))) - h
 
-    def ray_intervals(self, o, d):
+    def ray_interval_batch(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
         nv = np.asarray(self.normal)
         nd = d @ nv
@@ -196,7 +196,7 @@ class Plane(Field):
             t = s / nd
         t0 = np.where(nd > 0, -np.inf, np.where(nd < 0, t, np.where(s > 0, -np.inf, np.nan)))
         t1 = np.where(nd > 0, t, np.where(nd < 0, np.inf, np.where(s > 0, np.inf, np.nan)))
-        return iv.from_bounds(t0, t1)
+        return iv.batch_from_bounds(t0, t1)
 
     def _jet(self, x):
         n = x.shape[0]
@@ -246,7 +246,7 @@ class Box(Field):
         zero = const(xp, q, 0.0)
         return safe_norm(xp, xp.maximum(q, zero)) + xp.minimum(max_last(xp, q), const(xp, x[..., 0], 0.0))
 
-    def ray_intervals(self, o, d):
+    def ray_interval_batch(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
         lo, hi = np.full(o.shape[0], -np.inf), np.full(o.shape[0], np.inf)
         empty = np.zeros(o.shape[0], bool)
@@ -254,7 +254,7 @@ class Box(Field):
             a0, a1 = ray_slab(o[:, i], d[:, i], -b, b)
             empty |= np.isnan(a0)  # a parallel ray outside this slab: no interval at all
             lo, hi = np.fmax(lo, a0), np.fmin(hi, a1)
-        return iv.from_bounds(np.where(empty, np.nan, lo), hi)
+        return iv.batch_from_bounds(np.where(empty, np.nan, lo), hi)
 
     def _jet(self, x):
         b = np.asarray(self.half_size)
@@ -413,7 +413,7 @@ class Capsule(Field):
         ba = b - a
         return np.clip((x - a) @ ba / (ba @ ba), 0.0, 1.0)
 
-    def ray_intervals(self, o, d):
+    def ray_interval_batch(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
         a, b = np.asarray(self.a), np.asarray(self.b)
         length = np.linalg.norm(b - a)
@@ -422,10 +422,10 @@ class Capsule(Field):
         fz, dz = f @ u, d @ u
         c0, c1 = ray_cylinder_roots(f - fz[:, None] * u, d - dz[:, None] * u, self.radius)
         s0, s1 = ray_slab(fz, dz, 0.0, length)
-        cyl = iv.map_rays(iv.intersection, iv.from_bounds(c0, c1), iv.from_bounds(s0, s1))
-        sa = iv.from_bounds(*ray_sphere_roots(o, d, a, self.radius))
-        sb = iv.from_bounds(*ray_sphere_roots(o, d, b, self.radius))
-        return iv.map_rays(iv.union, iv.map_rays(iv.union, sa, sb), cyl)
+        cyl = iv.batch_intersection(iv.batch_from_bounds(c0, c1), iv.batch_from_bounds(s0, s1))
+        sa = iv.batch_from_bounds(*ray_sphere_roots(o, d, a, self.radius))
+        sb = iv.batch_from_bounds(*ray_sphere_roots(o, d, b, self.radius))
+        return iv.batch_union(iv.batch_union(sa, sb), cyl)
 
     def _jet(self, x):
         a, b = np.asarray(self.a), np.asarray(self.b)
@@ -482,12 +482,12 @@ class CappedCylinder(Field):
         zero = const(xp, w, 0.0)
         return safe_norm(xp, xp.maximum(w, zero)) + xp.minimum(max_last(xp, w), const(xp, x[..., 0], 0.0))
 
-    def ray_intervals(self, o, d):
+    def ray_interval_batch(self, o, d):
         o, d = _points(o, "o"), _points(d, "d")
         z2 = np.array([1.0, 1.0, 0.0])
         c0, c1 = ray_cylinder_roots(o * z2, d * z2, self.radius)
         s0, s1 = ray_slab(o[:, 2], d[:, 2], -self.half_height, self.half_height)
-        return iv.map_rays(iv.intersection, iv.from_bounds(c0, c1), iv.from_bounds(s0, s1))
+        return iv.batch_intersection(iv.batch_from_bounds(c0, c1), iv.batch_from_bounds(s0, s1))
 
     def _w(self, x):
         rho = np.hypot(x[:, 0], x[:, 1])

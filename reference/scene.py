@@ -43,6 +43,7 @@ from .arrays import (  # noqa: F401  (re-exported: the names' old home, still im
     sum_last,
     unit,
 )
+from . import intervals as iv
 from .code_digest import function_digest
 from .raybounds import ball_chord, unbounded_like
 
@@ -259,16 +260,28 @@ class Field:
     # -- exact answers (float64 numpy; override where known) -------------------------------
     def ray_intervals(self, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
         """Per ray, the sorted boundaries of {t ∈ ℝ : φ(o + t d) < 0} as an array of shape
-        ``(2k,)`` (enter, exit, enter, exit, …; ±inf allowed).  Rays are rows of ``o``, ``d``."""
-        raise NotImplementedError(f"{type(self).__name__} has no exact ray intervals")
+        ``(2k,)`` (enter, exit, enter, exit, …; ±inf allowed).  Rays are rows of ``o``, ``d``.
+        A node overrides this or :meth:`ray_interval_batch` (either gives the other)."""
+        if type(self).ray_interval_batch is Field.ray_interval_batch:
+            raise NotImplementedError(f"{type(self).__name__} has no exact ray intervals")
+        return iv.batch_to_list(self.ray_interval_batch(o, d))
+
+    def ray_interval_batch(self, o: np.ndarray, d: np.ndarray) -> iv.IntervalBatch:
+        """The sets of :meth:`ray_intervals`, all rays at once (:class:`reference.intervals.IntervalBatch`):
+        the form CSG combines them in, one vectorised operation per node.  Default: from
+        :meth:`ray_intervals`."""
+        if type(self).ray_intervals is Field.ray_intervals:
+            raise NotImplementedError(f"{type(self).__name__} has no exact ray intervals")
+        return iv.batch_from_list(self.ray_intervals(o, d))
 
     def first_hit(self, o: np.ndarray, d: np.ndarray, t_min: float = 0.0) -> np.ndarray:
         """Exact depth of the first crossing of φ = 0 at t > t_min along o + t d (inf: miss).
-        Default: from :meth:`ray_intervals`; primitives override with a vectorised formula.
+        Default: from :meth:`ray_interval_batch` (:func:`reference.intervals.batch_first_crossing`,
+        the rule of :func:`first_hit_from_intervals`); primitives override with a vectorised formula.
         Sphere and torus also count a tangent touch (a double root, φ = 0 without a
         sign change) as a hit; interval-based first hits (CSG) do not, since a touch bounds no
         interval — a measure-zero set of rays."""
-        return first_hit_from_intervals(self.ray_intervals(o, d), t_min)
+        return iv.batch_first_crossing(self.ray_interval_batch(o, d), t_min)
 
     def certified_roots(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Per ray (rows of ``o``, ``d``): True where exact (rational) arithmetic on the float64

@@ -86,5 +86,8 @@ class Transform(Field):
     def ray_intervals(self, o, d):
         return self.child.ray_intervals(self._local(_points(o, "o")), _points(d, "d") @ self.rotation)
 
+    def ray_interval_batch(self, o, d):
+        return self.child.ray_interval_batch(self._local(_points(o, "o")), _points(d, "d") @ self.rotation)
+
     def first_hit(self, o, d, t_min: float = 0.0):
         return self.child.first_hit(self._local(_points(o, "o")), _points(d, "d") @ self.rotation, t_min)

@@ -82,24 +82,27 @@ def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None
     and the crossings it passed, c_0 … c_{k−1}, must pair up, (c_0, c_1), (c_2, c_3), …, each
     pair narrower than ``allow``: an odd number passed means a lone crossing was skipped (an
     exit reported after its entry, whatever the width).  A MISS must have no crossing.
-    ``intervals``: the scene's exact ``ray_intervals(o, d)``, when already computed."""
-    intervals = scene.ray_intervals(o, d) if intervals is None else intervals
-    bad_conv, bad_miss = [], []
-    for i, iv in enumerate(intervals):
-        st, t = int(res.status[i]), float(res.t[i])
-        c = np.sort(np.asarray(iv, float).ravel())
-        c = c[(c > t_min) & (c <= t_max)]
-        if st == Status.CONVERGED:
-            near = np.abs(c - t) <= TOL * max(1.0, abs(t))
-            if not near.any():
-                bad_conv.append(i)
-                continue
-            passed = c[:int(np.argmax(near))]
-            if passed.size % 2 or np.any(passed[1::2] - passed[0::2] >= allow):
-                bad_conv.append(i)
-        elif st == Status.MISS and c.size:
-            bad_miss.append(i)
-    return {"converged off the first crossing": bad_conv, "certified miss with a crossing": bad_miss}
+    ``intervals``: the scene's exact ``ray_intervals(o, d)`` (or its ``ray_interval_batch``), when
+    already computed.  All rays at once (a loop over 65,536 rays cost 2.5 s a call)."""
+    from reference import intervals as iv
+
+    if intervals is None:
+        intervals = scene.ray_interval_batch(o, d)
+    batch = intervals if isinstance(intervals, iv.IntervalBatch) else iv.batch_from_list(intervals)
+    n = batch.enter.shape[0]
+    c = np.stack([batch.enter, batch.exit], 2).reshape(n, -1)
+    c = np.sort(np.where((c > t_min) & (c <= t_max), c, np.inf), axis=1)  # the crossings first, in order
+    status, t = np.asarray(res.status).astype(int), np.asarray(res.t, np.float64)
+    with np.errstate(invalid="ignore"):
+        near = np.abs(c - t[:, None]) <= TOL * np.maximum(1.0, np.abs(t))[:, None]
+        k = np.argmax(near, axis=1)  # the first crossing the depth is on
+        wide = (c[:, 1::2] - c[:, 0::2]) >= allow  # pair j = (c_2j, c_2j+1)
+    passed_wide = (wide & (np.arange(wide.shape[1])[None, :] < (k // 2)[:, None])).any(axis=1)
+    conv = status == Status.CONVERGED
+    bad_conv = conv & (~near.any(axis=1) | (k % 2 == 1) | passed_wide)
+    bad_miss = (status == Status.MISS) & np.isfinite(c[:, :1]).any(axis=1)
+    return {"converged off the first crossing": np.flatnonzero(bad_conv).tolist(),
+            "certified miss with a crossing": np.flatnonzero(bad_miss).tolist()}
 
 
 def test_the_guarantee_check_catches_a_skipped_entry_and_reads_inside_starts():
