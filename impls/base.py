@@ -51,7 +51,14 @@ def check_rays(origins: Any, directions: Any, dtype: str = "float64") -> tuple[n
 
     Per-ray errors (flagged ``Status.BAD_INPUT`` by every method, outputs NaN): a non-finite
     origin or direction component, or a zero direction — returned with that direction set to NaN,
-    so that one test (``rootfind.bad_rays``: any component non-finite) flags all of them."""
+    so that one test (``rootfind.bad_rays``: any component non-finite) flags all of them.
+
+    A direction accepted within a coarser dtype's tolerance than float64's (normalised in float32:
+    ‖d‖ − 1 up to ~1e-7) is normalised again in float64, d / ‖d‖, and that is the ray solved: the
+    depths t, t_min and t_max are distances along it.  The methods measure distance in t (a step
+    φ/L, a ray's bounding chord): with ‖d‖ = 1 + 1e-7 a step from 1,000 away moved 1e-4 further
+    than φ/L, across a 1e-5 shell (1,746 of 4,000 rays CONVERGED on its far side).  Directions
+    unit to float64's rounding are returned as given, bit for bit."""
     o_in, d_in = _real_rows(origins, "origins"), _real_rows(directions, "directions")
     o = np.array(o_in, dtype=np.float64)  # copies: the zero-direction rows below are overwritten
     d = np.array(d_in, dtype=np.float64)
@@ -73,6 +80,9 @@ def check_rays(origins: Any, directions: Any, dtype: str = "float64") -> tuple[n
             f"directions must be unit vectors (|‖d‖ − 1| ≤ {tol:.1e} for {d_in.dtype} directions and dtype={dtype!r}); "
             f"{int(np.count_nonzero(dev > tol))} of {len(d)} are not, the worst (ray {i}) has ‖d‖ − 1 = {dn[i] - 1:.3e}. "
             "Normalise them in float64: d = np.asarray(d, np.float64); d = d / np.linalg.norm(d, axis=1, keepdims=True)")
+    coarse = dev > unit_tolerance(np.float64)
+    if np.any(coarse):
+        d[coarse] /= dn[coarse, None]
     return o, d
 
 
