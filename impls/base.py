@@ -10,6 +10,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from reference.rays import unit_tolerance  # noqa: F401  (also re-exported: impls.base.unit_tolerance)
+
 from .core.methods_root import step_field
 from .core.param_grad import python_fori
 from .core.rootfind import void_if_refuted
@@ -32,21 +34,12 @@ def _real_rows(a: Any, name: str) -> np.ndarray:
     return arr
 
 
-def unit_tolerance(*dtypes: Any) -> float:
-    """|‖d‖ − 1| allowed for a direction: 8·√3·ε of the coarsest of ``dtypes`` (a direction
-    normalised in that precision is within a few ε of unit length: 3 rounded squares, a rounded
-    sum and square root, 3 rounded quotients).  float64: 3.1e-15; float32: 1.7e-6."""
-    eps = max(float(np.finfo(dt).eps) if np.dtype(dt).kind == "f" else float(np.finfo(np.float64).eps)
-              for dt in dtypes)
-    return 8.0 * math.sqrt(3.0) * eps
-
-
 def check_rays(origins: Any, directions: Any, dtype: str = "float64") -> tuple[np.ndarray, np.ndarray]:
     """Validate ray arrays; returns float64 numpy copies of shape (n, 3), n ≥ 1.
 
     Whole-call errors (ValueError/TypeError naming ``origins`` or ``directions``): not real
     numbers, wrong shape, mismatched counts, or a finite non-zero direction that is not unit
-    within :func:`unit_tolerance` of the given arrays' dtype and the run ``dtype`` (float32
+    within :func:`reference.rays.unit_tolerance` of the given arrays' dtype and the run ``dtype`` (float32
     directions normalised in float32 pass; the message gives the worst ray and the fix).
 
     Per-ray errors (flagged ``Status.BAD_INPUT`` by every method, outputs NaN): a non-finite

@@ -45,6 +45,7 @@ import numpy as np
 
 from . import depthbound as _depthbound
 from .code_digest import function_digest
+from .rays import unit_tolerance
 from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label
 
 
@@ -178,7 +179,7 @@ def _lipschitz_in_t(L, d):
     if L is None or d.shape[0] == 0:
         return L
     longest = float(np.nanmax(np.linalg.norm(d, axis=1), initial=1.0))
-    return L * longest if longest > 1.0 + 8.0 * math.sqrt(3.0) * float(np.finfo(np.float64).eps) else L
+    return L * longest if longest > 1.0 + unit_tolerance(np.float64) else L
 
 
 def _rounding_gain(scene) -> float:
@@ -199,8 +200,7 @@ def _check(scene, o, d, t_min, t_max, n_samples):
     # their dtype (8·√3·ε); the rest of that rounding is taken into L (_lipschitz_in_t).
     with np.errstate(invalid="ignore", over="ignore"):
         dev = np.abs(np.linalg.norm(d, axis=1) - 1.0)
-    eps = float(np.finfo(d_dtype if d_dtype.kind == "f" else np.float64).eps)
-    tol = 8.0 * math.sqrt(3.0) * max(eps, float(np.finfo(np.float64).eps))
+    tol = unit_tolerance(d_dtype)
     if np.any(dev > tol):
         i = int(np.nanargmax(np.where(dev > tol, dev, -1.0)))
         raise ValueError(f"d must be unit vectors (|‖d‖ − 1| ≤ {tol:.1e} for {d_dtype} directions): "

@@ -11,6 +11,17 @@ from .arrays import unit
 normalize = unit
 
 
+def unit_tolerance(*dtypes) -> float:
+    """|‖d‖ − 1| allowed for a direction: 8·√3·ε of the coarsest of ``dtypes`` (a direction
+    normalised in that precision is within a few ε of unit length: 3 rounded squares, a rounded
+    sum and square root, 3 rounded quotients).  float64: 3.1e-15; float32: 1.7e-6.  The one
+    tolerance of the backends (:func:`impls.base.check_rays`), the numerical reference and a
+    user's cases (:func:`reference.user_cases.validate`)."""
+    eps = max(float(np.finfo(dt).eps) if np.dtype(dt).kind == "f" else float(np.finfo(np.float64).eps)
+              for dt in dtypes)
+    return 8.0 * float(np.sqrt(3.0)) * eps
+
+
 def pinhole(eye, look_at, up=(0.0, 1.0, 0.0), fov_deg: float = 40.0, width: int = 64, height: int = 64):
     """Pinhole camera rays through pixel centres, row-major from the top-left pixel.
 

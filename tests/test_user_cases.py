@@ -76,6 +76,25 @@ def test_invalid_cases_are_refused_with_the_reason():
         user_cases.validate(object(), "t")
 
 
+def test_a_case_is_held_to_the_backends_unit_tolerance():
+    """A user's directions are unit to float64's rounding, the tolerance the backends
+    (impls.base.check_rays) and the numerical reference apply: at 1e-12, as before, a case 1e-13
+    off was accepted and then every configuration of it refused by the backends, and its
+    numerical truth by the reference."""
+    from impls.registry import resolve
+    from reference import CallableField, rays
+
+    o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), fov_deg=40, width=4, height=4)
+    blob = CallableField(lambda x, xp: xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0, lipschitz=1.0, name="tests.blob")
+    for scene in (Sphere(), blob):
+        case = user_cases.validate(Case(id="user.x.unit", scene=scene, origins=o, directions=d, t_max=6.0), "t")
+        assert np.isfinite(case.exact_t).sum() > 4
+        resolve("numpy").prepare("sphere_trace", case.scene, case.origins, case.directions, t_max=6.0)
+        for off in (1e-13, 1e-7):
+            with pytest.raises(ValueError, match=r"'user.x.off' directions must be unit .*3\.1e-15.*np.linalg.norm"):
+                user_cases.validate(Case(id="user.x.off", scene=scene, origins=o, directions=d * (1 + off)), "t")
+
+
 @pytest.mark.slow  # three bench commands in fresh interpreters
 def test_a_user_case_runs_in_bench_run_from_outside_the_repository(tmp_path):
     """The documented way in: ``--cases module:attr`` with the module on the PYTHONPATH."""
