@@ -173,15 +173,6 @@ def _search_range(scene, o, d, t_min, t_max, L):
     return np.where(whole, t0, np.maximum(t0, lo)), np.where(whole, t1, np.minimum(t1, hi))
 
 
-def _lipschitz_in_t(L, d):
-    """The bound of φ(o + t d) in t, L·max‖d‖, where a direction's length exceeds 1 by more than
-    float64's rounding (directions normalised in float32, accepted by :func:`_check`); else L."""
-    if L is None or d.shape[0] == 0:
-        return L
-    longest = float(np.nanmax(np.linalg.norm(d, axis=1), initial=1.0))
-    return L * longest if longest > 1.0 + unit_tolerance(np.float64) else L
-
-
 def _rounding_gain(scene) -> float:
     """The largest ``rounding_gain`` of the scene's nodes (≥ 1), as the root finders take it
     (:func:`impls.core.methods_root.rounding_gain`)."""
@@ -197,7 +188,8 @@ def _check(scene, o, d, t_min, t_max, n_samples):
     # with ‖d‖ = 1.5 … 10 every ray of a thin shell (400 of 400) was flagged, and a gap between two
     # samples was excluded at |φ(a)| + |φ(b)| > L·(b − a) where ‖d‖·L·(b − a) holds, not a proof.
     # Directions are unit, as the backends require (impls.base.check_rays), to the rounding of
-    # their dtype (8·√3·ε); the rest of that rounding is taken into L (_lipschitz_in_t).
+    # their dtype (8·√3·ε); those unit only to float32's are normalised again in float64, as the
+    # backends do, and t is the distance along d/‖d‖.
     with np.errstate(invalid="ignore", over="ignore"):
         dev = np.abs(np.linalg.norm(d, axis=1) - 1.0)
     tol = unit_tolerance(d_dtype)
@@ -207,6 +199,10 @@ def _check(scene, o, d, t_min, t_max, n_samples):
                          f"{int(np.count_nonzero(dev > tol))} of {len(d)} are not, the worst (ray {i}) is off by "
                          f"{dev[i]:.3e}; the numerical reference measures its Lipschitz steps in t. Normalise them in "
                          "float64: d = d / np.linalg.norm(d, axis=1, keepdims=True)")
+    coarse = dev > unit_tolerance(np.float64)
+    if np.any(coarse):
+        d = d.copy()  # (the caller's array is not written)
+        d[coarse] /= np.linalg.norm(d[coarse], axis=1, keepdims=True)
     if not (math.isfinite(t_min) and math.isfinite(t_max) and t_min < t_max):
         raise ValueError(f"need finite t_min < t_max, got t_min={t_min}, t_max={t_max}: the numerical reference "
                          "samples the whole interval, so a case whose scene has no closed-form hits needs both ends "
@@ -241,7 +237,7 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
     if o.shape[0] > CHUNK_RAYS:
         return _by_chunks(lambda oc, dc: first_hit_numeric(scene, oc, dc, t_min, t_max, lipschitz=lipschitz,
                                                            n_samples=n_samples, min_width=min_width), o, d)
-    L = _lipschitz_in_t(scene.info.lipschitz if lipschitz == "scene" else lipschitz, d)
+    L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
     min_width = 1e-12 * max(1.0, abs(t_max)) if min_width is None else float(min_width)
     t0, t1 = _search_range(scene, o, d, t_min, t_max, L)
     brackets, unresolved, violated = _scan(scene, o, d, t0, t1, int(n_samples), L, min_width, False)
@@ -273,7 +269,7 @@ def crossings_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
     if o.shape[0] > CHUNK_RAYS:
         return _by_chunks(lambda oc, dc: crossings_numeric(scene, oc, dc, t_min, t_max, lipschitz=lipschitz,
                                                            n_samples=n_samples), o, d)
-    L = _lipschitz_in_t(scene.info.lipschitz if lipschitz == "scene" else lipschitz, d)
+    L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
     t0, t1 = _search_range(scene, o, d, t_min, t_max, L)
     brackets, _, violated = _scan(scene, o, d, t0, t1, int(n_samples), L, 1e-12 * max(1.0, abs(t_max)), True)
     rows = np.array([k for k in range(o.shape[0]) for _ in brackets[k]], dtype=int)

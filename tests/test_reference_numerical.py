@@ -182,11 +182,12 @@ def test_rays_taken_in_passes_give_the_answers_of_one_pass(monkeypatch):
     np.testing.assert_array_equal(one[1][1], many[1][1])
 
 
-def test_directions_that_are_not_unit_are_refused_and_float32_ones_are_taken_with_their_length():
+def test_directions_that_are_not_unit_are_refused_and_float32_ones_are_normalised_again():
     """The scan's Lipschitz checks and exclusions are in t, where φ(o + t d) is L·‖d‖-Lipschitz:
     ‖d‖ = 3 was accepted and flagged every ray of a thin shell.  Now it is refused by name, with
-    the fix; directions normalised in float32 (‖d‖ − 1 up to ~1e-7) are accepted and give the
-    float64 directions' depths to within that rounding."""
+    the fix; directions normalised in float32 (‖d‖ − 1 up to ~1e-7) are accepted and, as the
+    backends do (impls.base.check_rays), normalised again in float64: the depths are those of
+    d/‖d‖, and the caller's array is not written."""
     scene = get_case("csg.shell.1e-4").scene
     rng = np.random.default_rng(4)
     o = rng.normal(size=(64, 3))
@@ -198,8 +199,12 @@ def test_directions_that_are_not_unit_are_refused_and_float32_ones_are_taken_wit
             fn(scene, o, 3.0 * d, 0.0, 2.0)
     d32 = d.astype(np.float32)
     d32 = d32 / np.linalg.norm(d32, axis=1, keepdims=True)
+    kept = d32.copy()
     t32, _ = first_hit_numeric(scene, o, d32, 0.0, 6.0)
-    t64, _ = first_hit_numeric(scene, o, d, 0.0, 6.0)
-    assert np.array_equal(np.isfinite(t32), np.isfinite(t64)) and np.isfinite(t64).sum() > 20
-    hit = np.isfinite(t64)
-    assert np.max(np.abs(t32[hit] - t64[hit])) < 1e-5  # the float32 directions' own rounding moves the rays
+    np.testing.assert_array_equal(d32, kept)
+    with pytest.raises(ValueError, match="float64 directions"):  # the same values in float64: float64's tolerance
+        first_hit_numeric(scene, o, d32.astype(np.float64), 0.0, 6.0)
+    d32_64 = d32.astype(np.float64)
+    t64, _ = first_hit_numeric(scene, o, d32_64 / np.linalg.norm(d32_64, axis=1, keepdims=True), 0.0, 6.0)
+    assert np.isfinite(t64).sum() > 20
+    np.testing.assert_array_equal(t32, t64)
