@@ -73,11 +73,6 @@ def difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return intersection(a, complement(b))
 
 
-def map_rays(op, *per_ray: list[np.ndarray]) -> list[np.ndarray]:
-    """Apply a binary/unary interval operation ray by ray."""
-    return [op(*args) for args in zip(*per_ray)]
-
-
 # -- many rays at once -------------------------------------------------------------------------
 
 
