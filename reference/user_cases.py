@@ -77,6 +77,12 @@ def validate(case, source: str) -> Case:
     if not (hasattr(case.scene, "value") and hasattr(case.scene, "info")):
         raise TypeError(f"{source}: case {case.id!r} scene must be a reference Field (e.g. CallableField), "
                         f"got {type(case.scene).__name__}")
+    if not case.scene.info.exact_hits and not (np.isfinite(float(case.t_min)) and np.isfinite(float(case.t_max))):
+        # (checked here rather than left to the truth: a run would skip every row of the case)
+        raise ValueError(f"{source}: case {case.id!r} has no closed-form hits (its scene's exact_hits is False), so "
+                         "its truth is the numerical reference, which samples the whole of [t_min, t_max]: give both "
+                         f"finite (t_max: the depth past which a ray counts as a miss), got t_min={case.t_min}, "
+                         f"t_max={case.t_max}")
     tags = tuple(dict.fromkeys(tuple(case.tags) + _cases._scene_tags(case.scene) + ("user",)))
     return dataclasses.replace(case, origins=np.ascontiguousarray(o), directions=np.ascontiguousarray(d), tags=tags)
 

@@ -74,6 +74,14 @@ def test_invalid_cases_are_refused_with_the_reason():
             user_cases.validate(Case(**{**good, **change}), "t")
     with pytest.raises(TypeError, match="Case objects"):
         user_cases.validate(object(), "t")
+    # no closed-form hits: the numerical truth needs a finite range (a run skipped every row of it)
+    from reference import CallableField
+
+    blob = CallableField(lambda x, xp: xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0, lipschitz=1.0, name="tests.blob")
+    user_cases.validate(Case(**{**good, "scene": blob, "t_max": 6.0}), "t")
+    with pytest.raises(ValueError, match=r"'user.x.one' has no closed-form hits.*t_max=inf"):
+        user_cases.validate(Case(**{**good, "scene": blob, "t_max": np.inf}), "t")
+    user_cases.validate(Case(**{**good, "t_max": np.inf}), "t")  # closed forms need no finite range
 
 
 def test_a_case_is_held_to_the_backends_unit_tolerance():
