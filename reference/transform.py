@@ -16,6 +16,9 @@ import numpy as np
 from .arrays import const
 from .scene import Field, _points
 
+#: max |RᵀR − I| accepted for a rotation: 32 ε
+ROTATION_TOLERANCE = 32 * float(np.finfo(np.float64).eps)
+
 
 class Transform(Field):
     kind = "transform"
@@ -26,8 +29,15 @@ class Transform(Field):
         R = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):
             raise ValueError(f"rotation must be a finite 3×3 matrix, got shape {R.shape}")
-        if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-12 or np.linalg.det(R) <= 0:
-            raise ValueError("rotation must be orthonormal with det +1 (to 1e-12); build it with "
+        # to float64's rounding: a rotation δ off orthonormal stretches distances by up to √(1 + 3δ),
+        # and the certified steps φ/L and the child's ray bounds (unit directions) would be off by
+        # that, which no rounding model covers past a few ε (1e-12 was accepted: a step φ/L from
+        # 1e6 away could end 1.5e-6 past the surface).  scipy's matrices are within 6ε (20,000
+        # random rotations).
+        off = float(np.max(np.abs(R.T @ R - np.eye(3))))
+        if off > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
+            raise ValueError(f"rotation must be orthonormal with det +1 to float64's rounding (|RᵀR − I| ≤ "
+                             f"{ROTATION_TOLERANCE:.1e}; this one is {off:.1e} off); build it with "
                              "Transform.from_rotvec or scipy.spatial.transform.Rotation(...).as_matrix()")
         tau = np.asarray(translation, np.float64)
         if tau.shape != (3,) or not np.all(np.isfinite(tau)):

@@ -231,6 +231,20 @@ def test_property_csg_intervals_are_the_inside_set(p, q, op):
         assert np.array_equal(member[~near], inside[i][~near]), (op, i)
 
 
+def test_a_rotation_is_orthonormal_to_float64s_rounding():
+    """scipy's rotations pass (within 6ε); one 1e-13 off does not (it was accepted up to 1e-12,
+    a stretch of distances that no rounding model covers), and the error names the fix."""
+    from scipy.spatial.transform import Rotation
+
+    for seed in range(200):
+        Transform(Sphere(), Rotation.random(random_state=seed).as_matrix())
+    R = Rotation.from_rotvec((0.3, -0.2, 0.5)).as_matrix()
+    with pytest.raises(ValueError, match=r"rotation must be orthonormal .*1\.0e-13 off.*from_rotvec"):
+        Transform(Sphere(), R * (1 + 5e-14))
+    with pytest.raises(ValueError, match="det"):
+        Transform(Sphere(), -np.eye(3))
+
+
 def test_understated_case_declares_a_false_lipschitz_bound_and_has_closed_form_hits():
     from reference.cases import adversarial_family
 
