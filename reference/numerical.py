@@ -45,7 +45,7 @@ import numpy as np
 
 from . import depthbound as _depthbound
 from .code_digest import function_digest
-from .rays import unit_tolerance
+from .rays import unit_directions, unit_tolerance
 from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label
 
 
@@ -190,19 +190,7 @@ def _check(scene, o, d, t_min, t_max, n_samples):
     # Directions are unit, as the backends require (impls.base.check_rays), to the rounding of
     # their dtype (8·√3·ε); those unit only to float32's are normalised again in float64, as the
     # backends do, and t is the distance along d/‖d‖.
-    with np.errstate(invalid="ignore", over="ignore"):
-        dev = np.abs(np.linalg.norm(d, axis=1) - 1.0)
-    tol = unit_tolerance(d_dtype)
-    if np.any(dev > tol):
-        i = int(np.nanargmax(np.where(dev > tol, dev, -1.0)))
-        raise ValueError(f"d must be unit vectors (|‖d‖ − 1| ≤ {tol:.1e} for {d_dtype} directions): "
-                         f"{int(np.count_nonzero(dev > tol))} of {len(d)} are not, the worst (ray {i}) is off by "
-                         f"{dev[i]:.3e}; the numerical reference measures its Lipschitz steps in t. Normalise them in "
-                         "float64: d = d / np.linalg.norm(d, axis=1, keepdims=True)")
-    coarse = dev > unit_tolerance(np.float64)
-    if np.any(coarse):
-        d = d.copy()  # (the caller's array is not written)
-        d[coarse] /= np.linalg.norm(d[coarse], axis=1, keepdims=True)
+    d = unit_directions(d, unit_tolerance(d_dtype), "d", f"{d_dtype} directions")
     if not (math.isfinite(t_min) and math.isfinite(t_max) and t_min < t_max):
         raise ValueError(f"need finite t_min < t_max, got t_min={t_min}, t_max={t_max}: the numerical reference "
                          "samples the whole interval, so a case whose scene has no closed-form hits needs both ends "

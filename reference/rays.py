@@ -22,6 +22,31 @@ def unit_tolerance(*dtypes) -> float:
     return 8.0 * float(np.sqrt(3.0)) * eps
 
 
+def unit_directions(d: np.ndarray, tol: float, name: str, dtypes: str) -> np.ndarray:
+    """``d`` (float64, ``(n, 3)``) held to unit length within ``tol`` on its finite, non-zero rows
+    (a ValueError naming ``name``, ``dtypes`` (the dtypes ``tol`` is for), the worst ray and the
+    fix), and the rows unit only to more than float64's rounding (accepted under a coarser dtype's
+    ``tol``: normalised in float32) normalised again in float64, in a copy.  The methods and the
+    numerical reference measure distance in t (steps φ/L, chords), so that ray is the one solved:
+    with ‖d‖ = 1 + 1e-7 a step from 1,000 away moved 1e-4 further than φ/L, across a 1e-5 shell.
+    The one check of :func:`impls.base.check_rays` and :mod:`reference.numerical`."""
+    finite = np.all(np.isfinite(d), axis=1)
+    with np.errstate(over="ignore"):
+        dn = np.linalg.norm(np.where(finite[:, None], d, 0.0), axis=1)
+    dev = np.where(finite & (dn > 0), np.abs(dn - 1.0), 0.0)
+    if np.any(dev > tol):
+        i = int(np.argmax(dev))
+        raise ValueError(
+            f"{name} must be unit vectors (|‖d‖ − 1| ≤ {tol:.1e} for {dtypes}); {int(np.count_nonzero(dev > tol))} of "
+            f"{len(d)} are not, the worst (ray {i}) has ‖d‖ − 1 = {dn[i] - 1:.3e}. Normalise them in float64: "
+            f"{name} = np.asarray({name}, np.float64); {name} = {name} / np.linalg.norm({name}, axis=1, keepdims=True)")
+    coarse = dev > unit_tolerance(np.float64)
+    if np.any(coarse):
+        d = d.copy()
+        d[coarse] /= dn[coarse, None]
+    return d
+
+
 def pinhole(eye, look_at, up=(0.0, 1.0, 0.0), fov_deg: float = 40.0, width: int = 64, height: int = 64):
     """Pinhole camera rays through pixel centres, row-major from the top-left pixel.
 

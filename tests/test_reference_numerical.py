@@ -195,7 +195,7 @@ def test_directions_that_are_not_unit_are_refused_and_float32_ones_are_normalise
     d = rng.uniform(-0.5, 0.5, (64, 3)) - o
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     for fn in (first_hit_numeric, crossings_numeric):
-        with pytest.raises(ValueError, match=r"d must be unit vectors .*\(ray \d+\) is off by 2\.000e\+00.*Normalise"):
+        with pytest.raises(ValueError, match=r"d must be unit vectors .*\(ray \d+\) has ‖d‖ − 1 = 2\.000e\+00.*Normalise"):
             fn(scene, o, 3.0 * d, 0.0, 2.0)
     d32 = d.astype(np.float32)
     d32 = d32 / np.linalg.norm(d32, axis=1, keepdims=True)
