@@ -189,6 +189,29 @@ def test_an_entry_is_checked_at_its_first_load_and_a_wrong_one_is_refused(tmp_pa
 
 
 @pytest.mark.slow  # compiles jax kernels
+def test_a_kernel_is_stored_at_its_first_call_with_that_calls_outputs(tmp_path, monkeypatch):
+    """The entry is written when the kernel first runs, from that run's arguments and outputs: a
+    cold configuration runs its kernel once, not once more to make the entry's example."""
+    store = executables.KernelStore(tmp_path)
+    calls = []
+    real = executables.KernelStore.save
+    monkeypatch.setattr(executables.KernelStore, "save",
+                        lambda self, *a, **k: calls.append(k.get("outputs") is not None) or real(self, *a, **k))
+    o, d = _rays()
+    prep = _backend(store).prepare("hybrid_secant", Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 7 * FRESH), o, d,
+                                   dtype="float64", t_min=0.0, t_max=10.0)
+    assert prep.compile_cache == "compiled" and not calls and not list(tmp_path.glob("*.bin"))  # not yet run
+    res = prep.result(prep.run())
+    assert calls == [True]  # given the first call's outputs, so save runs nothing to make them
+    (path,) = tmp_path.glob("*.bin")
+    args, outputs = _entry(path)["example"]
+    assert np.array_equal(args[0][:48], o) and np.array_equal(args[1][:48], d)
+    assert any(np.array_equal(out[:48], res.t) for out in outputs if out.shape[:1] == (64,))
+    prep.result(prep.run())
+    assert calls == [True]  # once
+
+
+@pytest.mark.slow  # compiles jax kernels
 def test_a_large_configuration_is_checked_before_its_entry_is_written(tmp_path, monkeypatch):
     monkeypatch.setattr(executables, "EXAMPLE_BYTES", 0)
     store = executables.KernelStore(tmp_path)

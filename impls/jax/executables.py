@@ -31,7 +31,9 @@ where it costs least: for a configuration whose inputs and outputs are small
 executable loaded anyway (a failed check removes the entry and refuses the key; a passed one
 leaves a marker, and later loads check nothing more); for a larger one it runs before the entry
 is written.  Loading an executable back only to check it was a cold run's cost for a load that a
-warm run makes anyway (docs/performance.md).  Not stored:
+warm run makes anyway (docs/performance.md).  The entry is written at the kernel's first call
+(:class:`impls.jax.backend._SavedAtFirstCall`), from that call's arguments and outputs: the
+outputs the check compares with are ones the run computed anyway.  Not stored:
 
 * a kernel jax loaded from its persistent cache: its serialization does not run (jax 0.10.2 on
   the CPU, measured: ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``).  Such a kernel
@@ -210,14 +212,16 @@ class KernelStore:
             pass
         return loaded if same else None
 
-    def save(self, key: str, compiled, example_args: tuple, device) -> bool:
+    def save(self, key: str, compiled, example_args: tuple, device, outputs=None) -> bool:
         """Write ``compiled`` under ``key`` atomically (a temporary file renamed onto the entry),
         once its serialization is known to run as ``compiled`` does on ``example_args`` (bit for
         bit, NaN where NaN): with those arrays and ``compiled``'s outputs carried in the entry, to
         be checked at its first load (:meth:`load`), where they take at most
         :data:`EXAMPLE_BYTES`; else checked here, the serialization loaded back and run.  A key
-        whose check failed before (its marker) is not stored.  Returns whether it was stored; a
-        failure to serialize, check or write leaves no entry and is not an error."""
+        whose check failed before (its marker) is not stored.  ``outputs``: what ``compiled``
+        returned for ``example_args`` (given by a caller that ran it anyway; else it is run here).
+        Returns whether it was stored; a failure to serialize, check or write leaves no entry and
+        is not an error."""
         import jax
         import numpy as np
         from jax.experimental import serialize_executable
@@ -226,7 +230,7 @@ class KernelStore:
             return False
         try:
             parts = serialize_executable.serialize(compiled)
-            want = [np.asarray(a) for a in jax.tree.leaves(compiled(*example_args))]
+            want = [np.asarray(a) for a in jax.tree.leaves(compiled(*example_args) if outputs is None else outputs)]
             args = jax.tree.map(lambda a: np.asarray(a) if isinstance(a, jax.Array) else a, example_args)
             size = sum(a.nbytes for a in want) + sum(np.asarray(a).nbytes for a in jax.tree.leaves(args))
             if size <= EXAMPLE_BYTES:
