@@ -189,3 +189,31 @@ def test_a_march_that_starts_on_the_surface_exactly_is_uncertified(backend, meth
     res = p.result(p.run())
     assert list(res.status[:2]) == [Status.UNCERTIFIED] * 2, res.status
     assert res.status[2] == Status.CONVERGED and abs(res.t[2] - 2.0) < 1e-9
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch:cpu", "numba", "warp",
+                                     pytest.param("jax:cpu", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["march_secant", "march_bisect", "march_newton"])
+def test_a_march_certifies_a_miss_only_where_its_samples_spheres_cover_the_ray(backend, method):
+    """A spherical shell 1e-4 thick, radius 0.5, seen from z = 3 at step 0.02: every ray through
+    it crosses it twice within one step or two, which a constant-step march does not see.  Such a
+    ray was a MISS (64² rays: all 1,280 that cross the shell, on numpy); a MISS is now
+    certified only where each step's end spheres overlap (rc₀ + rc₁ ≥ step), so these rays are
+    UNCERTIFIED (depth inf), and rays that pass the shell by more than half a step stay MISS."""
+    from reference import Difference, rays
+    from tests.conftest import require_method, resolve_or_skip
+
+    b = resolve_or_skip(backend)
+    require_method(b, method)
+    shell = Difference(Sphere(center=(0.0, 0.0, 0.0), radius=0.5 + 1e-4), Sphere(center=(0.0, 0.0, 0.0), radius=0.5))
+    o, d = rays.pinhole(eye=(0.05, 0.02, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=30.0, width=64, height=64)
+    p = b.prepare(method, shell, o, d, dtype="float64", t_min=0.0, t_max=10.0, step=0.02, ladder=0)
+    res = p.result(p.run())
+    hit = np.isfinite(shell.first_hit(o, d, 0.0))
+    # the ray's closest approach to the centre: farther than 0.5 + 1e-4 + step/2 clears every step
+    far = np.linalg.norm(np.cross(o, d), axis=1) > 0.5 + 1e-4 + 0.01 * (1 + 1e-6)
+    assert hit.sum() > 1000 and far.sum() > 1000
+    assert not np.any(res.status[hit] == Status.MISS), int(np.sum(res.status[hit] == Status.MISS))
+    assert np.all(np.isin(res.status[hit], (Status.CONVERGED, Status.UNCERTIFIED)))
+    assert np.all(res.status[far] == Status.MISS)
+    assert np.all(np.isinf(res.t[~hit]))

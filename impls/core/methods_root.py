@@ -269,10 +269,13 @@ def march_builder(refine: str):
 
     def build_march(scene, t_min: float, t_max: float, knobs: dict, theta=None, *, ladder: int) -> MarchRefine:
         bounds = search_bounds(scene, knobs, theta)
-        return cls(rule=ConstantStep(step=knobs["step"], check_inv_lip=marching_check(scene, bounds, theta)),
-                   refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"], t_min=t_min, t_max=t_max,
-                   bounds=bounds, ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
-                   scale=rounding_scale(scene), gain=rounding_gain(scene))
+        check = marching_check(scene, bounds, theta)
+        # a MISS is certified by the samples' spheres only under a bound the scene declares and the
+        # library proves (one taken on trust is checked at the steps' ends, not inside them)
+        rule = ConstantStep(step=knobs["step"], check_inv_lip=check, cover=check is not None and not checks_inside(scene))
+        return cls(rule=rule, refiner=refiner(), xtol=knobs["xtol"], max_steps=knobs["max_steps"], t_min=t_min,
+                   t_max=t_max, bounds=bounds, ladder=_ladder(knobs, ladder), ladder_after=knobs["ladder_after"],
+                   scale=rounding_scale(scene), gain=rounding_gain(scene), resolve=resolves(scene))
 
     build_march.__name__ = f"build_march_{refine}"
     return build_march

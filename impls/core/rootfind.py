@@ -603,12 +603,24 @@ class ConstantStep:
     """Constant marching step h = ``step`` (DVR, UNISURF).  A surface crossed twice within one
     step (a feature thinner than the step) is not seen — marching's documented limit.  Every
     step stands; where the scene declares a bound L (``check_inv_lip`` = 1/L), every step checks
-    it (:func:`lipschitz_violated`)."""
+    it (:func:`lipschitz_violated`).
+
+    A MISS is certified only where the march's own samples proved the ray free of surface:
+    with ``cover`` (a bound L the scene declares and the library does not take on trust), a step
+    that does not cross is *covered* when the unbounding spheres of its ends overlap,
+    rc₀ + rc₁ ≥ h (:func:`certified_radius`: |φ|/L less φ's rounding), as the hybrid's
+    steps are certified; a ray that reaches its end with every step covered is a MISS, any other
+    UNCERTIFIED (depth inf; state ``gp``: a step stood uncovered).  Without ``cover`` no MISS is
+    certified.  A crossing is reported as before: the first only up to pairs of crossings within
+    one step."""
 
     step: float
     check_inv_lip: float | None = None
+    cover: bool = False
 
-    #: constant steps rely on no bound: no step is certified, no MISS either (marching's limit)
+    #: constant steps rely on no bound: the march's steps stand uncertified, and its crossing is
+    #: the first only up to a pair within one step (no certification stage); its MISS is
+    #: certified by the samples' spheres where ``cover`` allows it
     certifies = False
 
     @property
@@ -621,10 +633,16 @@ class ConstantStep:
         return self.check_inv_lip
 
     def holds(self, stage: str) -> frozenset[str]:
-        return frozenset()
+        return frozenset({"gp"})
 
     def init(self, xp, t) -> dict:
-        return {}
+        # gp: a step that did not cross stood uncovered (or no bound covers any): a MISS is UNCERTIFIED
+        return {"gp": xp.full_like(t, not self.cover, dtype=xp.bool)}
+
+    def covered(self, xp, rc, rc_n, h):
+        """Steps of length ``h`` whose ends' certified radii ``rc``, ``rc_n`` overlap (free of
+        surface), or that end past every finite depth."""
+        return (rc + rc_n >= h) | ~xp.isfinite(h)
 
     def size(self, xp, s, t, f, rc=None):
         """(|φ|/L or None, the step h) of a marching step from (t, f)."""
@@ -1084,7 +1102,16 @@ class MarchRefine(_Search):
             # the frontier: the end of the stretch certified spheres covered from the start on
             new.update(g=g, u=xp.minimum(t + rc, g), cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
         else:
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
+            gap = s["gp"]
+            if rule.cover:
+                inv = rule.check_inv_lip
+                rc0 = certified_radius(xp, f, t, inv, mag, self.rg)
+                rc1 = certified_radius(xp, f_n, t_n, inv, mag, self.rg)
+                gap = gap | (~cross & ~rule.covered(xp, rc0, rc1, t_n - t))
+            unc_miss = miss & gap
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss)
+            t_n = xp.where(unc_miss, math.inf, t_n)
+            new["gp"] = gap
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
@@ -1182,8 +1209,20 @@ class MarchRefine(_Search):
             new.update(g=g, u=xp.minimum(Tpe + Rpe, g), cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto))
         else:
             conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss, lipv)
-            t_new = xp.where(onto, Te, Tpe)
+            gap = s["gp"]
+            if rule.cover:
+                # the pairs the ray stepped over, judged as single steps are (step_march)
+                inv = rule.check_inv_lip
+                R = certified_radius(xp, F, T, inv, mag[:, None], self.rg)
+                Rp = xp.concat([certified_radius(xp, f, t, inv, mag, self.rg)[:, None], R[:, :-1]], axis=1)
+                j = xp.asarray(np.arange(k), device=_device(t))[None, :]
+                taken = (j < e) | ((j == e) & onto[:, None])
+                loose = ~cross & ~rule.covered(xp, Rp, R, T - Tp) & taken
+                gap = gap | xp.any(loose, axis=1)
+            unc_miss = miss & gap
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss)
+            t_new = xp.where(unc_miss, math.inf, xp.where(onto, Te, Tpe))
+            new["gp"] = gap
         f_new = xp.where(onto, Fe, Fpe)
         # the ladder is stage 1, refinement stage 2
         new.update(t=t_new, f=f_new, p=Tpe, fp=Fpe, a=Tpe, fa=Fpe, b=t_new,  # b = Te where crossed

@@ -107,9 +107,9 @@ class NumbaSettings:
 
 # float configuration: index names
 (F_TMIN, F_TMAX, F_INVLIP, F_TOL, F_OMEGA, F_SCALE, F_LEPS, F_XTOL, F_STEP, F_CHECK, F_MINSTEP, F_CAP, F_EXTRA,
- F_REACH) = range(14)
+ F_REACH, F_RES) = range(15)
 # int configuration
-(I_BOUNDS, I_PROBE, I_MAXSTEPS, I_CERT, I_HASCHECK, I_REFINER, I_LADDER, I_LADDER_AFTER) = range(8)
+(I_BOUNDS, I_PROBE, I_MAXSTEPS, I_CERT, I_HASCHECK, I_REFINER, I_LADDER, I_LADDER_AFTER, I_COVER) = range(9)
 
 
 def _lip_eps(alg, dtype) -> float:
@@ -144,8 +144,8 @@ def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
     """``(kind, floats, ints)`` of a root finder built by the catalog: ``kind`` "sphere" or
     "march", its numbers in the kernels' layout (index names ``F_*``, ``I_*``).  A constant-step
     marcher's refiner is mapped by :func:`compiled_refiner` (an unknown one is an error)."""
-    fc = np.zeros(14)
-    ic = np.zeros(8, np.int64)
+    fc = np.zeros(15)
+    ic = np.zeros(9, np.int64)
     fc[F_TMIN], fc[F_TMAX], fc[F_SCALE], fc[F_LEPS] = alg.t_min, alg.t_max, alg.scale, _lip_eps(alg, dtype)
     ic[I_BOUNDS], ic[I_MAXSTEPS] = alg.bounds is not None, alg.max_steps
     if isinstance(alg, SphereTrace):
@@ -163,6 +163,9 @@ def configuration(alg, dtype="float64") -> tuple[str, np.ndarray, np.ndarray]:
         ic[I_REFINER] = compiled_refiner(alg)
         fc[F_STEP] = rule.step
         fc[F_MINSTEP] = rule.min_step
+        # the certified radius's rounding factor 8·gain·ε (impls.core.rootfind.resolution), for the
+        # steps' cover of a MISS (ConstantStep.cover)
+        ic[I_COVER], fc[F_RES] = rule.cover, 8.0 * alg.rg * float(np.finfo(np.dtype(dtype)).eps)
     if rule.check is not None:
         ic[I_HASCHECK], fc[F_CHECK] = 1, rule.check
     return "march", fc, ic
@@ -316,12 +319,23 @@ def _make_kernels(phi, bounds, parallel=True):
         return abs(f1 - f0) * inv_lip > abs(t1 - t0) + leps * ((a0 + a1) * inv_lip + at)
 
     @jit
-    def verdict(nonf, conv, maxed, miss, lv):
-        """impls.core.rootfind._verdict: NON_FINITE, LIPSCHITZ_VIOLATED, MISS, CONVERGED, MAX_ITER."""
+    def covered(f0, t0, f1, t1, h, inv_lip, mag, rcoef):
+        """impls.core.rootfind.ConstantStep.covered of the certified radii (certified_radius:
+        |φ|/L less 8·gain·ε·(|t| + mag), at least 0) at a step's two ends."""
+        rc0 = _max(abs(f0) * inv_lip - rcoef * (abs(t0) + mag), 0.0)
+        rc1 = _max(abs(f1) * inv_lip - rcoef * (abs(t1) + mag), 0.0)
+        return (rc0 + rc1 >= h) or not math.isfinite(h)
+
+    @jit
+    def verdict(nonf, conv, maxed, miss, lv, unc):
+        """impls.core.rootfind._verdict: NON_FINITE, LIPSCHITZ_VIOLATED, UNCERTIFIED, MISS, CONVERGED,
+        MAX_ITER."""
         if nonf:
             return NONF
         if lv:
             return LIPV
+        if unc:
+            return UNC
         if miss:
             return MISS
         if conv:
@@ -368,7 +382,7 @@ def _make_kernels(phi, bounds, parallel=True):
     from . import template
 
     # the generated kernels' globals: what the cached module (kernels_source) defines at its top level
-    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "verdict": verdict, "final_t": final_t,
+    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "covered": covered, "verdict": verdict, "final_t": final_t,
           "_max": _max, "_min": _min, "math": math, "np": np, "njit": njit, "prange": prange, "inf": inf, "IN": IN,
           "NONF": NONF, "CONV": CONV, "UNC": UNC, "CHUNK": template.CHUNK,
           **{k: v for k, v in globals().items() if k[:2] in ("F_", "I_")}}

@@ -51,6 +51,7 @@ has_check, refiner = ic[I_HASCHECK] != 0, ic[I_REFINER]
 max_steps, use_bounds = ic[I_MAXSTEPS], ic[I_BOUNDS] != 0
 step, check = fc[F_STEP], fc[F_CHECK]
 ladder, ladder_after = ic[I_LADDER], ic[I_LADDER_AFTER]
+cover, rcoef = ic[I_COVER] != 0, fc[F_RES]
 hh = 0.5 * xtol
 sp2 = 2.0 * 2.220446049250313e-16  # two float64 spacings per unit of |t| (the kernels run float64)
 """
@@ -60,7 +61,7 @@ STATE = """
 it_K, ne_K, ph_K, st_K = 0, 0, 0, IN
 t_K = f_K = df_K = tp_K = fp_K = a_K = fa_K = b_K = hi_K = wq_K = mag_K = 0.0
 te_K = fe_K = dfe_K = mid_K = 0.0
-i2_K = False
+i2_K = gp_K = False
 """
 
 #: impls.core.rootfind._start: the ray's range (t, hi) and status before any evaluation; φ at t
@@ -68,6 +69,7 @@ i2_K = False
 START = """
 t_K, hi_K, st_K = start(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, t_min, t_max, use_bounds)
 ph_K, it_K, ne_K = -1, 0, 0
+gp_K = not cover
 """
 
 #: one iteration of phases −1 (init), 0 (step_march) and 2 (step_refine): the next point te,
@@ -116,13 +118,18 @@ elif ph_K == 0:
     conv_K = cross_K and (zero_K or (te_K - t_K <= xtol))
     nonf_K = (not fin_K) and math.isfinite(te_K)
     lv_K = has_check and lipv(f_K, fe_K, t_K, te_K, check, mag_K, leps)
+    if cover and not cross_K and not gp_K:
+        gp_K = not covered(f_K, t_K, fe_K, te_K, te_K - t_K, check, mag_K, rcoef)
+    um_K = miss_K and gp_K
     it_K += 1
-    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K, lv_K)
+    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K)
     ph_K = 2 if cross_K else (1 if (use_ladder and it_K >= ladder_after) else 0)
     tp_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, te_K
     if refiner != 0:
         wq_K = 4.0 * (te_K - t_K)
     t_K, f_K, df_K = te_K, fe_K, dfe_K
+    if um_K:
+        t_K = inf
 else:
     same_K = (fe_K > 0) == (fa_K > 0)
     na_K = te_K if same_K else a_K
@@ -136,7 +143,7 @@ else:
         z_K = _min(_max(z_K, na_K), nb_K)
         to_K = z_K if (conv_K and (fe_K != 0) and (z_K == z_K)) else te_K
     it_K += 1
-    st_K = verdict(not math.isfinite(fe_K), conv_K, it_K >= max_steps, False, False)
+    st_K = verdict(not math.isfinite(fe_K), conv_K, it_K >= max_steps, False, False, False)
     if refiner != 0 and i2_K:
         wq_K = b_K - a_K
     tp_K, fp_K = t_K, f_K
@@ -168,6 +175,8 @@ for j in range(ladder):
     if event_K:
         e_K, stopped_K, cross_e_K, fin_e_K, lv_e_K = j, True, crossj_K, finj_K, lvj_K
         break
+    if cover and not gp_K:
+        gp_K = not covered(fq_K, tq_K, fj_K, tj_K, tj_K - tq_K, check, mag_K, rcoef)
     tq_K, fq_K = tj_K, fj_K
 te_K, fe_K = ts_K[e_K], fs_K[e_K]
 tpe_K = t_K if e_K == 0 else ts_K[e_K - 1]
@@ -178,9 +187,10 @@ lv_K = stopped_K and lv_e_K
 onto_K = cross_e_K or not stopped_K
 miss_K = ((not stopped_K) and (te_K >= hi_K)) or not math.isfinite(te_K)
 conv_K = cross_e_K and ((fe_K == 0) or (te_K - tpe_K <= xtol))
+um_K = miss_K and gp_K
 it_K += 1
 ne_K += cost * ladder
-st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K, lv_K)
+st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K)
 tn_K = te_K if onto_K else tpe_K
 fn_K = fe_K if onto_K else fpe_K
 tp_K, fp_K, a_K, fa_K, b_K = tpe_K, fpe_K, tpe_K, fpe_K, tn_K
@@ -190,6 +200,8 @@ if refiner != 0:
 if deriv:
     df_K = dfs_K[e_K] if onto_K else dfpe_K
 t_K, f_K = tn_K, fn_K
+if um_K:
+    t_K = inf
 """
 
 _RAY = "p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K"
