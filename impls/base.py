@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from reference.rays import unit_directions, unit_tolerance  # noqa: F401  (unit_tolerance re-exported here)
+from reference.rays import unit_directions, unit_tolerance
 
 from .core.methods_root import step_field
 from .core.param_grad import python_fori
