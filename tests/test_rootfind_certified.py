@@ -13,7 +13,7 @@ import pytest
 
 from impls import Status
 from impls.protocol import Declined
-from reference import CallableField, Plane, Sphere, catalog, rays
+from reference import CallableField, MLPField, Plane, Sphere, catalog, rays
 from tests.conftest import require_method, resolve_or_skip
 
 ROOT = ("sphere_trace", "hybrid_secant", "march_bisect", "march_secant", "march_newton")
@@ -318,7 +318,12 @@ def _certification_scenes():
 @pytest.mark.parametrize("method", ["hybrid_secant", "march_bisect", "march_secant", "march_newton"])
 def test_every_converged_ray_lies_in_a_certified_bracket(backend, method, xtol):
     """The conformance check of CONVERGED (:func:`assert_certified`) over scenes, methods, backends
-    and tolerances: a loose xtol is where a verdict on a short predicted step would show."""
+    and tolerances: a loose xtol is where a verdict on a short predicted step would show.
+
+    The MLP's declared bound (a product of spectral norms) is loose: a constant-step march's
+    samples have |φ|/L far below its step, their spheres cover no step, and it certifies no
+    crossing past its first step (``ConstantStep``: the frontier stays at the start).  There its
+    hits are UNCERTIFIED, none CONVERGED; the hybrid, stepping by |φ|/L, certifies them."""
     checked = 0
     for scene, o, d, t_max in _certification_scenes():
         if scene.info.lipschitz is None and method == "hybrid_secant":
@@ -328,6 +333,10 @@ def test_every_converged_ray_lies_in_a_certified_bracket(backend, method, xtol):
         except Declined:  # a compiling backend (numba) and a field it does not compile: the others still count
             continue
         checked += 1
+        if method.startswith("march") and isinstance(scene, MLPField):
+            assert not np.any(res.status == Status.CONVERGED)
+            assert np.mean(res.status == Status.UNCERTIFIED) > 0.2
+            continue
         assert np.mean(res.status == Status.CONVERGED) > 0.2
         # the float spacing of t bounds what a bracket can certify (adjacent floats)
         assert_certified(scene, res, o, d, max(xtol, 4 * np.spacing(t_max)))

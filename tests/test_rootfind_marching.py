@@ -217,3 +217,40 @@ def test_a_march_certifies_a_miss_only_where_its_samples_spheres_cover_the_ray(b
     assert np.all(np.isin(res.status[hit], (Status.CONVERGED, Status.UNCERTIFIED)))
     assert np.all(res.status[far] == Status.MISS)
     assert np.all(np.isinf(res.t[~hit]))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch:cpu", "numba", "warp",
+                                     pytest.param("jax:cpu", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["march_secant", "march_bisect", "march_newton"])
+@pytest.mark.parametrize("ladder", [0, 16])
+def test_a_march_certifies_a_crossing_as_the_first_only_where_its_samples_spheres_reach_it(backend, method, ladder):
+    """The 1e-4 shell of the test above in front of a wall (the plane z = −1), step 0.02: a ray
+    through the shell crosses it twice within a step or two, and the march, not seeing it,
+    brackets the wall behind.  That was CONVERGED, about 3 past the first crossing (64² rays:
+    all 1,280 through the shell).  A crossing is now CONVERGED only where the covered stretch
+    from the start (the frontier g) reaches within a step of its bracket, so the depth is within
+    step + xtol of the first crossing (ConstantStep); these rays are UNCERTIFIED, with the
+    wall's depth, and the rays passing the shell by more than half a step still converge on it."""
+    from reference import Difference, Plane, Union, rays
+    from tests.conftest import require_method, resolve_or_skip
+
+    b = resolve_or_skip(backend)
+    require_method(b, method)
+    shell = Difference(Sphere(center=(0.0, 0.0, 0.0), radius=0.5 + 1e-4), Sphere(center=(0.0, 0.0, 0.0), radius=0.5))
+    scene = Union(shell, Plane(normal=(0.0, 0.0, 1.0), offset=-1.0))  # φ = z + 1
+    o, d = rays.pinhole(eye=(0.05, 0.02, 3.0), look_at=(0.0, 0.0, 0.0), fov_deg=30.0, width=64, height=64)
+    step, xtol = 0.02, 1e-10
+    p = b.prepare(method, scene, o, d, dtype="float64", t_min=0.0, t_max=10.0, step=step, xtol=xtol, ladder=ladder)
+    res = p.result(p.run())
+    exact = scene.first_hit(o, d, 0.0)
+    wall = -(1.0 + o[:, 2]) / d[:, 2]
+    assert np.all(np.isfinite(exact))
+    shell_first = exact < wall - 1.0
+    far = np.linalg.norm(np.cross(o, d), axis=1) > 0.5 + 1e-4 + step / 2 * (1 + 1e-6)
+    assert shell_first.sum() > 1000 and far.sum() > 1000
+    conv = res.status == Status.CONVERGED
+    err = np.abs(res.t - exact)
+    assert np.all(err[conv] <= step + xtol), float(err[conv].max())
+    assert not np.any(conv[shell_first]), int(conv[shell_first].sum())
+    assert np.all(res.status[shell_first] == Status.UNCERTIFIED)
+    assert np.all(conv[far]) and np.all(err[far] <= 1e-9)

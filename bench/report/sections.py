@@ -38,8 +38,9 @@ STABILITY_RULE = (
     "(e.g. exact tangents float64 cannot call a touch or a miss; rays it flags elsewhere are left out). Cells: "
     "mark · max depth error of the CONVERGED rays (— none converged) · worst field evaluations per ray; default "
     "knobs. float32 cells are judged against the float64 rays' exact depths. The Lipschitz methods certify their "
-    "answers (docs/methods.md, \"What each root finder can miss\"); the constant-step marchers (march_*) rely on "
-    "no bound and may keep ✗ where a feature is crossed twice within their step, their documented limit.")
+    "answers (docs/methods.md, \"What each root finder can miss\"); the constant-step marchers (march_*) step "
+    "without a bound and certify by their samples' spheres: a crossing within step + xtol of the first, a MISS "
+    "where every step is covered; a feature crossed twice within a step leaves them ⚑ where the spheres fall short.")
 
 
 def first_screen(fs: dict) -> Group:

@@ -23,8 +23,9 @@ status histogram, and one verdict:
   CONVERGED and MISS: MAX_ITER, NON_FINITE, BAD_INPUT, ILL_CONDITIONED, LIPSCHITZ_VIOLATED,
   UNCERTIFIED).  A flagged ray says "I could not answer", which is not a silent wrong answer: a
   flagged cell *counts as survived* on the scoreboard (no silent wrong answer).  The
-  constant-step marchers may fail where a feature is crossed twice within their step: their
-  documented limit, which the report's legend states.
+  constant-step marchers do not see a feature crossed twice within their step; their samples'
+  spheres certify what they report (``impls.core.rootfind.ConstantStep``), so such a feature
+  flags their rays, as the report's legend states.
 * **failed** (✗) — a silent wrong answer (a false hit, a false miss reported as MISS, a
   CONVERGED ray over the tolerance or with a non-finite t), or the configuration failed.
 * **n/a** (—) — every configuration of the cell was skipped (with its reason).

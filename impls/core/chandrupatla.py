@@ -120,5 +120,9 @@ class MarchChandrupatla(MarchRefine):
             status = np.where(unc, UNC, status)
             new.update(status=np.where(later, IN, status), a=np.where(later, t, s["a"]), b=np.where(later, t, s["b"]),
                        cm=later, phase=np.where(later, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
+        else:
+            # the march's frontier (ConstantStep.late): a root it leaves more than a step behind is
+            # not certified the first crossing (scipy's bracket is not returned: its root bounds it)
+            new.update(status=np.where((status == CONV) & self.rule.late(np, s["g"], t), UNC, status))
         return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}
 

@@ -601,26 +601,33 @@ class SphereTrace(_Search):
 @dataclasses.dataclass(frozen=True)
 class ConstantStep:
     """Constant marching step h = ``step`` (DVR, UNISURF).  A surface crossed twice within one
-    step (a feature thinner than the step) is not seen — marching's documented limit.  Every
-    step stands; where the scene declares a bound L (``check_inv_lip`` = 1/L), every step checks
-    it (:func:`lipschitz_violated`).
+    step (a feature thinner than the step) is not seen by the samples — marching's limit; what
+    the march reports is certified against it as follows.  Every step stands; where the scene
+    declares a bound L (``check_inv_lip`` = 1/L), every step checks it (:func:`lipschitz_violated`).
 
-    A MISS is certified only where the march's own samples proved the ray free of surface:
-    with ``cover`` (a bound L the scene declares and the library does not take on trust), a step
+    With ``cover`` (a bound L the scene declares and the library does not take on trust), a step
     that does not cross is *covered* when the unbounding spheres of its ends overlap,
-    rc₀ + rc₁ ≥ h (:func:`certified_radius`: |φ|/L less φ's rounding), as the hybrid's
-    steps are certified; a ray that reaches its end with every step covered is a MISS, any other
-    UNCERTIFIED (depth inf; state ``gp``: a step stood uncovered).  Without ``cover`` no MISS is
-    certified.  A crossing is reported as before: the first only up to pairs of crossings within
-    one step."""
+    rc₀ + rc₁ ≥ h (:func:`certified_radius`: |φ|/L less φ's rounding), as the hybrid's steps are
+    certified: no surface lies in it.  The *frontier* g (state ``g``) is where the covered stretch
+    from the ray's start ends: t₀ + rc₀ of the first step that stood uncovered (inf while there
+    is none; the start itself without ``cover``, where no sample proves anything).
+
+    * MISS only with g = inf (every step covered), else UNCERTIFIED with depth inf.
+    * CONVERGED only when g + h reaches the closed bracket's start a (its point, for φ = 0
+      exactly), else UNCERTIFIED with the depth found: no crossing lies before g, so the first
+      one lies in [g, b] and the depth is within h + ``xtol`` of it — the hybrid's guarantee
+      with ``min_step`` = h (:meth:`MarchRefine._certify`).  Every step covered before the
+      crossing step always meets it.  Approached at slope σ (in units of L), the step before a
+      crossing is covered only while φ there is at least about h·(1 − σ)/2, so a shallow hit
+      is often UNCERTIFIED: the march's samples did not prove it the first."""
 
     step: float
     check_inv_lip: float | None = None
     cover: bool = False
 
-    #: constant steps rely on no bound: the march's steps stand uncertified, and its crossing is
-    #: the first only up to a pair within one step (no certification stage); its MISS is
-    #: certified by the samples' spheres where ``cover`` allows it
+    #: constant steps rely on no bound to step: they stand uncertified, and no certification stage
+    #: samples between them; the frontier ``g`` of the samples' spheres (``cover``) certifies
+    #: what the march reports
     certifies = False
 
     @property
@@ -633,11 +640,17 @@ class ConstantStep:
         return self.check_inv_lip
 
     def holds(self, stage: str) -> frozenset[str]:
-        return frozenset({"gp"})
+        return frozenset({"g"})
 
     def init(self, xp, t) -> dict:
-        # gp: a step that did not cross stood uncovered (or no bound covers any): a MISS is UNCERTIFIED
-        return {"gp": xp.full_like(t, not self.cover, dtype=xp.bool)}
+        # g: the frontier, where the stretch the samples' spheres covered from the start ends
+        # (inf: no step stood uncovered; without cover, the start: nothing is covered)
+        return {"g": xp.full_like(t, math.inf) if self.cover else t}
+
+    def late(self, xp, g, lo):
+        """Closed brackets starting at ``lo`` that the frontier ``g`` leaves more than a step
+        behind: their crossing is not certified the first (UNCERTIFIED)."""
+        return g + self.step < lo
 
     def covered(self, xp, rc, rc_n, h):
         """Steps of length ``h`` whose ends' certified radii ``rc``, ``rc_n`` overlap (free of
@@ -921,9 +934,9 @@ class MarchRefine(_Search):
     Marching (DVR, UNISURF): samples t_{k+1} = t_k + h_k from t_min, the last one clamped to
     t_max (both clipped to the scene's ray bounds when ``bounds`` is set: :func:`clip_to_bounds`).
     The step h_k is the step rule's (``rule``).  :class:`ConstantStep` (the ``march_*`` methods):
-    h_k = ``step``; a surface
-    crossed twice within one step (a feature thinner than the step) is not seen — that
-    is marching's documented limit.
+    h_k = ``step``; a surface crossed twice within one step (a feature thinner than the step) is
+    not seen by the samples, and the march's answer is certified against that by the frontier of
+    its samples' spheres (:class:`ConstantStep`).
 
     :class:`CertifiedStep` (IDR-style hybrid, :meth:`CertifiedStep.size`): over-relaxed steps
     h_k = 0.9 · 2r_k/(1 + σ_k), r_k = |φ(t_k)|/L and σ_k the secant's slope over the last step
@@ -1003,7 +1016,7 @@ class MarchRefine(_Search):
         keys = frozenset({"t", "f", "iterations", "evals", "mag"}) | self.refiner.holds(
             "step_refine" if stage == "step_certify" else stage)
         if stage in ("step_refine", "step_certify"):
-            return keys | {"a", "b", "fa"} | (CERTIFY_STATE if self.rule.certifies else frozenset())
+            return keys | {"a", "b", "fa"} | (CERTIFY_STATE if self.rule.certifies else self.rule.holds(stage))
         return keys | {"hi"} | self.rule.holds(stage)
 
     def init(self, xp, o, d, ev, start=None):
@@ -1102,16 +1115,19 @@ class MarchRefine(_Search):
             # the frontier: the end of the stretch certified spheres covered from the start on
             new.update(g=g, u=xp.minimum(t + rc, g), cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
         else:
-            gap = s["gp"]
+            g = s["g"]
             if rule.cover:
                 inv = rule.check_inv_lip
                 rc0 = certified_radius(xp, f, t, inv, mag, self.rg)
                 rc1 = certified_radius(xp, f_n, t_n, inv, mag, self.rg)
-                gap = gap | (~cross & ~rule.covered(xp, rc0, rc1, t_n - t))
-            unc_miss = miss & gap
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss)
+                loose = ~cross & ~rule.covered(xp, rc0, rc1, t_n - t)
+                g = xp.where(loose & (g == math.inf), t + rc0, g)
+            unc_miss = miss & (g < math.inf)
+            # a crossing closed at once is the first to within a step only if g reaches its bracket
+            late = conv & rule.late(xp, g, xp.where(zero, t_n, t))
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | late)
             t_n = xp.where(unc_miss, math.inf, t_n)
-            new["gp"] = gap
+            new["g"] = g
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
         to_refine = xp.astype(cross, xp.int32)
@@ -1209,20 +1225,24 @@ class MarchRefine(_Search):
             new.update(g=g, u=xp.minimum(Tpe + Rpe, g), cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto))
         else:
             conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
-            gap = s["gp"]
+            g = s["g"]
             if rule.cover:
-                # the pairs the ray stepped over, judged as single steps are (step_march)
+                # the pairs the ray stepped over, judged as single steps are (step_march); the
+                # first uncovered one's start sphere ends the frontier
                 inv = rule.check_inv_lip
                 R = certified_radius(xp, F, T, inv, mag[:, None], self.rg)
                 Rp = xp.concat([certified_radius(xp, f, t, inv, mag, self.rg)[:, None], R[:, :-1]], axis=1)
                 j = xp.asarray(np.arange(k), device=_device(t))[None, :]
                 taken = (j < e) | ((j == e) & onto[:, None])
                 loose = ~cross & ~rule.covered(xp, Rp, R, T - Tp) & taken
-                gap = gap | xp.any(loose, axis=1)
-            unc_miss = miss & gap
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss)
+                fl = xp.argmax(xp.astype(loose, xp.int8), axis=1)[:, None]
+                g_l = xp.take_along_axis(Tp, fl, axis=1)[:, 0] + xp.take_along_axis(Rp, fl, axis=1)[:, 0]
+                g = xp.where(xp.any(loose, axis=1) & (g == math.inf), g_l, g)
+            unc_miss = miss & (g < math.inf)
+            late = conv & rule.late(xp, g, xp.where(Fe == 0, Te, Tpe))
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | late)
             t_new = xp.where(unc_miss, math.inf, xp.where(onto, Te, Tpe))
-            new["gp"] = gap
+            new["g"] = g
         f_new = xp.where(onto, Fe, Fpe)
         # the ladder is stage 1, refinement stage 2
         new.update(t=t_new, f=f_new, p=Tpe, fp=Fpe, a=Tpe, fa=Fpe, b=t_new,  # b = Te where crossed
@@ -1284,6 +1304,11 @@ class MarchRefine(_Search):
             conv = closed & ~later
             new["cm"] = later & ~unc
             new["phase"] = xp.astype(later, xp.int32) + (len(self.stages) - 2)
+        else:
+            # the march's frontier (ConstantStep): a closed bracket it leaves more than a step
+            # behind is not certified the first crossing
+            lo = xp.where(f_c == 0, c, new["a"])
+            unc = closed & self.rule.late(xp, s["g"], lo)
         new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
         return _typed(xp, dict(s, **new), s)
 

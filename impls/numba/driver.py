@@ -319,12 +319,14 @@ def _make_kernels(phi, bounds, parallel=True):
         return abs(f1 - f0) * inv_lip > abs(t1 - t0) + leps * ((a0 + a1) * inv_lip + at)
 
     @jit
+    def rcert(f, t, inv_lip, mag, rcoef):
+        """impls.core.rootfind.certified_radius: |φ|/L less 8·gain·ε·(|t| + mag), at least 0."""
+        return _max(abs(f) * inv_lip - rcoef * (abs(t) + mag), 0.0)
+
+    @jit
     def covered(f0, t0, f1, t1, h, inv_lip, mag, rcoef):
-        """impls.core.rootfind.ConstantStep.covered of the certified radii (certified_radius:
-        |φ|/L less 8·gain·ε·(|t| + mag), at least 0) at a step's two ends."""
-        rc0 = _max(abs(f0) * inv_lip - rcoef * (abs(t0) + mag), 0.0)
-        rc1 = _max(abs(f1) * inv_lip - rcoef * (abs(t1) + mag), 0.0)
-        return (rc0 + rc1 >= h) or not math.isfinite(h)
+        """impls.core.rootfind.ConstantStep.covered of the certified radii at a step's two ends."""
+        return (rcert(f0, t0, inv_lip, mag, rcoef) + rcert(f1, t1, inv_lip, mag, rcoef) >= h) or not math.isfinite(h)
 
     @jit
     def verdict(nonf, conv, maxed, miss, lv, unc):
@@ -382,7 +384,7 @@ def _make_kernels(phi, bounds, parallel=True):
     from . import template
 
     # the generated kernels' globals: what the cached module (kernels_source) defines at its top level
-    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "covered": covered, "verdict": verdict, "final_t": final_t,
+    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "covered": covered, "rcert": rcert, "verdict": verdict, "final_t": final_t,
           "_max": _max, "_min": _min, "math": math, "np": np, "njit": njit, "prange": prange, "inf": inf, "IN": IN,
           "NONF": NONF, "CONV": CONV, "UNC": UNC, "CHUNK": template.CHUNK,
           **{k: v for k, v in globals().items() if k[:2] in ("F_", "I_")}}

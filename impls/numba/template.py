@@ -61,7 +61,8 @@ STATE = """
 it_K, ne_K, ph_K, st_K = 0, 0, 0, IN
 t_K = f_K = df_K = tp_K = fp_K = a_K = fa_K = b_K = hi_K = wq_K = mag_K = 0.0
 te_K = fe_K = dfe_K = mid_K = 0.0
-i2_K = gp_K = False
+i2_K = False
+g_K = 0.0
 """
 
 #: impls.core.rootfind._start: the ray's range (t, hi) and status before any evaluation; φ at t
@@ -69,7 +70,7 @@ i2_K = gp_K = False
 START = """
 t_K, hi_K, st_K = start(p, o0_K, o1_K, o2_K, d0_K, d1_K, d2_K, t_min, t_max, use_bounds)
 ph_K, it_K, ne_K = -1, 0, 0
-gp_K = not cover
+g_K = inf if cover else t_K
 """
 
 #: one iteration of phases −1 (init), 0 (step_march) and 2 (step_refine): the next point te,
@@ -118,11 +119,13 @@ elif ph_K == 0:
     conv_K = cross_K and (zero_K or (te_K - t_K <= xtol))
     nonf_K = (not fin_K) and math.isfinite(te_K)
     lv_K = has_check and lipv(f_K, fe_K, t_K, te_K, check, mag_K, leps)
-    if cover and not cross_K and not gp_K:
-        gp_K = not covered(f_K, t_K, fe_K, te_K, te_K - t_K, check, mag_K, rcoef)
-    um_K = miss_K and gp_K
+    if cover and not cross_K and g_K == inf:
+        if not covered(f_K, t_K, fe_K, te_K, te_K - t_K, check, mag_K, rcoef):
+            g_K = t_K + rcert(f_K, t_K, check, mag_K, rcoef)
+    um_K = miss_K and g_K < inf
+    lt_K = conv_K and (g_K + step < (te_K if zero_K else t_K))
     it_K += 1
-    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K)
+    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K)
     ph_K = 2 if cross_K else (1 if (use_ladder and it_K >= ladder_after) else 0)
     tp_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, te_K
     if refiner != 0:
@@ -142,8 +145,9 @@ else:
         z_K = te_K - fe_K * (te_K - t_K) / (fe_K - f_K)
         z_K = _min(_max(z_K, na_K), nb_K)
         to_K = z_K if (conv_K and (fe_K != 0) and (z_K == z_K)) else te_K
+    lt_K = conv_K and (g_K + step < (te_K if fe_K == 0 else na_K))
     it_K += 1
-    st_K = verdict(not math.isfinite(fe_K), conv_K, it_K >= max_steps, False, False, False)
+    st_K = verdict(not math.isfinite(fe_K), conv_K, it_K >= max_steps, False, False, lt_K)
     if refiner != 0 and i2_K:
         wq_K = b_K - a_K
     tp_K, fp_K = t_K, f_K
@@ -175,8 +179,9 @@ for j in range(ladder):
     if event_K:
         e_K, stopped_K, cross_e_K, fin_e_K, lv_e_K = j, True, crossj_K, finj_K, lvj_K
         break
-    if cover and not gp_K:
-        gp_K = not covered(fq_K, tq_K, fj_K, tj_K, tj_K - tq_K, check, mag_K, rcoef)
+    if cover and g_K == inf:
+        if not covered(fq_K, tq_K, fj_K, tj_K, tj_K - tq_K, check, mag_K, rcoef):
+            g_K = tq_K + rcert(fq_K, tq_K, check, mag_K, rcoef)
     tq_K, fq_K = tj_K, fj_K
 te_K, fe_K = ts_K[e_K], fs_K[e_K]
 tpe_K = t_K if e_K == 0 else ts_K[e_K - 1]
@@ -187,10 +192,11 @@ lv_K = stopped_K and lv_e_K
 onto_K = cross_e_K or not stopped_K
 miss_K = ((not stopped_K) and (te_K >= hi_K)) or not math.isfinite(te_K)
 conv_K = cross_e_K and ((fe_K == 0) or (te_K - tpe_K <= xtol))
-um_K = miss_K and gp_K
+um_K = miss_K and g_K < inf
+lt_K = conv_K and (g_K + step < (te_K if fe_K == 0 else tpe_K))
 it_K += 1
 ne_K += cost * ladder
-st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K)
+st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K)
 tn_K = te_K if onto_K else tpe_K
 fn_K = fe_K if onto_K else fpe_K
 tp_K, fp_K, a_K, fa_K, b_K = tpe_K, fpe_K, tpe_K, fpe_K, tn_K

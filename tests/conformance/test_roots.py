@@ -48,7 +48,14 @@ def test_root_depth_against_exact(any_backend, method, scene_name):
     # (sphere tracing's tight tol is below what float64 resolves on the most oblique hits: those
     # may be UNCERTIFIED, with their depths; depth_resolved says which)
     must = depth_resolved(method, scene, o, d, exact, TIGHT[method])
-    assert must.sum() >= 0.8 * hit.sum()
+    if method.startswith("march_") and checks_inside(scene):
+        # a bound taken on trust covers no march step: the frontier stays at the ray's start, and a
+        # crossing further than a step from it is not certified the first (ConstantStep), so the
+        # march's hits here are UNCERTIFIED (with their depths, checked below)
+        assert np.all(exact[hit] > TIGHT[method]["step"])
+        must = np.zeros_like(hit)
+    else:
+        assert must.sum() >= 0.8 * hit.sum()
     assert np.all(r.status[must] == Status.CONVERGED), r.status_counts()
     assert np.all(np.isin(r.status[hit], (Status.CONVERGED, Status.UNCERTIFIED))), r.status_counts()
     if method.startswith("march_") and checks_inside(scene):
