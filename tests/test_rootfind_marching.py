@@ -254,3 +254,34 @@ def test_a_march_certifies_a_crossing_as_the_first_only_where_its_samples_sphere
     assert not np.any(conv[shell_first]), int(conv[shell_first].sum())
     assert np.all(res.status[shell_first] == Status.UNCERTIFIED)
     assert np.all(conv[far]) and np.all(err[far] <= 1e-9)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch:cpu", "numba", "warp",
+                                     pytest.param("jax:cpu", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["march_secant", "march_bisect", "march_newton"])
+def test_a_march_takes_no_crossing_from_a_sample_that_shows_no_side(backend, method):
+    """Rays lying in a face plane of the box [−1, 1]³ (|z| = 1 exactly) have φ = 0 exactly
+    wherever they run along the face: they touch the surface, they do not cross it.  The
+    marches took the first φ = 0 sample as a crossing and reported it CONVERGED (as float32 did
+    on the stability suite's ``box.parallel`` rays 1e-9 outside a face, rounded onto it).  A sign
+    change to or from an unresolved sample (certified radius 0) is now UNCERTIFIED at that
+    sample; rays 1e-3 inside the face plane still converge on the box's side wall."""
+    from reference import Box
+    from tests.conftest import require_method, resolve_or_skip
+
+    b = resolve_or_skip(backend)
+    require_method(b, method)
+    box = Box((1.0, 1.0, 1.0))
+    rng = np.random.default_rng(3)
+    n = 64
+    o = np.stack([np.full(n, -3.0), rng.uniform(-0.9, 0.9, n), np.where(np.arange(n) % 2 == 0, 1.0, 1.0 - 1e-3)], axis=1)
+    o[1::4, 2] *= -1.0  # (both faces, z = 1 and z = −1)
+    o[::4, 2] *= -1.0
+    d = np.tile([1.0, 0.0, 0.0], (n, 1))
+    touch = np.abs(o[:, 2]) == 1.0
+    assert np.all(box.value(o[touch] + 2.5 * d[touch]) == 0.0)
+    p = b.prepare(method, box, o, d, dtype="float64", t_min=0.0, t_max=10.0, step=0.01)
+    res = p.result(p.run())
+    assert np.all(res.status[touch] == Status.UNCERTIFIED), res.status[touch]
+    assert np.all(res.status[~touch] == Status.CONVERGED), res.status[~touch]
+    np.testing.assert_allclose(res.t[~touch], 2.0, rtol=0, atol=1e-9)

@@ -153,6 +153,9 @@ def test_numba_runs_untimed_without_the_marcher_kernels_and_the_same_results(cas
                                         t_max=case.t_max, **knobs)
                     got.append(p.result(p.run()))
             per_ray, array = got
-            assert (per_ray.status == Status.CONVERGED).sum() > 50  # rays that hit: the refiners ran
+            # rays that hit: the refiners ran (the MLP's loose bound certifies no march's crossing as
+            # the first, so its hits are UNCERTIFIED with their refined depths: ConstantStep)
+            refined = (per_ray.status == Status.CONVERGED) | ((per_ray.status == Status.UNCERTIFIED) & np.isfinite(per_ray.t))
+            assert refined.sum() > 50
             for k in ("t", "status", "iterations", "evals"):
                 np.testing.assert_array_equal(getattr(array, k), getattr(per_ray, k), err_msg=f"{method} {knobs} {k}")

@@ -613,6 +613,9 @@ class ConstantStep:
     is none; the start itself without ``cover``, where no sample proves anything).
 
     * MISS only with g = inf (every step covered), else UNCERTIFIED with depth inf.
+    * A sign change to or from an *unresolved* sample (|φ|/L within φ's rounding, certified
+      radius 0; without a bound, φ = 0 exactly) proves no crossing: UNCERTIFIED at that sample.
+      A ray lying in a face plane to rounding has φ = 0 all along it (a touch, not a crossing).
     * CONVERGED only when g + h reaches the closed bracket's start a (its point, for φ = 0
       exactly), else UNCERTIFIED with the depth found: no crossing lies before g, so the first
       one lies in [g, b] and the depth is within h + ``xtol`` of it — the hybrid's guarantee
@@ -1079,8 +1082,8 @@ class MarchRefine(_Search):
         # at hi, or past every finite depth (t_max = inf and no ray bound): the ray left
         gone = (t_n >= hi) | ~xp.isfinite(t_n) | beyond
         miss = ~cross & gone
-        # converged at once: a bracket no wider than xtol (or, marching by constant steps, φ = 0
-        # exactly; for a certifying rule that point is unresolved)
+        # converged at once: a bracket no wider than xtol, or φ = 0 exactly (a point that is
+        # unresolved for either rule: the verdicts below make it UNCERTIFIED)
         conv = cross & (zero | (t_n - t <= self.xtol))
         nonf = ~fin & xp.isfinite(t_n) & ~beyond
         # the step's two ends are evaluated: a slope above the declared L shows it is false here
@@ -1116,17 +1119,26 @@ class MarchRefine(_Search):
             new.update(g=g, u=xp.minimum(t + rc, g), cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
         else:
             g = s["g"]
-            if rule.cover:
-                inv = rule.check_inv_lip
+            inv = rule.check_inv_lip
+            if inv is None:  # (no bound, no rounding model: only φ = 0 exactly shows no side)
+                un0, un1 = f == 0, zero
+            else:
                 rc0 = certified_radius(xp, f, t, inv, mag, self.rg)
                 rc1 = certified_radius(xp, f_n, t_n, inv, mag, self.rg)
-                loose = ~cross & ~rule.covered(xp, rc0, rc1, t_n - t)
-                g = xp.where(loose & (g == math.inf), t + rc0, g)
+                # unresolved: |φ|/L within φ's rounding, certified radius 0 (unresolved())
+                un0, un1 = rc0 == 0, rc1 == 0
+                if rule.cover:
+                    loose = ~cross & ~rule.covered(xp, rc0, rc1, t_n - t)
+                    g = xp.where(loose & (g == math.inf), t + rc0, g)
+            # a sign change to or from a point that shows no side proves no crossing (a ray lying
+            # in a face plane to rounding has φ = 0 along it): UNCERTIFIED at that point
+            un = cross & (un0 | un1)
             unc_miss = miss & (g < math.inf)
             # a crossing closed at once is the first to within a step only if g reaches its bracket
-            late = conv & rule.late(xp, g, xp.where(zero, t_n, t))
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | late)
-            t_n = xp.where(unc_miss, math.inf, t_n)
+            late = conv & rule.late(xp, g, t)
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
+                              unc=unc_miss | late | un)
+            t_n = xp.where(unc_miss, math.inf, xp.where(un & ~un1, t, t_n))
             new["g"] = g
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
@@ -1238,10 +1250,18 @@ class MarchRefine(_Search):
                 fl = xp.argmax(xp.astype(loose, xp.int8), axis=1)[:, None]
                 g_l = xp.take_along_axis(Tp, fl, axis=1)[:, 0] + xp.take_along_axis(Rp, fl, axis=1)[:, 0]
                 g = xp.where(xp.any(loose, axis=1) & (g == math.inf), g_l, g)
+            inv = rule.check_inv_lip
+            if inv is None:
+                un0, un1 = Fpe == 0, Fe == 0
+            else:  # (as in step_march, on the event pair's ends)
+                un0 = certified_radius(xp, Fpe, Tpe, inv, mag, self.rg) == 0
+                un1 = certified_radius(xp, Fe, Te, inv, mag, self.rg) == 0
+            un = cross_e & (un0 | un1)
             unc_miss = miss & (g < math.inf)
-            late = conv & rule.late(xp, g, xp.where(Fe == 0, Te, Tpe))
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | late)
-            t_new = xp.where(unc_miss, math.inf, xp.where(onto, Te, Tpe))
+            late = conv & rule.late(xp, g, Tpe)
+            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
+                              unc=unc_miss | late | un)
+            t_new = xp.where(unc_miss, math.inf, xp.where(onto & ~(un & ~un1), Te, Tpe))
             new["g"] = g
         f_new = xp.where(onto, Fe, Fpe)
         # the ladder is stage 1, refinement stage 2

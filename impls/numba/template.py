@@ -123,9 +123,15 @@ elif ph_K == 0:
         if not covered(f_K, t_K, fe_K, te_K, te_K - t_K, check, mag_K, rcoef):
             g_K = t_K + rcert(f_K, t_K, check, mag_K, rcoef)
     um_K = miss_K and g_K < inf
-    lt_K = conv_K and (g_K + step < (te_K if zero_K else t_K))
+    if has_check:
+        un0_K = rcert(f_K, t_K, check, mag_K, rcoef) == 0.0
+        un1_K = rcert(fe_K, te_K, check, mag_K, rcoef) == 0.0
+    else:
+        un0_K, un1_K = f_K == 0, zero_K
+    un_K = cross_K and (un0_K or un1_K)
+    lt_K = conv_K and (g_K + step < t_K)
     it_K += 1
-    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K)
+    st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K or un_K)
     ph_K = 2 if cross_K else (1 if (use_ladder and it_K >= ladder_after) else 0)
     tp_K, fp_K, a_K, fa_K, b_K = t_K, f_K, t_K, f_K, te_K
     if refiner != 0:
@@ -133,6 +139,8 @@ elif ph_K == 0:
     t_K, f_K, df_K = te_K, fe_K, dfe_K
     if um_K:
         t_K = inf
+    elif un_K and not un1_K:
+        t_K = tp_K
 else:
     same_K = (fe_K > 0) == (fa_K > 0)
     na_K = te_K if same_K else a_K
@@ -193,11 +201,17 @@ onto_K = cross_e_K or not stopped_K
 miss_K = ((not stopped_K) and (te_K >= hi_K)) or not math.isfinite(te_K)
 conv_K = cross_e_K and ((fe_K == 0) or (te_K - tpe_K <= xtol))
 um_K = miss_K and g_K < inf
-lt_K = conv_K and (g_K + step < (te_K if fe_K == 0 else tpe_K))
+if has_check:
+    un0_K = rcert(fpe_K, tpe_K, check, mag_K, rcoef) == 0.0
+    un1_K = rcert(fe_K, te_K, check, mag_K, rcoef) == 0.0
+else:
+    un0_K, un1_K = fpe_K == 0, fe_K == 0
+un_K = cross_e_K and (un0_K or un1_K)
+lt_K = conv_K and (g_K + step < tpe_K)
 it_K += 1
 ne_K += cost * ladder
-st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K)
-tn_K = te_K if onto_K else tpe_K
+st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K or un_K)
+tn_K = te_K if (onto_K and not (un_K and not un1_K)) else tpe_K
 fn_K = fe_K if onto_K else fpe_K
 tp_K, fp_K, a_K, fa_K, b_K = tpe_K, fpe_K, tpe_K, fpe_K, tn_K
 ph_K = (1 if cross_e_K else 0) + 1

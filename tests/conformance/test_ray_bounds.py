@@ -86,8 +86,10 @@ def test_ray_bounds_clip_keeps_every_answer_and_skips_the_rest(any_backend, meth
     if method.startswith("march_") and checks_inside(scene):
         # a bound taken on trust (this module's own Field subclasses) covers no march step
         # (ConstantStep.cover): a march's MISS is then certified by the ray bounds alone, before any
-        # step (the rays outside the ball, with the clip on, as asserted above)
+        # step (the rays outside the ball, with the clip on, as asserted above), and its crossing
+        # only within a step of its start (UNCERTIFIED further on, with its depth)
         near_miss = ~hit
+        sure = np.zeros_like(hit)
     for r in (on, off):
         assert np.all(r.status[sure] == Status.CONVERGED) and np.all(r.status[~hit & ~near_miss] == Status.MISS), \
             r.status_counts()
