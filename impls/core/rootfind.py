@@ -1311,7 +1311,9 @@ class MarchRefine(_Search):
     def step_refine(self, xp, s, o, d, ev):
         """One refinement step of the bracket [a, b].  For a certifying step rule a closed bracket
         is CONVERGED when the march's frontier ``u`` reaches its start to within ``min_step``
-        (:meth:`_certify`); otherwise the ray goes on to the certification stage with its answer."""
+        (:meth:`_certify`); otherwise the ray goes on to the certification stage with its answer.
+        For a constant step a closed bracket the march's frontier leaves more than a step behind
+        is UNCERTIFIED, with its depth (:meth:`ConstantStep.late`)."""
         new, c, f_c, same_a, closed = self._refine_step(xp, s, o, d, ev)
         conv = closed
         unc = None
