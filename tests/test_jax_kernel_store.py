@@ -77,7 +77,10 @@ def test_a_stored_kernel_runs_without_a_trace_and_gives_the_same_bits(dtype, tmp
     def no_trace(*args, **kwargs):
         raise AssertionError("traced although the kernel store holds the kernel")
 
+    # (a traced kernel is compiled by _compile_traced, or loaded by it from jax's persistent cache,
+    # which also reads "reused": only the store's load skips it)
     monkeypatch.setattr(jb.JaxBackend, "compile", no_trace)
+    monkeypatch.setattr(jb.JaxBackend, "_compile_traced", no_trace)
     again, got = _run(_backend(store), scene, dtype=dtype, xtol=1e-9)
     assert again.compile_cache == "reused"
     for k in ("t", "status", "iterations", "evals"):
@@ -165,6 +168,7 @@ def test_an_entry_is_checked_at_its_first_load_and_a_wrong_one_is_refused(tmp_pa
 
     with monkeypatch.context() as m:
         m.setattr(jb.JaxBackend, "compile", no_trace)
+        m.setattr(jb.JaxBackend, "_compile_traced", no_trace)
         prep, got = _run(_backend(store), scene)
     key = path.stem
     checked = tmp_path / f"{key}.checked"
