@@ -36,6 +36,14 @@ def _torus_box_camera_and_grazing_rays():
     return case.scene, np.concatenate([case.origins, og]), np.concatenate([case.directions, dg])
 
 
+def _march_cases():
+    """(backend, method) of the march certification tests: every march on the array backends; on
+    the compiling ones (numba, jax: a kernel per refiner, 3–11 s cold each) march_secant only, as
+    the march's verdicts are one code for every refiner (numba's template, the core's steps)."""
+    return ([(b, m) for b in ("numpy", "torch:cpu", "warp") for m in ("march_secant", "march_bisect", "march_newton")]
+            + [("numba", "march_secant"), pytest.param("jax:cpu", "march_secant", marks=pytest.mark.slow)])
+
+
 def _exact_or_inf(scene, o, d):
     t = scene.first_hit(o, d, 0.0)
     return np.where(t <= 10.0, t, np.inf)
@@ -219,9 +227,7 @@ def test_a_march_certifies_a_miss_only_where_its_samples_spheres_cover_the_ray(b
     assert np.all(np.isinf(res.t[~hit]))
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch:cpu", "numba", "warp",
-                                     pytest.param("jax:cpu", marks=pytest.mark.slow)])
-@pytest.mark.parametrize("method", ["march_secant", "march_bisect", "march_newton"])
+@pytest.mark.parametrize(("backend", "method"), _march_cases())
 @pytest.mark.parametrize("ladder", [0, 16])
 def test_a_march_certifies_a_crossing_as_the_first_only_where_its_samples_spheres_reach_it(backend, method, ladder):
     """The 1e-4 shell of the test above in front of a wall (the plane z = −1), step 0.02: a ray
@@ -256,9 +262,7 @@ def test_a_march_certifies_a_crossing_as_the_first_only_where_its_samples_sphere
     assert np.all(conv[far]) and np.all(err[far] <= 1e-9)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch:cpu", "numba", "warp",
-                                     pytest.param("jax:cpu", marks=pytest.mark.slow)])
-@pytest.mark.parametrize("method", ["march_secant", "march_bisect", "march_newton"])
+@pytest.mark.parametrize(("backend", "method"), _march_cases())
 def test_a_march_takes_no_crossing_from_a_sample_that_shows_no_side(backend, method):
     """Rays lying in a face plane of the box [−1, 1]³ (|z| = 1 exactly) have φ = 0 exactly
     wherever they run along the face: they touch the surface, they do not cross it.  The
