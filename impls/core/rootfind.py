@@ -1238,10 +1238,10 @@ class MarchRefine(_Search):
         else:
             conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
             g = s["g"]
+            inv = rule.check_inv_lip
             if rule.cover:
                 # the pairs the ray stepped over, judged as single steps are (step_march); the
                 # first uncovered one's start sphere ends the frontier
-                inv = rule.check_inv_lip
                 R = certified_radius(xp, F, T, inv, mag[:, None], self.rg)
                 Rp = xp.concat([certified_radius(xp, f, t, inv, mag, self.rg)[:, None], R[:, :-1]], axis=1)
                 j = xp.asarray(np.arange(k), device=_device(t))[None, :]
@@ -1250,10 +1250,10 @@ class MarchRefine(_Search):
                 fl = xp.argmax(xp.astype(loose, xp.int8), axis=1)[:, None]
                 g_l = xp.take_along_axis(Tp, fl, axis=1)[:, 0] + xp.take_along_axis(Rp, fl, axis=1)[:, 0]
                 g = xp.where(xp.any(loose, axis=1) & (g == math.inf), g_l, g)
-            inv = rule.check_inv_lip
-            if inv is None:
+                un0, un1 = at(Rp) == 0, at(R) == 0  # (as in step_march, on the event pair's ends)
+            elif inv is None:
                 un0, un1 = Fpe == 0, Fe == 0
-            else:  # (as in step_march, on the event pair's ends)
+            else:
                 un0 = certified_radius(xp, Fpe, Tpe, inv, mag, self.rg) == 0
                 un1 = certified_radius(xp, Fe, Te, inv, mag, self.rg) == 0
             un = cross_e & (un0 | un1)
@@ -1329,8 +1329,8 @@ class MarchRefine(_Search):
         else:
             # the march's frontier (ConstantStep): a closed bracket it leaves more than a step
             # behind is not certified the first crossing
-            lo = xp.where(f_c == 0, c, new["a"])
-            unc = closed & self.rule.late(xp, s["g"], lo)
+            # (φ(c) = 0 exactly closes the bracket at [c, c]: its start is then c itself)
+            unc = closed & self.rule.late(xp, s["g"], new["a"])
         new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
         return _typed(xp, dict(s, **new), s)
 
