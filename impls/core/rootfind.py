@@ -1130,15 +1130,8 @@ class MarchRefine(_Search):
                 if rule.cover:
                     loose = ~cross & ~rule.covered(xp, rc0, rc1, t_n - t)
                     g = xp.where(loose & (g == math.inf), t + rc0, g)
-            # a sign change to or from a point that shows no side proves no crossing (a ray lying
-            # in a face plane to rounding has φ = 0 along it): UNCERTIFIED at that point
-            un = cross & (un0 | un1)
-            unc_miss = miss & (g < math.inf)
-            # a crossing closed at once is the first to within a step only if g reaches its bracket
-            late = conv & rule.late(xp, g, t)
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
-                              unc=unc_miss | late | un)
-            t_n = xp.where(unc_miss, math.inf, xp.where(un & ~un1, t, t_n))
+            status, unc_miss, back = self._march_verdict(xp, g, cross, conv, miss, nonf, lipv, iters, un0, un1, t)
+            t_n = xp.where(unc_miss, math.inf, xp.where(back, t, t_n))
             new["g"] = g
         # on to refinement (the last stage: 1, or 2 after the ladder) on a crossing, else (with a
         # ladder stage) to the ladder after ladder_after steps
@@ -1158,6 +1151,20 @@ class MarchRefine(_Search):
         if self.deriv:
             new["df"] = df_n
         return _typed(xp, dict(s, **new), s)
+
+    def _march_verdict(self, xp, g, cross, conv, miss, nonf, lipv, iters, un0, un1, t0):
+        """A constant-step march's status after the step (or ladder pair) from ``t0`` that the ray
+        ends on (:class:`ConstantStep`): a MISS only with the frontier ``g`` at inf; a crossing
+        closed at once only if ``g`` reaches within a step of ``t0``; a sign change to or from an
+        unresolved end (``un0``, ``un1``: it shows no side; a ray lying in a face plane to
+        rounding has φ = 0 along it) proves no crossing.  Returns ``(status, unc_miss, back)``:
+        the uncertified MISSes (depth inf) and the rays UNCERTIFIED at the step's start (its
+        start unresolved, its end not)."""
+        un = cross & (un0 | un1)
+        unc_miss = miss & (g < math.inf)
+        late = conv & self.rule.late(xp, g, t0)
+        status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv, unc=unc_miss | late | un)
+        return status, unc_miss, un & ~un1
 
     def step_ladder(self, xp, s, o, d, ev):
         """``ladder`` marching steps in one iteration, for rays still marching after
@@ -1256,12 +1263,8 @@ class MarchRefine(_Search):
             else:
                 un0 = certified_radius(xp, Fpe, Tpe, inv, mag, self.rg) == 0
                 un1 = certified_radius(xp, Fe, Te, inv, mag, self.rg) == 0
-            un = cross_e & (un0 | un1)
-            unc_miss = miss & (g < math.inf)
-            late = conv & rule.late(xp, g, Tpe)
-            status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
-                              unc=unc_miss | late | un)
-            t_new = xp.where(unc_miss, math.inf, xp.where(onto & ~(un & ~un1), Te, Tpe))
+            status, unc_miss, back = self._march_verdict(xp, g, cross_e, conv, miss, nonf, lipv, iters, un0, un1, Tpe)
+            t_new = xp.where(unc_miss, math.inf, xp.where(onto & ~back, Te, Tpe))
             new["g"] = g
         f_new = xp.where(onto, Fe, Fpe)
         # the ladder is stage 1, refinement stage 2
