@@ -123,3 +123,23 @@ def test_a_case_with_nothing_to_check_says_so_rather_than_none_reached():
     assert any("user.all.miss → nothing to check" in line for line in summary.headline(p))
     old = summary.which_to_pick(pd.DataFrame([_row(err=math.nan, case="c")]))  # no n_checked column
     assert set(old["pick"]) == {"none reached"}
+
+
+def test_none_reached_says_whether_the_rays_left_were_flagged_or_wrong():
+    """Where every configuration leaves hitting rays unanswered, 'none reached' says whether one
+    of them only flagged its rays (no false hit or miss: too many flagged to be picked) and names
+    the fewest, or whether every one gave a wrong answer; before, both read 'a false hit/miss'."""
+    def row(backend, fm, declined, fh=0, finite=1e-15):
+        return {**_row(backend=backend, err=math.inf, fh=fh, fm=fm), "n_miss_declined": declined, "n_rays": 256,
+                "error_max_finite": finite}
+
+    flagged = summary.which_to_pick(pd.DataFrame([row("numpy", 3, 3), row("torch:cpu", 1, 1, finite=2e-15),
+                                                  row("jax:cpu", 2, 0)]), targets=(1e-8,))
+    assert list(flagged["pick"]) == ["none reached"]
+    why = flagged["knob"].iloc[0]
+    assert "1 of 256 flagged, no false hit or miss" in why and "torch:cpu" in why and "2e-15" in why, why
+    wrong = summary.which_to_pick(pd.DataFrame([row("numpy", 3, 1), row("jax:cpu", 0, 0, fh=2)]), targets=(1e-8,))
+    assert list(wrong["pick"]) == ["none reached"]
+    assert wrong["knob"].iloc[0] == "every configuration had a false hit or miss or a non-finite depth"
+    best = summary.which_to_pick(pd.DataFrame([_row(err=1e-6)]), targets=(1e-8,))
+    assert best["knob"].iloc[0] == "best error 1e-06"

@@ -196,11 +196,28 @@ giving the count."""
                 row.update({"pick": NOTHING_TO_CHECK, "knob": "no ray of the case has a reference answer for this "
                                                               "quantity (e.g. no ray hits)"})
             else:
-                best = g["error_max"].min()
-                row.update({"pick": "none reached", "knob": f"best error {best:.2g}" if np.isfinite(best) else
-                            "every configuration had a false hit/miss or infinite error"})
+                row.update({"pick": "none reached", "knob": _why_none(g)})
             rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _why_none(g: pd.DataFrame) -> str:
+    """Why no configuration of a case reached a target: the best error seen where one is finite;
+    else whether some configuration's only unanswered hits are rays it flagged itself (every
+    ``n_false_miss`` a ``n_miss_declined``, no false hit: nothing wrong, too many flagged for
+    :data:`FLAGGED_SHARE` or its answered rays above the target) or every one gave a wrong answer."""
+    best = g["error_max"].min()
+    if np.isfinite(best):
+        return f"best error {best:.2g}"
+    honest = g[(g["n_false_hit"] == 0) & (g["n_false_miss"] == g["n_miss_declined"])]
+    if honest.empty:
+        return "every configuration had a false hit or miss or a non-finite depth"
+    r = honest.sort_values(["n_miss_declined", "error_max_finite"], na_position="last", kind="stable").iloc[0]
+    answered = f", {r['error_max_finite']:.2g} on the rays it answered" if np.isfinite(r["error_max_finite"]) else ""
+    of = f" of {int(r['n_rays'])}" if np.isfinite(r["n_rays"]) else ""
+    return (f"every configuration left hitting rays unanswered; the fewest: {int(r['n_miss_declined'])}{of} "
+            f"flagged, no false hit or miss ({r['method']} · {r['backend']} · {r['dtype']}"
+            f"{answered}; a pick may flag at most {FLAGGED_SHARE:.1%})")
 
 
 def _flagged_text(d: dict) -> str:
