@@ -141,5 +141,7 @@ def test_none_reached_says_whether_the_rays_left_were_flagged_or_wrong():
     wrong = summary.which_to_pick(pd.DataFrame([row("numpy", 3, 1), row("jax:cpu", 0, 0, fh=2)]), targets=(1e-8,))
     assert list(wrong["pick"]) == ["none reached"]
     assert wrong["knob"].iloc[0] == "every configuration had a false hit or miss or a non-finite depth"
+    nan_depth = {**row("numpy", 0, 0), "n_converged_nonfinite": 1}  # a CONVERGED ray with a NaN depth
+    assert summary.which_to_pick(pd.DataFrame([nan_depth]), targets=(1e-8,))["knob"].iloc[0] == wrong["knob"].iloc[0]
     best = summary.which_to_pick(pd.DataFrame([_row(err=1e-6)]), targets=(1e-8,))
     assert best["knob"].iloc[0] == "best error 1e-06"

@@ -209,7 +209,10 @@ def _why_none(g: pd.DataFrame) -> str:
     best = g["error_max"].min()
     if np.isfinite(best):
         return f"best error {best:.2g}"
-    honest = g[(g["n_false_hit"] == 0) & (g["n_false_miss"] == g["n_miss_declined"])]
+    silent_nan = pd.to_numeric(g["n_converged_nonfinite"], errors="coerce").fillna(0) if "n_converged_nonfinite" in g \
+        else 0
+    honest = g[(g["n_false_hit"] == 0) & (g["n_false_miss"] == g["n_miss_declined"]) & (g["n_miss_declined"] > 0)
+               & (silent_nan == 0)]
     if honest.empty:
         return "every configuration had a false hit or miss or a non-finite depth"
     r = honest.sort_values(["n_miss_declined", "error_max_finite"], na_position="last", kind="stable").iloc[0]
