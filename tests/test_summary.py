@@ -137,7 +137,8 @@ def test_none_reached_says_whether_the_rays_left_were_flagged_or_wrong():
                                                   row("jax:cpu", 2, 0)]), targets=(1e-8,))
     assert list(flagged["pick"]) == ["none reached"]
     why = flagged["knob"].iloc[0]
-    assert "1 of 256 flagged, no false hit or miss" in why and "torch:cpu" in why and "2e-15" in why, why
+    assert "fewest flagged: 1 of 256" in why and "no false hit or miss" in why and "torch:cpu" in why, why
+    assert "2e-15" in why and "(" not in why, why  # (the headline wraps the reason in parentheses)
     wrong = summary.which_to_pick(pd.DataFrame([row("numpy", 3, 1), row("jax:cpu", 0, 0, fh=2)]), targets=(1e-8,))
     assert list(wrong["pick"]) == ["none reached"]
     assert wrong["knob"].iloc[0] == "every configuration had a false hit or miss or a non-finite depth"

@@ -216,11 +216,13 @@ def _why_none(g: pd.DataFrame) -> str:
     if honest.empty:
         return "every configuration had a false hit or miss or a non-finite depth"
     r = honest.sort_values(["n_miss_declined", "error_max_finite"], na_position="last", kind="stable").iloc[0]
-    answered = f", {r['error_max_finite']:.2g} on the rays it answered" if np.isfinite(r["error_max_finite"]) else ""
+    answered = f", error {r['error_max_finite']:.2g} on the rays it answered" if np.isfinite(r["error_max_finite"]) \
+        else ""
     of = f" of {int(r['n_rays'])}" if np.isfinite(r["n_rays"]) else ""
-    return (f"every configuration left hitting rays unanswered; the fewest: {int(r['n_miss_declined'])}{of} "
-            f"flagged, no false hit or miss ({r['method']} · {r['backend']} · {r['dtype']}"
-            f"{answered}; a pick may flag at most {FLAGGED_SHARE:.1%})")
+    # (no parentheses: the headline puts this text in some)
+    return (f"every configuration left hitting rays unanswered; the fewest flagged: {int(r['n_miss_declined'])}{of}, "
+            f"by {r['method']} · {r['backend']} · {r['dtype']}, with no false hit or miss{answered}; a pick may "
+            f"flag at most {FLAGGED_SHARE:.1%}")
 
 
 def _flagged_text(d: dict) -> str:
