@@ -142,7 +142,11 @@ def test_none_reached_says_whether_the_rays_left_were_flagged_or_wrong():
     wrong = summary.which_to_pick(pd.DataFrame([row("numpy", 3, 1), row("jax:cpu", 0, 0, fh=2)]), targets=(1e-8,))
     assert list(wrong["pick"]) == ["none reached"]
     assert wrong["knob"].iloc[0] == "every configuration had a false hit or miss or a non-finite depth"
-    nan_depth = {**row("numpy", 0, 0), "n_converged_nonfinite": 1}  # a CONVERGED ray with a NaN depth
+    # a row whose unanswered hits are all flagged, but with a CONVERGED ray of NaN depth, is no honest one
+    nan_depth = {**row("numpy", 1, 1), "n_converged_nonfinite": 1}
     assert summary.which_to_pick(pd.DataFrame([nan_depth]), targets=(1e-8,))["knob"].iloc[0] == wrong["knob"].iloc[0]
+    # and a row with nothing flagged (its infinite error from elsewhere) is not named as only flagging
+    assert summary.which_to_pick(pd.DataFrame([row("numpy", 0, 0)]), targets=(1e-8,))["knob"].iloc[0] == \
+        wrong["knob"].iloc[0]
     best = summary.which_to_pick(pd.DataFrame([_row(err=1e-6)]), targets=(1e-8,))
     assert best["knob"].iloc[0] == "best error 1e-06"
