@@ -92,6 +92,8 @@ def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None
     n = batch.enter.shape[0]
     c = np.stack([batch.enter, batch.exit], 2).reshape(n, -1)
     c = np.sort(np.where((c > t_min) & (c <= t_max), c, np.inf), axis=1)  # the crossings first, in order
+    if c.shape[1] == 0:  # no ray meets the solid: one column of no crossing (argmax needs one)
+        c = np.full((n, 2), np.inf)
     status, t = np.asarray(res.status).astype(int), np.asarray(res.t, np.float64)
     with np.errstate(invalid="ignore"):
         near = np.abs(c - t[:, None]) <= TOL * np.maximum(1.0, np.abs(t))[:, None]
@@ -124,6 +126,8 @@ def test_the_guarantee_check_catches_a_skipped_entry_and_reads_inside_starts():
     assert judge(ball, (0, 0, 3), np.inf, Status.MISS) == ["certified miss with a crossing"]
     assert judge(ball, (0, 0, 3), 4.0, t_min=3.0) == []  # starts inside at t_min: the exit is first
     assert judge(ball, (0, 0, 3), np.inf, Status.MISS, t_min=4.5) == []
+    assert judge(ball, (5, 0, 3), np.inf, Status.MISS) == []  # no ray meets the solid at all
+    assert judge(ball, (5, 0, 3), 2.0) == ["converged off the first crossing"]
     for gap, ok in ((1e-7, True), (1e-3, False)):  # inside the upper ball, a gap, then the lower one
         pair = Union(ball, Sphere(center=(0, 0, -2.0 - gap), radius=1.0))
         assert judge(pair, (0, 0, 0), 3.0 + gap) == ([] if ok else ["converged off the first crossing"])
