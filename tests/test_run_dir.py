@@ -48,7 +48,7 @@ def test_the_lock_is_exclusive_records_its_holder_and_is_freed(tmp_path):
 def test_a_holder_that_has_not_recorded_itself_yet_is_named_as_still_starting(tmp_path):
     """Between a holder's flock and its record the lock file is empty: a second process is refused
     all the same, told the holder is still starting (two runs started together meet this window
-    under load: tests/test_run_dir.py's race below)."""
+    under load: the race test below)."""
     import fcntl
 
     fd = os.open(tmp_path / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
@@ -56,6 +56,26 @@ def test_a_holder_that_has_not_recorded_itself_yet_is_named_as_still_starting(tm
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         with pytest.raises(LockHeld, match=r"being written by another process \(still starting"):
             RunLock(tmp_path).acquire()
+    finally:
+        os.close(fd)
+
+
+def test_a_record_left_by_an_ended_holder_is_not_named_as_the_holder(tmp_path):
+    """The lock file keeps the last holder's record; a process refused before the new holder has
+    rewritten it is not told that the ended process holds the run directory."""
+    import fcntl
+    import socket
+
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait(timeout=HANG_GUARD_S)
+    (tmp_path / LOCK_FILE).write_text(json.dumps({"pid": ended.pid, "host": socket.gethostname(),
+                                                  "started": "2026-01-01T00:00:00+00:00", "command": "old run"}))
+    fd = os.open(tmp_path / LOCK_FILE, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the new holder, before its record
+        with pytest.raises(LockHeld, match=r"another process \(still starting") as err:
+            RunLock(tmp_path).acquire()
+        assert f"pid {ended.pid}" not in str(err.value)
     finally:
         os.close(fd)
 

@@ -38,11 +38,27 @@ class OutError(ValueError):
     """``--out`` cannot be used (a file, not creatable, not empty); the message names what was found."""
 
 
+def _alive(pid) -> bool:
+    """Whether a process with id ``pid`` exists on this host (one we may not signal counts)."""
+    try:
+        os.kill(int(pid), 0)
+    except PermissionError:
+        return True
+    except (OSError, ValueError, TypeError, OverflowError):
+        return False
+    return True
+
+
 def _holder(path: Path) -> str:
-    """The holder recorded in the lock file at ``path``, as a phrase."""
+    """The holder recorded in the lock file at ``path``, as a phrase.  The file keeps the last
+    holder's record after it ends (:data:`LOCK_FILE`), and a new holder rewrites it just after
+    taking the lock: a record naming a process of this host that no longer runs is that earlier
+    holder's, and the holder is then one still starting."""
     try:
         rec = json.loads(path.read_text() or "{}")
     except (OSError, ValueError):
+        rec = {}
+    if not isinstance(rec, dict) or (rec.get("host") == socket.gethostname() and not _alive(rec.get("pid"))):
         rec = {}
     if not rec:
         return "another process (still starting: it has not recorded itself yet)"
