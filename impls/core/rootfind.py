@@ -494,6 +494,9 @@ class SphereTrace(_Search):
         # the depth: the zero of the chord from the base to t_eval, within the bracket
         with _quiet(xp):
             z = tb + (t_eval - tb) * (fb / (fb - f_new))
+        # a chord without a zero (0/0: φ = 0 at both ends, as φ's rounding gives in float32; inf/inf)
+        # leaves the bracket's middle, within the tolerance of the crossing wherever it converged
+        z = xp.where(z == z, z, 0.5 * ((tb + rb) + (t_eval - r_new)))
         z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
         t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(
             stay, t, xp.where(give_up | refine, t_eval, t_new))))
@@ -585,6 +588,8 @@ class SphereTrace(_Search):
         status = _verdict(xp, ~fin, conv, iters >= self.max_steps, lipv=lipv, unc=unc)
         with _quiet(xp):
             z = tb + (t_n - tb) * (fb / (fb - f_n))
+        # (a chord without a zero, 0/0 or inf/inf: the bracket's middle, as in _step_update)
+        z = xp.where(z == z, z, 0.5 * (a_n + b_n))
         z = xp.minimum(xp.maximum(z, a_n), b_n)
         return _typed(xp, dict(s, t=xp.where(conv | unc, z, t_n), f=f_n, a=a_n, b=b_n, lo=lo_n, status=status,
                                iterations=iters, evals=s["evals"] + cost), s)
