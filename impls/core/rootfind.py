@@ -330,7 +330,7 @@ class SphereTrace(_Search):
     δ₀ = max(tol/L, 4·rounding)) a step is a *probe* reaching δ past the sphere (δ = δ₀, doubled
     each time a probe lands where φ is unresolved).  CONVERGED on a resolved sign change against
     the ray's starting side whose bracket [t + r, t' − r'] is at most δ₀ wide, the depth the
-    chord's zero in it; a probe's wider bracket (after retries, or under a mesh's rounding gain)
+    chord's zero in it (the bracket's middle where the chord has none: φ = 0 at both ends); a probe's wider bracket (after retries, or under a mesh's rounding gain)
     is refined, keeping the first crossing, in the stage ``step_refine`` (:meth:`step_refine`),
     and is CONVERGED only once it is at most δ₀ wide, else UNCERTIFIED with its depth (the dtype
     cannot resolve the depth to tol: along a ray at slope s, φ's sign is rounding over a stretch
@@ -523,7 +523,7 @@ class SphereTrace(_Search):
           pair of crossings may lie before it) moves only the search's left end ``lo`` to c.
 
         CONVERGED when b − a ≤ δ, the depth the zero of the chord from the step's base (tb, φ(tb))
-        to (t, f), within [a, b]; UNCERTIFIED with that depth when neither end can move on: the
+        to (t, f), within [a, b] (its middle where the chord has no zero); UNCERTIFIED with that depth when neither end can move on: the
         frontier stands at an unresolved sample or crawls (its sphere under 1/:data:`CERTIFY_REACH`
         of what is left beyond δ) and the stretch left to search, [lo, b], is under δ/4.  The first
         crossing then lies in a stretch where φ's sign is rounding, about 2·rounding/s long on a
