@@ -65,14 +65,16 @@ def thin_walls(seed: int):
 
 def allowance(method: str, knobs: dict) -> float:
     """The chord below which a crossing pair may be skipped (docs/methods.md): sphere tracing's
-    δ = max(tol/L, 4·rounding) (L = 1 for these scenes), the hybrids' ``min_step`` (the knob's
-    default from :data:`impls.methods.METHODS` where not given)."""
+    δ = max(tol/L, 4·rounding) (L = 1 for these scenes), the hybrids' ``min_step``, the marches'
+    ``step`` (their guarantee is the hybrid's with ``min_step`` = ``step``); the knob's default
+    from :data:`impls.methods.METHODS` where not given."""
     from impls.methods import METHODS
 
     defaults = {k.name: k.default for k in METHODS[method].knobs}
     if method == "sphere_trace":
         return max(knobs.get("tol", defaults["tol"]), 1e-12)
-    return knobs.get("min_step", defaults["min_step"])
+    name = "step" if method.startswith("march") else "min_step"
+    return knobs.get(name, defaults[name])
 
 
 def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None, t_min: float = 0.0,
@@ -84,7 +86,8 @@ def check_guarantee(scene, o, d, res, t_max: float, allow: float, intervals=None
     pair narrower than ``allow``: an odd number passed means a lone crossing was skipped (an
     exit reported after its entry, whatever the width).  A MISS must have no crossing.
     ``intervals``: the scene's exact ``ray_intervals(o, d)`` (or its ``ray_interval_batch``), when
-    already computed; ``tol``: the relative depth agreement (:data:`TOL`, float64's).  All rays at once (a loop over 65,536 rays cost 2.5 s a call)."""
+    already computed; ``tol``: the relative depth agreement (:data:`TOL`, float64's).  All rays
+    at once (a loop over 65,536 rays cost 2.5 s a call)."""
     from reference import intervals as iv
 
     if intervals is None:
@@ -454,13 +457,7 @@ def test_float32_random_tree_of_fields_that_are_not_distances(backend, method):
     assert np.all(np.isfinite(np.asarray(res.t)[conv])), int(np.sum(~np.isfinite(np.asarray(res.t)[conv])))
     # float32 places a point to ~6e-8 of its magnitude: 2e-5 is a few hundred of its roundings at
     # these depths (0.1-3), and far below the scene's features (walls ≥ 1.9e-3)
-    # (a march passes pairs of crossings within one step: its guarantee is the hybrid's with
-    # min_step = step, docs/methods.md)
-    from impls.methods import METHODS
-
-    allow = {k.name: k.default for k in METHODS[method].knobs}["step"] if method.startswith("march") \
-        else allowance(method, {})
-    bad = check_guarantee(scene, o, d, res, 8.0, allow, intervals, t_min=t_min, tol=2e-5)
+    bad = check_guarantee(scene, o, d, res, 8.0, allowance(method, {}), intervals, t_min=t_min, tol=2e-5)
     assert not any(bad.values()), {k: (len(v), v[:5]) for k, v in bad.items()}
     # and they decide most hits; a march certifies a hit only where its samples' spheres cover the
     # step before it, which under bounds this loose is seldom (4,228 of 55,976 hits here)

@@ -66,16 +66,18 @@ def test_a_record_left_by_an_ended_holder_is_not_named_as_the_holder(tmp_path):
     import fcntl
     import socket
 
-    ended = subprocess.Popen([sys.executable, "-c", "pass"])
-    ended.wait(timeout=HANG_GUARD_S)
-    (tmp_path / LOCK_FILE).write_text(json.dumps({"pid": ended.pid, "host": socket.gethostname(),
+    # a pid above the kernel's largest: no process has it, and none can take it while the test runs
+    # (an ended child's pid could be handed to another process)
+    ended = int(Path("/proc/sys/kernel/pid_max").read_text()) + 1 if Path("/proc/sys/kernel/pid_max").exists() \
+        else 2 ** 22 + 1
+    (tmp_path / LOCK_FILE).write_text(json.dumps({"pid": ended, "host": socket.gethostname(),
                                                   "started": "2026-01-01T00:00:00+00:00", "command": "old run"}))
     fd = os.open(tmp_path / LOCK_FILE, os.O_RDWR)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the new holder, before its record
         with pytest.raises(LockHeld, match=r"another process \(still starting") as err:
             RunLock(tmp_path).acquire()
-        assert f"pid {ended.pid}" not in str(err.value)
+        assert f"pid {ended}" not in str(err.value)
     finally:
         os.close(fd)
 

@@ -330,7 +330,7 @@ class SphereTrace(_Search):
     δ₀ = max(tol/L, 4·rounding)) a step is a *probe* reaching δ past the sphere (δ = δ₀, doubled
     each time a probe lands where φ is unresolved).  CONVERGED on a resolved sign change against
     the ray's starting side whose bracket [t + r, t' − r'] is at most δ₀ wide, the depth the
-    chord's zero in it (the bracket's middle where the chord has none: φ = 0 at both ends); a probe's wider bracket (after retries, or under a mesh's rounding gain)
+    chord's zero in it; a probe's wider bracket (after retries, or under a mesh's rounding gain)
     is refined, keeping the first crossing, in the stage ``step_refine`` (:meth:`step_refine`),
     and is CONVERGED only once it is at most δ₀ wide, else UNCERTIFIED with its depth (the dtype
     cannot resolve the depth to tol: along a ray at slope s, φ's sign is rounding over a stretch
@@ -494,9 +494,8 @@ class SphereTrace(_Search):
         # the depth: the zero of the chord from the base to t_eval, within the bracket
         with _quiet(xp):
             z = tb + (t_eval - tb) * (fb / (fb - f_new))
-        # a chord without a zero (0/0: φ = 0 at both ends, as φ's rounding gives in float32; inf/inf)
-        # leaves the bracket's middle, within the tolerance of the crossing wherever it converged
-        z = xp.where(z == z, z, 0.5 * ((tb + rb) + (t_eval - r_new)))
+        # (never 0/0 where it is used: a crossing's f_new is resolved, so nonzero, and a ray in
+        # progress has a finite base fb; step_refine's chord can have no zero)
         z = xp.minimum(xp.maximum(z, tb + rb), t_eval)
         t_out = xp.where(conv | coarse, z, xp.where(unc_miss, math.inf, xp.where(
             stay, t, xp.where(give_up | refine, t_eval, t_new))))
@@ -523,8 +522,8 @@ class SphereTrace(_Search):
           pair of crossings may lie before it) moves only the search's left end ``lo`` to c.
 
         CONVERGED when b − a ≤ δ, the depth the zero of the chord from the step's base (tb, φ(tb))
-        to (t, f), within [a, b] (its middle where the chord has no zero); UNCERTIFIED with that depth when neither end can move on: the
-        frontier stands at an unresolved sample or crawls (its sphere under 1/:data:`CERTIFY_REACH`
+        to (t, f), within [a, b] (its middle where the chord has no zero: t = tb, or φ = 0 at both
+        ends); UNCERTIFIED with that depth when neither end can move on: the frontier stands at an unresolved sample or crawls (its sphere under 1/:data:`CERTIFY_REACH`
         of what is left beyond δ) and the stretch left to search, [lo, b], is under δ/4.  The first
         crossing then lies in a stretch where φ's sign is rounding, about 2·rounding/s long on a
         ray meeting the surface at slope s (in units of L), which the dtype resolves only to b − a.
@@ -588,7 +587,9 @@ class SphereTrace(_Search):
         status = _verdict(xp, ~fin, conv, iters >= self.max_steps, lipv=lipv, unc=unc)
         with _quiet(xp):
             z = tb + (t_n - tb) * (fb / (fb - f_n))
-        # (a chord without a zero, 0/0 or inf/inf: the bracket's middle, as in _step_update)
+        # a chord without a zero (0/0: the base and the sample both φ = 0, as float32's rounding
+        # gives; 0·inf: the sample at the base) leaves the bracket's middle, within δ of the
+        # crossing wherever the ray converged
         z = xp.where(z == z, z, 0.5 * (a_n + b_n))
         z = xp.minimum(xp.maximum(z, a_n), b_n)
         return _typed(xp, dict(s, t=xp.where(conv | unc, z, t_n), f=f_n, a=a_n, b=b_n, lo=lo_n, status=status,
