@@ -296,3 +296,26 @@ def test_html_tables_keep_words_and_numbers_whole_and_scroll_instead():
     assert "<td class='n'>6.9e-07</td>" in page and "<td class='n'>1024</td>" in page
     assert "<td>float64</td>" in page and "<td>CONVERGED 756 · MISS 268</td>" in page
     assert "td.n{white-space:nowrap}" in page
+
+
+def test_best_accuracy_says_why_a_row_has_no_finite_error():
+    """The best-accuracy table's error is a number, or says why there is none: which wrong or
+    missing answers made it infinite (how many of each), or that no ray was checked."""
+    text = tables.error_text
+    assert text({"error_max": 3.14159e-12}) == "3.14e-12"
+    assert text({"error_max": float("inf"), "n_false_hit": 0, "n_false_miss": 30, "n_miss_declined": 30,
+                 "n_converged_nonfinite": 0}) == "inf: 30 hitting ray(s) flagged"
+    assert text({"error_max": float("inf"), "n_false_hit": 2, "n_false_miss": 5, "n_miss_declined": 1,
+                 "n_converged_nonfinite": 3}) == ("inf: 2 false hit(s), 4 silent miss(es), 3 CONVERGED non-finite, "
+                                                  "1 hitting ray(s) flagged")
+    assert text({"error_max": float("inf"), "n_false_hit": float("nan")}) == "inf"
+    assert text({"error_max": float("nan"), "n_declined": 756.0}) == "none: no ray answered (756 declined)"
+    assert text({"error_max": float("nan"), "n_declined": float("nan")}) == "none: no ray checked (see its statuses)"
+    # and the table takes it, the most accurate setting first
+    rows = [{"case_id": "c", "method": "hybrid_secant", "quantity": "depth", "dtype": "float64", "backend": "numpy",
+             "knob": f"xtol={x}", "outcome": "ok", "error_max": e, "time_median_s": 1e-3, "time_iqr_s": 1e-4,
+             "time_ratio_cf": 1.0, "compile_s": 0.0, "evals_per_ray": 3.0, "status_counts": '{"CONVERGED": 4}',
+             "n_false_hit": 0, "n_false_miss": 0, "n_miss_declined": 0, "n_converged_nonfinite": 0}
+            for x, e in (("1e-4", 2e-5), ("1e-12", float("inf")))]
+    t = tables.summary_table(pd.DataFrame(rows))
+    assert t["best max error"].tolist() == ["2e-05"]

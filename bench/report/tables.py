@@ -26,7 +26,7 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
         best = g.sort_values(["error_max", "time_median_s"]).iloc[0]
         rows.append({
             "case": cid, "method": method, "quantity": q, "dtype": dtype, "backend": bid,
-            "best max error": best["error_max"], "at knob": knob_label(method, best["knob"]),
+            "best max error": error_text(best), "at knob": knob_label(method, best["knob"]),
             "time median [ms]": 1e3 * best["time_median_s"], "time IQR [ms]": 1e3 * best["time_iqr_s"],
             "× closed form": best["time_ratio_cf"], "compile [s]": best["compile_s"],
             "kernel": _kernel(best.get("compile_cache")),
@@ -34,6 +34,30 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
             "ray statuses": _statuses(best.get("status_counts")),
         })
     return pd.DataFrame(rows)
+
+
+def error_text(row) -> str:
+    """A row's max error as the best-accuracy table says it: the number (3 significant digits), or
+    why there is none.  An infinite error is a wrong or missing answer the max cannot hide (a false
+    hit or miss, a CONVERGED ray with a non-finite depth, a hitting ray the method flagged:
+    bench/run/metrics.py), and says which and how many; no error at all (NaN) is a row with no
+    ray checked: every hit declined (dt_unrolled's budget spent on every hit: MAX_ITER), or no ray
+    answered (a surface render whose every ray is UNCERTIFIED)."""
+    v = float(row.get("error_max", np.nan))
+    if np.isfinite(v):
+        return f"{v:.3g}"
+    counts = {c: row.get(c) for c in ("n_false_hit", "n_false_miss", "n_miss_declined", "n_converged_nonfinite",
+                                      "n_declined")}
+    n = {c: int(x) for c, x in counts.items() if isinstance(x, (int, float, np.number)) and np.isfinite(x)}
+    if np.isnan(v):
+        return (f"none: no ray answered ({n['n_declined']} declined)" if n.get("n_declined")
+                else "none: no ray checked (see its statuses)")
+    flagged = n.get("n_miss_declined", 0)
+    parts = [f"{k} {what}" for k, what in ((n.get("n_false_hit", 0), "false hit(s)"),
+                                           (n.get("n_false_miss", 0) - flagged, "silent miss(es)"),
+                                           (n.get("n_converged_nonfinite", 0), "CONVERGED non-finite"),
+                                           (flagged, "hitting ray(s) flagged")) if k > 0]
+    return f"inf: {', '.join(parts)}" if parts else "inf"
 
 
 def _kernel(cache) -> str:
