@@ -171,7 +171,8 @@ _BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's ray bound
                "spheres, boxes, a union's hull; rays outside them are MISS at once); 0: all of [t_min, t_max]", 1, role="setting")
 _HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)", role="budget")
 _LADDER = Knob("ladder", -1, int, -1, "a ray still marching after ladder_after steps goes on in ladder steps: this "
-               "many marching samples evaluated together, judged pair by pair as single steps (0 or 1: off; -1: the "
+               "many marching samples evaluated together, judged pair by pair as single steps, each a step against "
+               "max_steps (0 or 1: off; -1: the "
                "backend's loop driver chooses: 16 on the compacting numpy/torch drivers, off on jax's masked loops; "
                "the hybrids go on in ladder steps only once a step stood uncertified)",
                4096, role="setting")

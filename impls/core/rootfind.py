@@ -1173,7 +1173,7 @@ class MarchRefine(_Search):
         return status, unc_miss, un & ~un1
 
     def step_ladder(self, xp, s, o, d, ev):
-        """``ladder`` marching steps in one iteration, for rays still marching after
+        """``ladder`` marching steps in one loop step, for rays still marching after
         ``ladder_after`` steps (grazing rays: a near miss at distance δ from a surface of radius
         of curvature ρ costs about (π/2)√(2ρ/δ) certified steps, each a loop step whose cost is
         per-call overhead once few rays are left).
@@ -1186,7 +1186,8 @@ class MarchRefine(_Search):
         finite (NON_FINITE) or, in the hybrid, is not certified (the ray moves to that pair's
         start, the last certified point); with no such pair it moves to t_K (MISS at ``hi``).
         Every sample counts as an evaluation, including those after the pair the ray stops at;
-        a ladder step is one iteration.  Δ doubles after a ladder with no stop and halves after
+        every pair judged is one iteration (step) against ``max_steps``, and pairs past the
+        budget left are not judged, so a ladder changes no status a budget decides.  Δ doubles after a ladder with no stop and halves after
         one that stops in its first half, within [``min_step``, ``overstep``]."""
         t, f, hi = s["t"], s["f"], s["hi"]
         m, k = t.shape[0], self.ladder
@@ -1215,9 +1216,18 @@ class MarchRefine(_Search):
         if rule.check is not None:
             violated = lipschitz_violated(xp, Fp, F, Tp, T, rule.check, mag[:, None], self.gain)
             event = event | violated
-        stopped = xp.any(event, axis=1)
-        first = xp.argmax(xp.astype(event, xp.int8), axis=1)
-        e = xp.where(stopped, first, k - 1)[:, None]  # the first event's pair, or the last pair
+        # max_steps counts steps, a ladder's pairs one by one, up to the first that reaches hi (the
+        # samples past it repeat hi): the pairs past the budget left are evaluated (in evals) but not
+        # judged, and a ray with no event before them ends on the last pair it may take, MAX_ITER
+        # (the same steps and statuses as without a ladder)
+        left = self.max_steps - s["iterations"]
+        within = xp.asarray(np.arange(k), dtype=left.dtype, device=_device(t))[None, :] < left[:, None]
+        event = event & within
+        ends = event | ((T >= hi[:, None]) & within)
+        first = xp.argmax(xp.astype(ends, xp.int8), axis=1)
+        last = xp.astype(xp.minimum(left, k) - 1, first.dtype)
+        e = xp.where(xp.any(ends, axis=1), first, last)[:, None]  # the first event's pair, or the last taken
+        stopped = xp.take_along_axis(event, e, axis=1)[:, 0]
 
         def at(a):
             return xp.take_along_axis(a, e, axis=1)[:, 0]
@@ -1229,7 +1239,7 @@ class MarchRefine(_Search):
         lipv = stopped & at(violated) & ~beyond_e if rule.check is not None else None
         onto = cross_e | ~stopped  # the ray moves onto sample e; otherwise it stays at e's start
         miss = (~stopped & (Te >= hi)) | ~xp.isfinite(Te) | beyond_e
-        iters = s["iterations"] + 1
+        iters = s["iterations"] + xp.astype(e[:, 0], s["iterations"].dtype) + 1  # the pairs judged
         new = {}
         if rule.certifies:
             Rpe = at(Rp)

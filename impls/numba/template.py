@@ -164,20 +164,22 @@ else:
 """
 
 #: phase 1 (step_ladder): samples t + jΔ, j = 1 … ladder (clamped to hi), evaluated together, the
-#: pairs judged in order as march steps; the ray stops at the first pair that crosses, is not
-#: finite or breaks the Lipschitz check, else moves to the last sample
+#: pairs judged in order as march steps, each one step against max_steps (the pairs past the budget
+#: left, or past the first sample at hi, are not judged); the ray stops at the first pair that
+#: crosses, is not finite or breaks the Lipschitz check, else moves to the last sample judged
 LADDER = """
 ts_K, fs_K, dfs_K = np.empty(ladder), np.empty(ladder), np.empty(ladder)
 for j in range(ladder):
     ts_K[j] = _min(t_K + step * float(j + 1), hi_K)
     @EVAL ts_K[j] fs_K[j] dfs_K[j]
-e_K = ladder - 1
+nj_K = min(ladder, max_steps - it_K)
+e_K = nj_K - 1
 stopped_K = False
 cross_e_K = False
 fin_e_K = True
 lv_e_K = False
 tq_K, fq_K = t_K, f_K
-for j in range(ladder):
+for j in range(nj_K):
     tj_K, fj_K = ts_K[j], fs_K[j]
     crossj_K = (fj_K == 0) or ((fj_K > 0) != (fq_K > 0))
     finj_K = math.isfinite(fj_K)
@@ -190,6 +192,9 @@ for j in range(ladder):
     if cover and g_K == inf:
         if not covered(fq_K, tq_K, fj_K, tj_K, tj_K - tq_K, check, mag_K, rcoef):
             g_K = tq_K + rcert(fq_K, tq_K, check, mag_K, rcoef)
+    if tj_K >= hi_K:
+        e_K = j
+        break
     tq_K, fq_K = tj_K, fj_K
 te_K, fe_K = ts_K[e_K], fs_K[e_K]
 tpe_K = t_K if e_K == 0 else ts_K[e_K - 1]
@@ -208,7 +213,7 @@ else:
     un0_K, un1_K = fpe_K == 0, fe_K == 0
 un_K = cross_e_K and (un0_K or un1_K)
 lt_K = conv_K and (g_K + step < tpe_K)
-it_K += 1
+it_K += e_K + 1
 ne_K += cost * ladder
 st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K or un_K)
 tn_K = te_K if (onto_K and not (un_K and not un1_K)) else tpe_K

@@ -114,7 +114,7 @@ def test_reported_evals_equal_counted_calls(request, any_backend, method):
 
 @pytest.mark.parametrize("method", ["hybrid_secant", "march_secant"])
 def test_reported_evals_equal_counted_calls_in_ladder_steps(request, any_backend, method):
-    """Ladder steps evaluate ``ladder`` samples per ray per iteration, every one counted."""
+    """Ladder steps evaluate ``ladder`` samples per ray per loop step, every one counted."""
     xfail_if_expected(request, any_backend, "eval_count")
     scene = CountingField(SPHERE)
     o, d = camera(6)
