@@ -172,9 +172,10 @@ _BOUNDS = Knob("bounds", 1, int, 0, "1: search only inside the scene's ray bound
 _HYBRID_MAX_STEPS = Knob("max_steps", 4096, int, 1, "budget of marching plus refinement steps (MAX_ITER when spent)", role="budget")
 _LADDER = Knob("ladder", -1, int, -1, "a ray still marching after ladder_after steps goes on in ladder steps: this "
                "many marching samples evaluated together, judged pair by pair as single steps, each a step against "
-               "max_steps (0 or 1: off; -1: the "
-               "backend's loop driver chooses: 16 on the compacting numpy/torch drivers, off on jax's masked loops; "
-               "the hybrids go on in ladder steps only once a step stood uncertified)",
+               "max_steps (0 or 1: off; -1: the backend's loop driver chooses: 16 on the compacting numpy/torch/Warp "
+               "drivers, off on jax's masked loops and numba's per-ray loops; a hybrid goes on in ladder steps only "
+               "once past the frontier of its certified stretch by min_step, where no answer can be certified any "
+               "more, so that its ladder changes no certified answer)",
                4096, role="setting")
 _LADDER_AFTER = Knob("ladder_after", 64, int, 0, "marching steps before a ray goes on in ladder steps", role="setting")
 _EXTRAPOLATE = Knob("extrapolate", 1.05, float, 0.0, "over-relaxed steps (2|φ|/L/(1 + σ), σ the secant's slope) "
