@@ -328,17 +328,24 @@ def test_a_budget_ends_a_ray_at_the_same_step_with_or_without_ladder_steps(metho
 def test_every_backend_spends_a_march_budget_as_numpy_does(backend):
     """The plane camera's march at its default knobs (each backend's own ladder choice): the same
     status on every ray as numpy's, MAX_ITER where the budget ends before t_max."""
+    status = _statuses_beside_numpy(backend, "plane.camera.32x32", "march_secant")
+    assert (status == Status.MAX_ITER).sum() == 256
+
+
+def _statuses_beside_numpy(backend: str, case_id: str, method: str) -> np.ndarray:
+    """``method`` at its default knobs on the catalog case on numpy and ``backend``: the statuses,
+    after checking that they are the same on every ray."""
     from tests.conftest import resolve_or_skip
 
-    case = get_case("plane.camera.32x32")
+    case = get_case(case_id)
     got = {}
     for bid in ("numpy", backend):
         b = resolve_or_skip(bid)
-        p = b.prepare("march_secant", case.scene, case.origins.copy(), case.directions.copy(), dtype="float64",
+        p = b.prepare(method, case.scene, case.origins.copy(), case.directions.copy(), dtype="float64",
                       t_min=case.t_min, t_max=case.t_max)
-        got[bid] = p.result(p.run())
-    np.testing.assert_array_equal(got[backend].status, got["numpy"].status)
-    assert (got["numpy"].status == Status.MAX_ITER).sum() == 256
+        got[bid] = p.result(p.run()).status
+    np.testing.assert_array_equal(got[backend], got["numpy"])
+    return got["numpy"]
 
 
 def test_a_hybrids_ladder_steps_leave_every_certified_answer_as_single_steps_give_it():
@@ -372,14 +379,5 @@ def test_every_backend_certifies_the_grazing_mesh_hits_numpy_does(backend):
     """``hybrid_secant`` at its defaults (each driver's own ladder) on the mesh blob's grazing rays:
     the same status on every ray as numpy's (they were 19 CONVERGED on the laddered drivers, 87
     on jax's)."""
-    from tests.conftest import resolve_or_skip
-
-    case = get_case("mesh.blob.grazing.1e-9")
-    got = {}
-    for bid in ("numpy", backend):
-        b = resolve_or_skip(bid)
-        p = b.prepare("hybrid_secant", case.scene, case.origins.copy(), case.directions.copy(), dtype="float64",
-                      t_min=case.t_min, t_max=case.t_max)
-        got[bid] = p.result(p.run())
-    np.testing.assert_array_equal(got[backend].status, got["numpy"].status)
-    assert (got["numpy"].status == Status.CONVERGED).sum() >= 87
+    status = _statuses_beside_numpy(backend, "mesh.blob.grazing.1e-9", "hybrid_secant")
+    assert (status == Status.CONVERGED).sum() >= 87
