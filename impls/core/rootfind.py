@@ -966,8 +966,9 @@ class MarchRefine(_Search):
     Ladder steps (``ladder`` = K > 1): after ``ladder_after`` marching steps (for a certifying
     rule, only once past its frontier by ``min_step``, where no crossing can be certified any
     more: nearer, the ladder's forced spacing would stand uncertified and flag the crossing, or
-    pass a thin one) a ray marches K steps per loop step — K samples at a common spacing evaluated together, the pairs judged
-    in order as single steps are (:meth:`step_ladder`).  The rays that need them (grazing rays;
+    pass a thin one) a ray marches K steps per loop step — K samples at a common spacing
+    evaluated together, the pairs judged in order as single steps are (:meth:`step_ladder`),
+    each a step against ``max_steps``.  The rays that need them (grazing rays;
     constant-step marching over long empty stretches) need hundreds to thousands of steps, and
     a loop step on few rays costs its per-call overhead whatever their number.  Every sample
     counts in ``evals``.
@@ -1190,8 +1191,9 @@ class MarchRefine(_Search):
         start, the last certified point); with no such pair it moves to t_K (MISS at ``hi``).
         Every sample counts as an evaluation, including those after the pair the ray stops at;
         every pair judged is one iteration (step) against ``max_steps``, and pairs past the
-        budget left are not judged, so a ladder changes no status a budget decides.  Δ doubles after a ladder with no stop and halves after
-        one that stops in its first half, within [``min_step``, ``overstep``]."""
+        budget left are not judged, so a ladder changes no status a budget decides.  Δ doubles
+        after a ladder with no stop and halves after one that stops in its first half, within
+        [``min_step``, ``overstep``]."""
         t, f, hi = s["t"], s["f"], s["hi"]
         m, k = t.shape[0], self.ladder
         rule = self.rule
