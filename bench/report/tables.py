@@ -46,16 +46,18 @@ def error_text(row) -> str:
     v = float(row.get("error_max", np.nan))
     if np.isfinite(v):
         return f"{v:.3g}"
-    counts = {c: row.get(c) for c in ("n_false_hit", "n_false_miss", "n_miss_declined", "n_converged_nonfinite",
-                                      "n_declined")}
-    n = {c: int(x) for c, x in counts.items() if isinstance(x, (int, float, np.number)) and np.isfinite(x)}
+
+    def count(column: str) -> int:  # (absent or NaN where the row's family has no such count)
+        x = row.get(column)
+        return int(x) if isinstance(x, (int, float, np.number)) and np.isfinite(x) else 0
+
     if np.isnan(v):
-        return (f"none: no ray answered ({n['n_declined']} declined)" if n.get("n_declined")
-                else "none: no ray checked (see its statuses)")
-    flagged = n.get("n_miss_declined", 0)
-    parts = [f"{k} {what}" for k, what in ((n.get("n_false_hit", 0), "false hit(s)"),
-                                           (n.get("n_false_miss", 0) - flagged, "silent miss(es)"),
-                                           (n.get("n_converged_nonfinite", 0), "CONVERGED non-finite"),
+        declined = count("n_declined")
+        return f"none: no ray answered ({declined} declined)" if declined else "none: no ray checked (see its statuses)"
+    flagged = count("n_miss_declined")
+    parts = [f"{k} {what}" for k, what in ((count("n_false_hit"), "false hit(s)"),
+                                           (count("n_false_miss") - flagged, "silent miss(es)"),
+                                           (count("n_converged_nonfinite"), "CONVERGED non-finite"),
                                            (flagged, "hitting ray(s) flagged")) if k > 0]
     return f"inf: {', '.join(parts)}" if parts else "inf"
 

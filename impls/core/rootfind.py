@@ -523,10 +523,11 @@ class SphereTrace(_Search):
 
         CONVERGED when b − a ≤ δ, the depth the zero of the chord from the step's base (tb, φ(tb))
         to (t, f), within [a, b] (its middle where the chord has no zero: t = tb, or φ = 0 at both
-        ends); UNCERTIFIED with that depth when neither end can move on: the frontier stands at an unresolved sample or crawls (its sphere under 1/:data:`CERTIFY_REACH`
-        of what is left beyond δ) and the stretch left to search, [lo, b], is under δ/4.  The first
-        crossing then lies in a stretch where φ's sign is rounding, about 2·rounding/s long on a
-        ray meeting the surface at slope s (in units of L), which the dtype resolves only to b − a.
+        ends); UNCERTIFIED with that depth when neither end can move on: the frontier stands at an
+        unresolved sample or crawls (its sphere under 1/:data:`CERTIFY_REACH` of what is left
+        beyond δ) and the stretch left to search, [lo, b], is under δ/4.  The first crossing then
+        lies in a stretch where φ's sign is rounding, about 2·rounding/s long on a ray meeting the
+        surface at slope s (in units of L), which the dtype resolves only to b − a.
         Each sample's slope from the base is checked (:func:`lipschitz_violated`).  Why this stage:
         a bracket left as its k-times retried probe found it is only 2^k·δ wide (docs/methods.md)."""
         p = self._refine_point(xp, s)
