@@ -728,8 +728,10 @@ def _register_all() -> None:
          "the stored 3→16→16→1 MLP blob (Lipschitz bound ≈ 29.9) seen by a 32×32 camera; hits from the "
          "certified numerical reference", t_max=6.0)
     _add("callable.wavy.camera.32x32",
-         lambda: (CallableField(wavy_sphere, lipschitz=1.25, name="reference.cases.wavy_sphere"), *_cam(32)),
-         ("camera",), "a user callable |x| − 1 + 0.05 sin(5x)sin(5y)sin(5z), Lipschitz bound 1.25",
+         lambda: (CallableField(wavy_sphere, lipschitz=1.25, name="reference.cases.wavy_sphere", smooth=True),
+                  *_cam(32)),
+         ("camera",), "a user callable |x| − 1 + 0.05 sin(5x)sin(5y)sin(5z), Lipschitz bound 1.25, declared "
+         "smooth (its normals and curvatures judged against jax's autodiff of it)",
          t_max=6.0)
 
 

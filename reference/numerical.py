@@ -292,15 +292,24 @@ class CallableField(Field):
     namespace ``xp``), shape ``x.shape[:-1]``, dtype ``x.dtype`` (another floating precision is
     converted).  Anything else — a scalar, a trailing axis of length 1, an integer or complex
     array, a numpy array for torch/jax points — and any exception ``fn`` raises become a
-    :class:`reference.scene.FieldError` (a ValueError) naming the field (:func:`check_field_output`)."""
+    :class:`reference.scene.FieldError` (a ValueError) naming the field (:func:`check_field_output`).
+
+    ``smooth=True`` states that φ is C² near its surface: the gradient methods (normals,
+    curvature) then run on it, judged against ∇φ and the Hessian of ``fn`` by jax's autodiff in
+    float64 (:mod:`reference.autodiff`, which checks that ``fn`` traces under ``jax.numpy`` with
+    numpy's values; where it does not, those rows are skipped with the reason).  The field has no
+    parameters θ, so the hit-depth derivatives dt/dθ have nothing to differentiate (skipped)."""
 
     kind = "callable"
     declares_lipschitz = True
 
     def __init__(self, fn: Callable[[Any, Any], Any], lipschitz: float | None = None, exact_sdf: bool = False,
-                 name: str | None = None, domain: str | None = None, bounds=None):
+                 name: str | None = None, domain: str | None = None, bounds=None, smooth: bool = False):
         if not callable(fn):
             raise ValueError(f"fn must be callable as fn(x, xp), got {type(fn).__name__}")
+        if not isinstance(smooth, (bool, np.bool_)):
+            raise ValueError(f"smooth must be True or False (whether φ is C² near its surface), got {smooth!r}")
+        self.smooth = bool(smooth)
         if lipschitz is not None and not (math.isfinite(float(lipschitz)) and float(lipschitz) > 0):
             raise ValueError(f"lipschitz must be a finite number > 0 or None, got {lipschitz!r}")
         self.fn, self.lipschitz, self.exact_sdf = fn, None if lipschitz is None else float(lipschitz), bool(exact_sdf)
@@ -323,8 +332,8 @@ class CallableField(Field):
     @property
     def info(self):
         return SceneInfo(exact_sdf=self.exact_sdf, lipschitz=self.lipschitz, distance_bound=self.exact_sdf,
-                         smooth=False, exact_hits=False, exact_normals=False, exact_curvature=False,
-                         exact_hit_param_grad=False, domain=self.domain)
+                         smooth=self.smooth, exact_hits=False, exact_normals=self.smooth,
+                         exact_curvature=self.smooth, exact_hit_param_grad=False, domain=self.domain)
 
     def spec(self):
         s = super().spec()
@@ -332,7 +341,30 @@ class CallableField(Field):
                        "fn": self.fn_digest}
         if self.bounds is not None:
             s["static"]["bounds"] = [self.bounds[0].tolist(), self.bounds[1]]
+        if self.smooth:  # (only when set: a field built before the flag keeps its content hash)
+            s["static"]["smooth"] = True
         return s
+
+    def _derivatives(self, x, hessian: bool):
+        if not self.smooth:
+            raise NotImplementedError(f"{field_label(self)} is not declared smooth (CallableField(..., smooth=True) "
+                                      "states that φ is C² near its surface)")
+        from .autodiff import derivatives
+
+        return derivatives(self.fn, _points(x), field_label(self), hessian=hessian)
+
+    def _jet(self, x):
+        """φ (float64 numpy), and ∇φ by jax's autodiff of ``fn`` (:mod:`reference.autodiff`); no θ."""
+        g, _ = self._derivatives(x, hessian=False)
+        return np.asarray(self.value(x), np.float64), g, np.zeros((x.shape[0], 0))
+
+    def curvatures_exact(self, x):
+        """Principal curvatures from ∇φ and the Hessian by jax's autodiff of ``fn``
+        (:func:`reference.curvature.principal_from_hessian`)."""
+        from .curvature import principal_from_hessian
+
+        g, h = self._derivatives(x, hessian=True)
+        return principal_from_hessian(g, h)
 
     def _eval(self, x, xp, cursor):
         # The user's function is the one place where φ can come back malformed: check it here (not

@@ -39,7 +39,8 @@ class MPNamespace:
     ``mpmath.mp.dps`` digits.  Only functions whose numpy version would not dispatch to mpf
     are replaced."""
 
-    _vec = {name: np.vectorize(getattr(mpmath, name), otypes=[object]) for name in ("sqrt", "exp", "log", "tanh", "log1p")}
+    _vec = {name: np.vectorize(getattr(mpmath, name), otypes=[object])
+            for name in ("sqrt", "exp", "log", "tanh", "log1p", "expm1", "sin", "cos", "tan", "atan")}
 
     def __getattr__(self, name):
         if name in self._vec:

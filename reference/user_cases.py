@@ -23,10 +23,12 @@ Example (``my_cases.py`` on the ``PYTHONPATH``)::
         return xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0 + 0.1 * xp.sin(4 * x[..., 0])
 
     o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), up=(0, 1, 0), fov_deg=40, width=16, height=16)
-    CASES = [Case(id="user.blob.camera", scene=CallableField(blob, lipschitz=1.4, name="my_cases.blob"),
+    CASES = [Case(id="user.blob.camera", scene=CallableField(blob, lipschitz=1.4, name="my_cases.blob", smooth=True),
                   origins=o, directions=d, t_min=0.0, t_max=6.0)]
 
-then ``python -m bench run --cases my_cases:CASES --case 'user.*'``.
+then ``python -m bench run --cases my_cases:CASES --case 'user.*'``.  ``smooth=True`` (the blob is
+C²) also runs the normal and curvature methods on it, judged against jax's autodiff of ``blob``
+(:mod:`reference.autodiff`).
 """
 
 from __future__ import annotations

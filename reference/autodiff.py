@@ -1,0 +1,127 @@
+"""Derivatives of a user's field by automatic differentiation, the reference for its normals and
+curvatures (:class:`reference.numerical.CallableField` with ``smooth=True``).
+
+A user's φ is code, not a formula: no closed form of ∇φ or of its Hessian exists to write down.
+Reverse-mode autodiff of the same code (jax, float64) gives the derivatives *of the computed
+expression*, each elementary operation differentiated exactly and rounded once: the result is
+the true derivative to a few ulps times the expression's condition, with no truncation error — a
+finite difference would trade a truncation error O(h²) against a rounding error O(ε/h) and is
+what the numpy backend itself is checked for.  jax is used (not torch) because its ``vmap`` of
+``hessian`` gives every point's 3×3 Hessian in one compiled program.
+
+What is checked, not trusted: the user's ``fn`` must trace under ``jax.numpy`` and give there the
+values it gives under numpy (a function that branches on its namespace, or calls numpy on the
+points, would otherwise be differentiated as another function); every derivative must be finite.
+A failure is a :class:`NotImplementedError` naming the fix, which a case turns into a skipped
+row with that reason (:class:`reference.cases.NoExactAnswer`).
+
+Accuracy (tests/test_reference_autodiff.py): against the closed forms of the sphere, ellipsoid and
+torus written as user functions, normals within 1e-14 rad and principal curvatures within
+1e-12 relative on points of their surfaces.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import numpy as np
+
+#: |φ_jax − φ_numpy| allowed at a point, relative to the terms' magnitude (|φ| + 1): the two
+#: libraries round sin, exp, sqrt … differently by a few ulps, not by more
+AGREE_RTOL = 1e-12
+
+#: points per compiled call (the Hessian's intermediates are a few dozen arrays of this length)
+CHUNK = 1 << 16
+
+
+def _jax():
+    try:
+        import jax
+        import jax.numpy as jnp
+    except ImportError as exc:  # the reference needs jax only for this
+        raise NotImplementedError(f"the derivatives of a user's field come from jax's autodiff, and jax is not "
+                                  f"installed ({exc}); pip install jax") from None
+    return jax, jnp
+
+
+def _build(fn: Callable[[Any, Any], Any]):
+    jax, jnp = _jax()
+
+    def scalar(p):  # one point (3,) → φ (), through the batch interface the user wrote fn for
+        return jnp.reshape(fn(p[None, :], jnp), (-1,))[0]
+
+    # φ and ∇φ in one program (one dispatch a call), the Hessian in another
+    return jax.jit(jax.vmap(jax.value_and_grad(scalar))), jax.jit(jax.vmap(jax.hessian(scalar)))
+
+
+@functools.lru_cache(maxsize=64)
+def _programs_cached(fn):
+    return _build(fn)
+
+
+def _programs(fn: Callable[[Any, Any], Any]):
+    """The jitted (values and gradients, Hessians) of ``fn``, one pair per function: the rendering
+    reference asks for ∇φ along its rays hundreds of times, and a fresh ``jax.jit`` would trace
+    and compile each call anew."""
+    try:
+        return _programs_cached(fn)
+    except TypeError:  # an unhashable callable object: built per call
+        return _build(fn)
+
+
+#: the smallest batch: the rendering reference's adaptive quadrature asks for ∇φ at a few
+#: points a call, thousands of times
+MIN_ROWS = 64
+
+
+def _rows(m: int) -> int:
+    """Rows a batch of ``m`` points runs as: the next power of two of at least :data:`MIN_ROWS`
+    (at most :data:`CHUNK`), so that the callers' many batch sizes share a few compiled shapes."""
+    return min(CHUNK, 1 << (max(m, MIN_ROWS) - 1).bit_length())
+
+
+def derivatives(fn: Callable[[Any, Any], Any], x: np.ndarray, label: str, hessian: bool = False):
+    """``(∇φ (n, 3), H (n, 3, 3) or None)`` of ``fn(x, xp)`` at points ``x`` (n, 3), float64, by
+    jax's reverse-mode autodiff; ``label`` names the field in errors.  Raises
+    NotImplementedError where jax is missing, ``fn`` does not trace under ``jax.numpy``, gives
+    other values there than under numpy, or has a non-finite derivative at a point."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    jax, _ = _jax()
+    value_and_grad, hessians = _programs(fn)
+    g_parts, h_parts, v_parts = [], [], []
+    with jax.enable_x64(True):
+        try:
+            for s in range(0, x.shape[0], CHUNK):
+                xc = x[s:s + CHUNK]
+                m = xc.shape[0]
+                # padding rows repeat the first point; their results are dropped
+                # (a float64 numpy array goes to the program as it is: jnp.asarray first costs
+                # ~100 µs a call, which the rendering reference pays tens of thousands of times)
+                xc = np.concatenate([xc, np.repeat(xc[:1], _rows(m) - m, axis=0)])
+                v, g = value_and_grad(xc)
+                v_parts.append(np.asarray(v, np.float64)[:m])
+                g_parts.append(np.asarray(g, np.float64)[:m])
+                if hessian:
+                    h_parts.append(np.asarray(hessians(xc), np.float64)[:m])
+        except Exception as exc:  # whatever the user's code raises under a tracer
+            raise NotImplementedError(
+                f"{label}: its derivatives come from jax's autodiff of fn(x, xp) with xp = jax.numpy, and that "
+                f"failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); compute with the namespace xp "
+                "fn is given, or build the case without smooth=True") from None
+    v = np.concatenate(v_parts) if v_parts else np.zeros(0)
+    g = np.concatenate(g_parts) if g_parts else np.zeros((0, 3))
+    h = (np.concatenate(h_parts) if h_parts else np.zeros((0, 3, 3))) if hessian else None
+    v_np = np.asarray(fn(x, np), np.float64).reshape(-1)
+    off = np.abs(v - v_np) > AGREE_RTOL * (np.abs(v_np) + 1.0)
+    if off.any():
+        i = int(np.argmax(off))
+        raise NotImplementedError(f"{label}: fn(x, xp) gives other values under jax.numpy than under numpy "
+                                  f"({v[i]!r} against {v_np[i]!r} at x = {x[i].tolist()}), so jax's derivatives "
+                                  "would be another function's; compute with the namespace xp fn is given")
+    bad = ~np.isfinite(g).all(axis=1) | (~np.isfinite(h).all(axis=(1, 2)) if hessian else False)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise NotImplementedError(f"{label}: its derivative is not finite at x = {x[i].tolist()} (declared "
+                                  "smooth=True: φ must be C² near its surface)")
+    return g, h
