@@ -45,29 +45,36 @@ def _jax():
     return jax, jnp
 
 
-def _build(fn: Callable[[Any, Any], Any]):
+def _build(fn: Callable[..., Any], with_theta: bool):
     jax, jnp = _jax()
 
-    def scalar(p):  # one point (3,) → φ (), through the batch interface the user wrote fn for
-        return jnp.reshape(fn(p[None, :], jnp), (-1,))[0]
+    def scalar(p, th):  # one point (3,) → φ (), through the batch interface the user wrote fn for
+        v = fn(p[None, :], jnp) if th is None else fn(p[None, :], jnp, th)
+        return jnp.reshape(v, (-1,))[0]
 
-    # φ and ∇φ in one program (one dispatch a call), the Hessian in another
-    return jax.jit(jax.vmap(jax.value_and_grad(scalar))), jax.jit(jax.vmap(jax.hessian(scalar)))
+    # φ, ∇φ (and ∂φ/∂θ) in one program (one dispatch a call), the Hessian in another
+    if with_theta:
+        first = jax.vmap(jax.value_and_grad(scalar, argnums=(0, 1)), in_axes=(0, None))
+    else:
+        first = jax.vmap(lambda p: jax.value_and_grad(scalar)(p, None))
+    hess = jax.vmap(jax.hessian(scalar), in_axes=(0, None)) if with_theta else jax.vmap(
+        lambda p: jax.hessian(scalar)(p, None))
+    return jax.jit(first), jax.jit(hess)
 
 
 @functools.lru_cache(maxsize=64)
-def _programs_cached(fn):
-    return _build(fn)
+def _programs_cached(fn, with_theta: bool):
+    return _build(fn, with_theta)
 
 
-def _programs(fn: Callable[[Any, Any], Any]):
-    """The jitted (values and gradients, Hessians) of ``fn``, one pair per function: the rendering
-    reference asks for ∇φ along its rays hundreds of times, and a fresh ``jax.jit`` would trace
-    and compile each call anew."""
+def _programs(fn: Callable[..., Any], with_theta: bool):
+    """The jitted (values and derivatives, Hessians) of ``fn``, one pair per function: the
+    rendering reference asks for ∇φ along its rays hundreds of times, and a fresh ``jax.jit``
+    would trace and compile each call anew."""
     try:
-        return _programs_cached(fn)
+        return _programs_cached(fn, with_theta)
     except TypeError:  # an unhashable callable object: built per call
-        return _build(fn)
+        return _build(fn, with_theta)
 
 
 #: the smallest batch: the rendering reference's adaptive quadrature asks for ∇φ at a few
@@ -81,38 +88,47 @@ def _rows(m: int) -> int:
     return min(CHUNK, 1 << (max(m, MIN_ROWS) - 1).bit_length())
 
 
-def derivatives(fn: Callable[[Any, Any], Any], x: np.ndarray, label: str, hessian: bool = False):
-    """``(∇φ (n, 3), H (n, 3, 3) or None)`` of ``fn(x, xp)`` at points ``x`` (n, 3), float64, by
-    jax's reverse-mode autodiff; ``label`` names the field in errors.  Raises
+def derivatives(fn: Callable[..., Any], x: np.ndarray, label: str, hessian: bool = False, theta=None):
+    """``(∇φ (n, 3), H (n, 3, 3) or None, ∂φ/∂θ (n, P) or None)`` of ``fn(x, xp)`` — or, with
+    ``theta`` (P,), of ``fn(x, xp, theta)`` — at points ``x`` (n, 3), float64, by jax's
+    reverse-mode autodiff (H: the Hessian in x); ``label`` names the field in errors.  Raises
     NotImplementedError where jax is missing, ``fn`` does not trace under ``jax.numpy``, gives
     other values there than under numpy, or has a non-finite derivative at a point."""
     x = np.ascontiguousarray(x, dtype=np.float64)
+    th = None if theta is None else np.ascontiguousarray(theta, dtype=np.float64)
     jax, _ = _jax()
-    value_and_grad, hessians = _programs(fn)
-    g_parts, h_parts, v_parts = [], [], []
+    first, hessians = _programs(fn, th is not None)
+    g_parts, h_parts, v_parts, t_parts = [], [], [], []
     with jax.enable_x64(True):
         try:
             for s in range(0, x.shape[0], CHUNK):
                 xc = x[s:s + CHUNK]
                 m = xc.shape[0]
-                # padding rows repeat the first point; their results are dropped
-                # (a float64 numpy array goes to the program as it is: jnp.asarray first costs
-                # ~100 µs a call, which the rendering reference pays tens of thousands of times)
+                # padding rows repeat the first point; their results are dropped (a float64 numpy
+                # array goes to the program as it is: jnp.asarray first costs ~100 µs a call,
+                # which the rendering reference pays tens of thousands of times)
                 xc = np.concatenate([xc, np.repeat(xc[:1], _rows(m) - m, axis=0)])
-                v, g = value_and_grad(xc)
+                if th is None:
+                    v, g = first(xc)
+                else:
+                    v, (g, dt) = first(xc, th)
+                    t_parts.append(np.asarray(dt, np.float64)[:m])
                 v_parts.append(np.asarray(v, np.float64)[:m])
                 g_parts.append(np.asarray(g, np.float64)[:m])
                 if hessian:
-                    h_parts.append(np.asarray(hessians(xc), np.float64)[:m])
+                    h = hessians(xc) if th is None else hessians(xc, th)
+                    h_parts.append(np.asarray(h, np.float64)[:m])
         except Exception as exc:  # whatever the user's code raises under a tracer
+            call = "fn(x, xp)" if th is None else "fn(x, xp, theta)"
             raise NotImplementedError(
-                f"{label}: its derivatives come from jax's autodiff of fn(x, xp) with xp = jax.numpy, and that "
+                f"{label}: its derivatives come from jax's autodiff of {call} with xp = jax.numpy, and that "
                 f"failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); compute with the namespace xp "
                 "fn is given, or build the case without smooth=True") from None
     v = np.concatenate(v_parts) if v_parts else np.zeros(0)
     g = np.concatenate(g_parts) if g_parts else np.zeros((0, 3))
     h = (np.concatenate(h_parts) if h_parts else np.zeros((0, 3, 3))) if hessian else None
-    v_np = np.asarray(fn(x, np), np.float64).reshape(-1)
+    dth = None if th is None else (np.concatenate(t_parts) if t_parts else np.zeros((0, th.size)))
+    v_np = np.asarray(fn(x, np) if th is None else fn(x, np, th), np.float64).reshape(-1)
     off = np.abs(v - v_np) > AGREE_RTOL * (np.abs(v_np) + 1.0)
     if off.any():
         i = int(np.argmax(off))
@@ -120,8 +136,10 @@ def derivatives(fn: Callable[[Any, Any], Any], x: np.ndarray, label: str, hessia
                                   f"({v[i]!r} against {v_np[i]!r} at x = {x[i].tolist()}), so jax's derivatives "
                                   "would be another function's; compute with the namespace xp fn is given")
     bad = ~np.isfinite(g).all(axis=1) | (~np.isfinite(h).all(axis=(1, 2)) if hessian else False)
+    if dth is not None:
+        bad = bad | ~np.isfinite(dth).all(axis=1)
     if np.any(bad):
         i = int(np.argmax(bad))
         raise NotImplementedError(f"{label}: its derivative is not finite at x = {x[i].tolist()} (declared "
                                   "smooth=True: φ must be C² near its surface)")
-    return g, h
+    return g, h, dth

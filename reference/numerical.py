@@ -37,6 +37,7 @@ the result is then *not* certified (stated, never hidden).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from typing import Any, Callable
@@ -297,16 +298,33 @@ class CallableField(Field):
     ``smooth=True`` states that φ is C² near its surface: the gradient methods (normals,
     curvature) then run on it, judged against ∇φ and the Hessian of ``fn`` by jax's autodiff in
     float64 (:mod:`reference.autodiff`, which checks that ``fn`` traces under ``jax.numpy`` with
-    numpy's values; where it does not, those rows are skipped with the reason).  The field has no
-    parameters θ, so the hit-depth derivatives dt/dθ have nothing to differentiate (skipped)."""
+    numpy's values; where it does not, those rows are skipped with the reason).
+
+    ``params`` (a 1-D sequence of P finite numbers, or None) makes θ the field's parameters:
+    ``fn`` is then called ``fn(x, xp, theta)`` with ``theta`` an array of ``x``'s library of
+    shape (P,), the hit-depth derivatives dt/dθ (``dt_*`` methods) differentiate through it, and,
+    with ``smooth=True``, are judged against −(∂φ/∂θ)/⟨∇φ, d⟩ by the same autodiff.  Without
+    ``params`` the field has no θ and the ``dt_*`` rows are skipped."""
 
     kind = "callable"
     declares_lipschitz = True
 
     def __init__(self, fn: Callable[[Any, Any], Any], lipschitz: float | None = None, exact_sdf: bool = False,
-                 name: str | None = None, domain: str | None = None, bounds=None, smooth: bool = False):
+                 name: str | None = None, domain: str | None = None, bounds=None, smooth: bool = False,
+                 params=None):
         if not callable(fn):
             raise ValueError(f"fn must be callable as fn(x, xp), got {type(fn).__name__}")
+        self.params = None
+        if params is not None:
+            try:
+                th = np.array(params, dtype=np.float64)
+            except (TypeError, ValueError):
+                th = None
+            if th is None or th.ndim != 1 or th.size == 0 or not np.all(np.isfinite(th)):
+                raise ValueError(f"params must be a 1-D sequence of finite numbers (θ, passed to fn(x, xp, theta)) "
+                                 f"or None; got {params!r}")
+            th.setflags(write=False)
+            self.params = th
         if not isinstance(smooth, (bool, np.bool_)):
             raise ValueError(f"smooth must be True or False (whether φ is C² near its surface), got {smooth!r}")
         self.smooth = bool(smooth)
@@ -326,6 +344,9 @@ class CallableField(Field):
                 raise ValueError(f"bounds must be (centre: 3 finite numbers, radius > 0); got {bounds!r}")
             self.bounds = (c, r)
 
+    def own_params(self):
+        return {} if self.params is None else {"params": self.params}
+
     def bounding_sphere(self):
         return self.bounds
 
@@ -333,7 +354,8 @@ class CallableField(Field):
     def info(self):
         return SceneInfo(exact_sdf=self.exact_sdf, lipschitz=self.lipschitz, distance_bound=self.exact_sdf,
                          smooth=self.smooth, exact_hits=False, exact_normals=self.smooth,
-                         exact_curvature=self.smooth, exact_hit_param_grad=False, domain=self.domain)
+                         exact_curvature=self.smooth, exact_hit_param_grad=self.smooth and self.params is not None,
+                         domain=self.domain)
 
     def spec(self):
         s = super().spec()
@@ -351,19 +373,19 @@ class CallableField(Field):
                                       "states that φ is C² near its surface)")
         from .autodiff import derivatives
 
-        return derivatives(self.fn, _points(x), field_label(self), hessian=hessian)
+        return derivatives(self.fn, _points(x), field_label(self), hessian=hessian, theta=self.params)
 
     def _jet(self, x):
-        """φ (float64 numpy), and ∇φ by jax's autodiff of ``fn`` (:mod:`reference.autodiff`); no θ."""
-        g, _ = self._derivatives(x, hessian=False)
-        return np.asarray(self.value(x), np.float64), g, np.zeros((x.shape[0], 0))
+        """φ (float64 numpy), and ∇φ and ∂φ/∂θ by jax's autodiff of ``fn`` (:mod:`reference.autodiff`)."""
+        g, _, dtheta = self._derivatives(x, hessian=False)
+        return np.asarray(self.value(x), np.float64), g, np.zeros((x.shape[0], 0)) if dtheta is None else dtheta
 
     def curvatures_exact(self, x):
         """Principal curvatures from ∇φ and the Hessian by jax's autodiff of ``fn``
         (:func:`reference.curvature.principal_from_hessian`)."""
         from .curvature import principal_from_hessian
 
-        g, h = self._derivatives(x, hessian=True)
+        g, h, _ = self._derivatives(x, hessian=True)
         return principal_from_hessian(g, h)
 
     def _eval(self, x, xp, cursor):
@@ -371,17 +393,24 @@ class CallableField(Field):
         # only in Field.value) so that a CallableField inside CSG or a transform is checked too, and
         # name the field when the function raises (else the error points into a root finder).
         try:
-            out = self.fn(x, xp)
+            out = self.fn(x, xp) if self.params is None else self.fn(x, xp, cursor.take(self.params))
         except FieldError:
             raise
         except Exception as exc:
-            raise FieldError(f"{field_label(self)} raised {type(exc).__name__}: {exc} (evaluating fn(x, xp) at "
+            call = "fn(x, xp)" if self.params is None else "fn(x, xp, theta)"
+            raise FieldError(f"{field_label(self)} raised {type(exc).__name__}: {exc} (evaluating {call} at "
                              f"points x of shape {tuple(getattr(x, 'shape', ()))}, {type(x).__module__.split('.')[0]} "
                              f"arrays; compute with the namespace xp it is given)") from exc
         return check_field_output(self, x, out, xp)
 
     def _rebuild(self, own, children):
-        return self
+        if self.params is None:
+            return self
+        new = copy.copy(self)  # the same function and declarations (a subclass stays itself), another θ
+        th = np.array(own["params"], dtype=np.float64).reshape(self.params.shape)
+        th.setflags(write=False)
+        new.params = th
+        return new
 
     def first_hit(self, o, d, t_min: float = 0.0, t_max: float = 1e3):
         return first_hit_numeric(self, o, d, t_min, t_max)[0]

@@ -28,7 +28,8 @@ Example (``my_cases.py`` on the ``PYTHONPATH``)::
 
 then ``python -m bench run --cases my_cases:CASES --case 'user.*'``.  ``smooth=True`` (the blob is
 C²) also runs the normal and curvature methods on it, judged against jax's autodiff of ``blob``
-(:mod:`reference.autodiff`).
+(:mod:`reference.autodiff`); with ``params=(1.0, 0.1)`` and ``blob(x, xp, theta)`` using
+``theta[0]`` and ``theta[1]`` for the radius and the ripple, the dt/dθ methods too.
 """
 
 from __future__ import annotations

@@ -96,6 +96,46 @@ def test_the_field_states_what_it_declares():
         CallableField(_sphere, smooth="yes")
 
 
+def _torus_theta(x, xp, theta):  # the torus with θ = (R, r), as the library's Torus orders it
+    q = xp.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2) - theta[0]
+    return xp.sqrt(q * q + x[..., 2] ** 2) - theta[1]
+
+
+def test_a_parametrised_field_differentiates_its_hits_through_theta():
+    """``params`` = θ: dt/dθ = −(∂φ/∂θ)/⟨∇φ, d⟩ by autodiff against the torus's closed form
+    (within 1e-12 of the largest |dt/dθ|), θ in ``param_vector`` order, ``with_params`` a field
+    of another θ (the finite-difference methods' way), and torch's autograd reaching θ."""
+    user = CallableField(_torus_theta, lipschitz=1.0, name="torus(θ)", smooth=True, params=(1.0, 0.25))
+    exact = Torus(major=1.0, minor=0.25)
+    assert user.info.exact_hit_param_grad and np.array_equal(user.param_vector(), exact.param_vector())
+    assert user.param_names() == ["0.callable.params[0]", "0.callable.params[1]"]
+    rng = np.random.default_rng(3)
+    o = rng.normal(size=(3000, 3))
+    o = 4.0 * o / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.uniform(-0.5, 0.5, o.shape) - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = exact.first_hit(o, d, 0.0)
+    assert np.isfinite(t).sum() > 1000
+    got, want = user.hit_param_grad(o, d, t), exact.hit_param_grad(o, d, t)
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.nanmax(np.abs(got - want)) < 1e-12 * np.nanmax(np.abs(want))
+    other = user.with_params(np.array([1.0, 0.3]))
+    assert type(other) is CallableField and other.params.tolist() == [1.0, 0.3] and user.params.tolist() == [1.0, 0.25]
+    x = np.array([[1.3, 0.0, 0.0]])
+    assert other.value(x)[0] == pytest.approx(0.0) and user.value(x)[0] == pytest.approx(0.05)
+    assert other.spec() != user.spec()
+    torch = pytest.importorskip("torch")
+    theta = torch.tensor([1.0, 0.25], dtype=torch.float64, requires_grad=True)
+    user.value(torch.tensor(x), torch, theta).sum().backward()
+    assert theta.grad.tolist() == pytest.approx([-1.0, -1.0])
+
+
+@pytest.mark.parametrize("params", [[], [[1.0]], ["a"], [np.inf], 3.0])
+def test_bad_params_are_refused_naming_the_argument(params):
+    with pytest.raises(ValueError, match="params must be a 1-D sequence of finite numbers"):
+        CallableField(_torus_theta, params=params)
+
+
 def _numpy_only(x, xp):  # ignores xp: under jax its values are numpy's, its derivatives none
     return np.sqrt(np.sum(np.asarray(x) ** 2, axis=-1)) - 0.7
 
@@ -121,21 +161,23 @@ def test_a_field_whose_code_cannot_give_its_derivatives_is_refused_with_the_reas
 SMOOTH_USER_MODULE = textwrap.dedent("""
     from reference import Case, CallableField, rays
 
-    def bumpy(x, xp):
+    def bumpy(x, xp, theta):
         r = xp.sqrt(xp.sum(x * x, axis=-1))
-        return r - 0.8 + 0.05 * xp.sin(10 * x[..., 0] + 0.3) * xp.sin(10 * x[..., 1] + 1.1) * xp.sin(10 * x[..., 2])
+        bump = xp.sin(10 * x[..., 0] + 0.3) * xp.sin(10 * x[..., 1] + 1.1) * xp.sin(10 * x[..., 2])
+        return r - theta[0] + theta[1] * bump
 
     o, d = rays.pinhole(eye=(0.4, 0.5, 2.5), look_at=(0, 0, 0), up=(0, 1, 0), fov_deg=40, width=16, height=16)
-    field = CallableField(bumpy, lipschitz=1.0 + 0.5 * 3 ** 0.5, name="isobench_smooth_user.bumpy", smooth=True)
+    field = CallableField(bumpy, lipschitz=1.0 + 0.5 * 3 ** 0.5, name="isobench_smooth_user.bumpy", smooth=True,
+                          params=(0.8, 0.05))
     CASES = [Case(id="user.bumpy.camera", scene=field, origins=o, directions=d, t_min=0.0, t_max=6.0)]
 """)
 
 
 @pytest.mark.slow  # a bench run in a subprocess, compiling jax's kernels
 def test_a_smooth_user_case_gets_gradient_rows_judged_against_autodiff(tmp_path):
-    """A user's case in a run: normals and curvature on numpy, torch and jax, each judged against
-    the autodiff reference (numpy's central differences to ~1e-6, the autodiff backends to ~1e-12);
-    the dt/dθ rows are skipped with the reason."""
+    """A user's parametrised case in a run: normals, curvature and dt/dθ on numpy, torch and jax,
+    each judged against the autodiff reference (numpy's central differences to ~1e-6, the
+    autodiff backends to ~1e-12)."""
     (tmp_path / "isobench_smooth_user.py").write_text(SMOOTH_USER_MODULE)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
     out = tmp_path / "run"
@@ -152,6 +194,6 @@ def test_a_smooth_user_case_gets_gradient_rows_judged_against_autodiff(tmp_path)
         assert got[b, "normal", "normal_angle"] < 1e-12, (b, got[b, "normal", "normal_angle"])
         curv = [q for (bb, m, q) in got.index if bb == b and m == "curvature"]
         assert curv and max(got[b, "curvature", q] for q in curv) < 1e-9, got[b].to_string()
-    dt = df[df.method == "dt_implicit"]
-    skipped_for_no_dt = dt.reason.str.contains("exact_hit_param_grad=False")
-    assert len(dt) and (dt.outcome == "skipped").all() and skipped_for_no_dt.all(), dt.reason.tolist()
+    assert got["numpy", "dt_implicit", "dt_dtheta"] < 1e-5
+    for b in ran - {"numpy"}:
+        assert got[b, "dt_implicit", "dt_dtheta"] < 1e-10, (b, got[b, "dt_implicit", "dt_dtheta"])
