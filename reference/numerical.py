@@ -345,7 +345,8 @@ class CallableField(Field):
             self.bounds = (c, r)
 
     def own_params(self):
-        return {} if self.params is None else {"params": self.params}
+        # (a copy: θ is kept read-only, and torch warns on every tensor made from a read-only array)
+        return {} if self.params is None else {"params": self.params.copy()}
 
     def bounding_sphere(self):
         return self.bounds
@@ -393,7 +394,7 @@ class CallableField(Field):
         # only in Field.value) so that a CallableField inside CSG or a transform is checked too, and
         # name the field when the function raises (else the error points into a root finder).
         try:
-            out = self.fn(x, xp) if self.params is None else self.fn(x, xp, cursor.take(self.params))
+            out = self.fn(x, xp) if self.params is None else self.fn(x, xp, cursor.take(self.params.copy()))
         except FieldError:
             raise
         except Exception as exc:
