@@ -136,6 +136,18 @@ def test_bad_params_are_refused_naming_the_argument(params):
         CallableField(_torus_theta, params=params)
 
 
+def test_a_field_without_theta_says_how_to_give_it_one():
+    from bench.run.metrics import family_skip_reason
+    from impls.methods import METHODS
+    from reference import Case, rays
+
+    o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), fov_deg=30, width=4, height=4)
+    case = Case(id="user.plain.camera", scene=CallableField(_sphere, lipschitz=1.0, name="plain", smooth=True),
+                origins=o, directions=d, t_min=0.0, t_max=6.0)
+    assert "params=θ" in family_skip_reason(METHODS["dt_implicit"], case)
+    assert family_skip_reason(METHODS["normal"], case) is None
+
+
 def _numpy_only(x, xp):  # ignores xp: under jax its values are numpy's, its derivatives none
     return np.sqrt(np.sum(np.asarray(x) ** 2, axis=-1)) - 0.7
 
