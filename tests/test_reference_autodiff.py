@@ -157,17 +157,28 @@ def _branches(x, xp):  # another function under jax than under numpy
     return r - (0.7 if xp is np else 0.6)
 
 
-def _kinked(x, xp):  # |x₀| − 0.5: its derivative is not finite where the user says it is C²… at x₀ = 0
-    return xp.sqrt(x[..., 0] ** 2) - 0.5
+def _kinked(x, xp):  # |x₀| + x₁ − 0.5, declared C²: its derivative is not finite on its surface at x₀ = 0
+    return xp.sqrt(x[..., 0] ** 2) + x[..., 1] - 0.5
 
 
 @pytest.mark.parametrize("fn, match", [(_numpy_only, "jax's autodiff"), (_branches, "other values under jax"),
                                        (_kinked, "not finite")])
 def test_a_field_whose_code_cannot_give_its_derivatives_is_refused_with_the_reason(fn, match):
     field = CallableField(fn, name="user field", smooth=True)
-    x = np.array([[0.7, 0.0, 0.0], [0.0, 0.0, 0.0]]) if fn is _kinked else np.array([[0.7, 0.0, 0.0]])
+    x = np.array([[0.7, 0.0, 0.0], [0.0, 0.5, 0.0]]) if fn is _kinked else np.array([[0.7, 0.0, 0.0]])
     with pytest.raises(NotImplementedError, match=match):
         field.normal_exact(x)
+
+
+def test_a_singular_point_off_the_surface_is_left_nan_as_the_closed_forms_leave_it():
+    """|x| − 0.7 at its centre (which the rendering reference's samples reach on a ray through it):
+    no error, NaN there as the closed-form sphere's jet gives, finite elsewhere."""
+    field = CallableField(_sphere, lipschitz=1.0, name="sphere", smooth=True)
+    _, g, _ = field.jet(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.7]]))
+    with np.errstate(invalid="ignore"):  # (the closed form divides 0 by 0 there)
+        _, g_exact, _ = Sphere(radius=0.7).jet(np.array([[0.0, 0.0, 0.0]]))
+    assert np.isnan(g[0]).all() and np.isnan(g_exact[0]).all()
+    assert g[1].tolist() == [0.0, 0.0, 1.0]
 
 
 SMOOTH_USER_MODULE = textwrap.dedent("""
