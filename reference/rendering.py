@@ -263,9 +263,9 @@ def render_exact(scene: Field, color, model: str, sharpness: float, o, d, t_min:
     cross = _crossings(scene, o, d, t_min, t_max)
     try:  # (the first of the NeuS density's reads of ∂φ/∂t, the field's jet: say so before any quadrature)
         kinks = _slope_sign_changes(scene, o, d, t_min, t_max) if model == "neus" else [()] * n
-    except NotImplementedError:
-        raise ValueError(f"the NeuS density max(−(d/dt)Φ(φ)/Φ(φ), 0) needs ∂φ/∂t in closed form (Field.jet), "
-                         f"which {type(scene).__name__} does not give") from None
+    except NotImplementedError as exc:
+        raise ValueError(f"the NeuS density max(−(d/dt)Φ(φ)/Φ(φ), 0) needs ∂φ/∂t (Field.jet), which "
+                         f"{type(scene).__name__} does not give: {exc}") from None
     breaks = []
     for c, kk in zip(cross, kinks):
         b = [t_min, t_max, *kk] + [t + k / s * sgn for t in c for k in (0.0, 1.0, 4.0, 16.0) for sgn in (-1.0, 1.0)]

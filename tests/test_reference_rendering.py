@@ -183,8 +183,8 @@ def test_bad_inputs_are_named():
 
 
 def test_neus_on_a_field_without_a_jet_is_a_named_error_that_bench_records_as_a_skip():
-    """NeuS's density reads ∂φ/∂t, which a user's ``CallableField`` does not give in closed form:
-    ``render_exact`` says so (a ValueError naming the jet) instead of a NotImplementedError from
+    """NeuS's density reads ∂φ/∂t, which a user's ``CallableField`` not declared smooth does not give:
+    ``render_exact`` says so (a ValueError naming the jet and the fix) instead of a NotImplementedError from
     inside the quadrature, and bench records the integral as a quantity it could not check (the
     configuration's ``color_vs_surface`` is still measured), not as a failed configuration."""
     from bench.run.references import NotApplicable, ReferenceOptions, exact_color
@@ -193,7 +193,7 @@ def test_neus_on_a_field_without_a_jet_is_a_named_error_that_bench_records_as_a_
     from reference.cases import Case
 
     field = CallableField(lambda x, xp: xp.sqrt(xp.sum(x * x, axis=-1)) - 0.5, lipschitz=1.0, name="tests.ball")
-    with pytest.raises(ValueError, match="jet"):
+    with pytest.raises(ValueError, match=r"jet.*smooth=True"):
         R.render_exact(field, ConstColor(), "neus", 10.0, RAYS_O, RAYS_D, 0.0, 1.0)
     R.render_exact(field, ConstColor(), "nerf", 10.0, RAYS_O[:2], RAYS_D[:2], 0.0, 1.0)  # φ alone: computed
     o, d = rays.pinhole(eye=(0.0, 0.0, 2.0), look_at=(0.0, 0.0, 0.0), fov_deg=30.0, width=2, height=2)
