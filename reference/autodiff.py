@@ -94,10 +94,12 @@ def _rows(m: int) -> int:
     return min(CHUNK, 1 << (max(m, MIN_ROWS) - 1).bit_length())
 
 
-def derivatives(fn: Callable[..., Any], x: np.ndarray, label: str, hessian: bool = False, theta=None):
+def derivatives(fn: Callable[..., Any], x: np.ndarray, phi: np.ndarray, label: str, hessian: bool = False,
+                theta=None):
     """``(∇φ (n, 3), H (n, 3, 3) or None, ∂φ/∂θ (n, P) or None)`` of ``fn(x, xp)`` — or, with
     ``theta`` (P,), of ``fn(x, xp, theta)`` — at points ``x`` (n, 3), float64, by jax's
-    reverse-mode autodiff (H: the Hessian in x); ``label`` names the field in errors.  Raises
+    reverse-mode autodiff (H: the Hessian in x); ``phi`` (n,) is φ there as numpy computes it (the
+    caller's checked evaluation, which jax's values must match); ``label`` names the field in errors.  Raises
     NotImplementedError where jax is missing, ``fn`` does not trace under ``jax.numpy``, gives
     other values there than under numpy, or has a non-finite derivative at a point."""
     x = np.ascontiguousarray(x, dtype=np.float64)
@@ -134,7 +136,7 @@ def derivatives(fn: Callable[..., Any], x: np.ndarray, label: str, hessian: bool
     g = np.concatenate(g_parts) if g_parts else np.zeros((0, 3))
     h = (np.concatenate(h_parts) if h_parts else np.zeros((0, 3, 3))) if hessian else None
     dth = None if th is None else (np.concatenate(t_parts) if t_parts else np.zeros((0, th.size)))
-    v_np = np.asarray(fn(x, np) if th is None else fn(x, np, th), np.float64).reshape(-1)
+    v_np = np.asarray(phi, np.float64).reshape(-1)
     off = np.abs(v - v_np) > AGREE_RTOL * (np.abs(v_np) + 1.0)
     if off.any():
         i = int(np.argmax(off))

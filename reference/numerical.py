@@ -369,24 +369,28 @@ class CallableField(Field):
         return s
 
     def _derivatives(self, x, hessian: bool):
+        """``(φ, ∇φ, H or None, ∂φ/∂θ or None)`` at points ``x``: φ by ``value`` (numpy, checked),
+        the derivatives by jax's autodiff of ``fn`` (:func:`reference.autodiff.derivatives`)."""
         if not self.smooth:
             raise NotImplementedError(f"{field_label(self)} is not declared smooth (CallableField(..., smooth=True) "
                                       "states that φ is C² near its surface)")
         from .autodiff import derivatives
 
-        return derivatives(self.fn, _points(x), field_label(self), hessian=hessian, theta=self.params)
+        x = _points(x)
+        phi = np.asarray(self.value(x), np.float64)
+        return (phi, *derivatives(self.fn, x, phi, field_label(self), hessian=hessian, theta=self.params))
 
     def _jet(self, x):
         """φ (float64 numpy), and ∇φ and ∂φ/∂θ by jax's autodiff of ``fn`` (:mod:`reference.autodiff`)."""
-        g, _, dtheta = self._derivatives(x, hessian=False)
-        return np.asarray(self.value(x), np.float64), g, np.zeros((x.shape[0], 0)) if dtheta is None else dtheta
+        phi, g, _, dtheta = self._derivatives(x, hessian=False)
+        return phi, g, np.zeros((x.shape[0], 0)) if dtheta is None else dtheta
 
     def curvatures_exact(self, x):
         """Principal curvatures from ∇φ and the Hessian by jax's autodiff of ``fn``
         (:func:`reference.curvature.principal_from_hessian`)."""
         from .curvature import principal_from_hessian
 
-        g, h, _ = self._derivatives(x, hessian=True)
+        _, g, h, _ = self._derivatives(x, hessian=True)
         return principal_from_hessian(g, h)
 
     def _eval(self, x, xp, cursor):

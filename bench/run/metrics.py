@@ -370,12 +370,12 @@ def family_skip_reason(spec, case) -> str | None:
     if spec.needs_t_hit and not np.isfinite(np.asarray(exact_t)).any():
         return f"{spec.name} evaluates at exact hits and no ray of {case.id} hits"
     if spec.family in ("gradient", "param_grad") and spec.outputs:
-        # nothing runs that cannot be checked: every output needs an answer the scene lacks
-        missing = [o for o in spec.outputs if _known_absent(case, o)]
         user_field = getattr(case.scene, "kind", None) == "callable"
         if spec.family == "param_grad" and user_field and getattr(case.scene, "params", None) is None:
             return (f"{case.id}'s field has no parameters θ to differentiate its hits by (a user's field takes them "
                     "as CallableField(fn, ..., params=θ), called fn(x, xp, theta))")
+        # nothing runs that cannot be checked: every output needs an answer the scene lacks
+        missing = [o for o in spec.outputs if _known_absent(case, o)]
         if len(missing) == len(spec.outputs):
             return (f"{case.id} has no exact answer for {', '.join(missing)} "
                     f"(scene states {', '.join(sorted({_INFO_FLAG[o][1] + '=False' for o in missing}))})")
