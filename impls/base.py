@@ -98,6 +98,16 @@ def check_color(method: str, color: Any) -> Any:
     return color if isinstance(color, (SineColor, CheckedColor)) else CheckedColor(color)
 
 
+def _join_rows(xp: Any, parts: list) -> Any:
+    """Blocks' outputs (arrays, or tuples or dicts of them) joined along their first axis."""
+    first = parts[0]
+    if isinstance(first, dict):
+        return {k: xp.concat([p[k] for p in parts]) for k in first}
+    if isinstance(first, tuple):
+        return tuple(xp.concat([p[i] for p in parts]) for i in range(len(first)))
+    return xp.concat(parts)
+
+
 class ArrayBackend:
     """One array library's hooks; everything else is shared (validation, ``prepare``, the method
     table :data:`impls.core.table.METHOD_TABLE`, built once from the catalog).
@@ -116,7 +126,8 @@ class ArrayBackend:
       run to completion on every ray, with ``settings``;
     * ``stop_gradient`` (``None``: no autodiff, ``render_surface`` is ρ at the hit itself),
       ``compact`` (volume rendering drops terminated rays), ``fori_loop`` (the unrolled tracer's
-      loop, ``lax.fori_loop`` semantics).
+      loop, ``lax.fori_loop`` semantics), ``map_rays`` (a function over blocks of rays: the default
+      loops over them, which any array library can run; jax maps them inside its kernel).
 
     ``cost`` counts φ evaluations per point or ray (autodiff: 1; central differences: more).
     """
@@ -186,6 +197,19 @@ class ArrayBackend:
 
     def run_loop(self, alg: Any, o: Any, d: Any, ev: Callable) -> dict:  # pragma: no cover
         raise NotImplementedError
+
+    def map_rays(self, fn: Callable, arrays: tuple, rows: int) -> Any:
+        """``fn(*arrays)`` computed on blocks of at most ``rows`` rays and joined: ``arrays`` have
+        rays first (``None`` passes as is), ``fn``'s output is an array, or a tuple or dict of
+        arrays, with rays first, each ray's row computed from that ray's rows alone (so the
+        blocks give the rows the whole batch gives).  It bounds a method's memory
+        (:data:`impls.core.rendering.BLOCK_SAMPLES`).  Eager backends loop over the blocks; jax maps
+        them with ``lax.map`` inside its kernel."""
+        n = next(a.shape[0] for a in arrays if a is not None)
+        if n <= rows:
+            return fn(*arrays)
+        parts = [fn(*(None if a is None else a[i:i + rows] for a in arrays)) for i in range(0, n, rows)]
+        return _join_rows(self.xp, parts)
 
     def synchronize(self, out: Any = None) -> None:
         """Block until device work (of ``out``, or all queued work) is done."""

@@ -418,6 +418,22 @@ class JaxBackend(ArrayBackend):
             return kept[0], {k: knobs[k] for k in names}, spent + time.perf_counter() - t0
         raise AssertionError("unreachable: the last set of traced knobs is empty")  # pragma: no cover
 
+    def map_rays(self, fn, arrays, rows):
+        """:meth:`impls.base.ArrayBackend.map_rays` inside a kernel: the rays (padded with copies of
+        the first up to a multiple of ``rows``) as ``lax.map`` over blocks of ``rows``, one block's
+        arrays live at a time; a batch of at most ``rows`` rays is ``fn`` itself (the same program
+        as without blocks)."""
+        n = next(a.shape[0] for a in arrays if a is not None)
+        if n <= rows:
+            return fn(*arrays)
+        k = -(-n // rows)
+
+        def split(a):
+            return None if a is None else driver.pad_rows(a, k * rows).reshape((k, rows) + a.shape[1:])
+
+        out = lax.map(lambda xs: fn(*xs), tuple(split(a) for a in arrays))
+        return jax.tree_util.tree_map(lambda a: a.reshape((k * rows,) + a.shape[2:])[:n], out)
+
     def untimed_settings(self) -> dict:
         """Driver settings for a run that times nothing (the stability stage, ``--accuracy-only``;
         :func:`bench.run.environment.untimed_backend`): one compaction level per chunk
