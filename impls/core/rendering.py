@@ -25,6 +25,9 @@ uniform samples, their weights (+1e-5, as NeRF) as a piecewise-constant pdf, N m
 inverse CDF at u_k = (k + ½)/N, then all N + n_coarse composited, sorted, with bin edges
 halfway between neighbours).
 
+Rays are shaded in blocks of at most :data:`BLOCK_SAMPLES` samples (memory); a ray's outputs do
+not depend on its block.
+
 Early termination: samples are processed in blocks of ``BLOCK``; a sample contributes only
 while T_i ≥ ``t_threshold``, and a ray whose T fell below it takes no further blocks.  numpy
 and torch then evaluate nothing more for that ray (``samples_used`` counts the samples
@@ -56,11 +59,10 @@ from .rootfind import BAD, CONV, MISS, NONF, _device, bad_rays
 
 BLOCK = 16
 
-#: samples in one block of rays: a volume renderer's intermediates are (rays × samples) arrays, a
-#: neural field's hidden layers ~1 KB per sample, so its rays are shaded in blocks of at most this
-#: many samples (:meth:`impls.base.ArrayBackend.map_rays`), as the root finders' compacting driver
-#: blocks its rays.  Unblocked, the importance sampler on 256² rays of the 4,481-weight neural SDF
-#: took 5.4 GB (numpy), 6.6 GB (jax), and 1024² rays would take 16 times that.
+#: samples in one block of rays: a volume renderer's intermediates are (rays × samples) arrays (a
+#: neural field's hidden layers: ~1 KB per sample), so its rays are shaded in blocks of at most
+#: this many samples (:meth:`impls.base.ArrayBackend.map_rays`), as the root finders' compacting
+#: driver blocks its rays: the memory is a block's, not the camera's (figures: docs/methods.md)
 BLOCK_SAMPLES = 1 << 20
 
 

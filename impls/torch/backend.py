@@ -161,9 +161,9 @@ class TorchBackend(ArrayBackend):
         """Nothing to compile (eager); the call runs under ``torch.no_grad()``: ``prepare``'s outputs
         go to numpy (``Prepared.result``), so no autograd graph is needed, and where grad mode was
         on (torch's default) the dφ/dt of ``dt_finite_diff``'s Newton re-solves kept theirs
-        (``create_graph``, :func:`impls.torch.derivatives.ray_eval`), chained through the iterates:
-        1.5 GB at 512² rays on the torus.  Differentiating a method's output in θ stays with its
-        function called directly (e.g. ``render_surface``)."""
+        (``create_graph``, :func:`impls.torch.derivatives.ray_eval`), chained through the iterates
+        (memory growing with the rays: CHANGELOG).  Differentiating a method's output in θ stays
+        with its function called directly (e.g. ``render_surface``)."""
 
         def run(*args):
             with torch.no_grad():
