@@ -61,7 +61,7 @@ def _render(backend, method, o, d, t_hit, **knobs):
 
 @pytest.mark.parametrize("method", VOLUME)
 def test_a_rays_outputs_do_not_depend_on_its_block(backend, method, monkeypatch):
-    """Blocks of 4–8 and of 64 rays against one block of all 400 (early termination on, so that the
+    """Blocks of 1–8 and of 16–64 rays against one block of all 400 (early termination on, so that the
     eager backends' compaction runs inside blocks, and band rays without a hit): every output equal
     (jax: to 1e-12, its rounding, below)."""
     require_method(backend, method)
@@ -75,7 +75,9 @@ def test_a_rays_outputs_do_not_depend_on_its_block(backend, method, monkeypatch)
     if method.endswith("importance"):
         knobs["n_coarse"] = 16
     whole = _render(backend, method, o, d, t_hit, **knobs)
-    for block in (8 * 24, 100 * 24):  # blocks of 4–8 rays (a power of two), of 64
+    # blocks of 8 (uniform, stratified, band), 2 (NeuS: φ at the edges too) or 1 ray (importance),
+    # then of 64, 32 or 16 rays
+    for block in (8 * 24, 100 * 24):
         monkeypatch.setattr(rendering, "BLOCK_SAMPLES", block)
         blocked = _render(backend, method, o, d, t_hit, **knobs)
         for k, v in whole.items():
