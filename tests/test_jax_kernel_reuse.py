@@ -295,3 +295,38 @@ def test_volume_renderers_share_a_sampler_kernel_and_a_shading_kernel_with_the_f
             np.testing.assert_array_equal(a[~finite], w[~finite], err_msg=f"{m} {k}")
             np.testing.assert_array_max_ulp(a[finite], w[finite], maxulp=4)  # 3 measured (neus, band)
     assert sorted(k[0] for k in fused._kernels) == sorted(methods)
+
+
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("fused", [False, True], ids=["sampler-kernel", "fused-kernel"])
+def test_stratified_offsets_are_an_input_of_the_kernel_not_constants_of_it(fused, monkeypatch):
+    """The stratified sampler's offsets (numpy's PCG64 draws, rays × samples floats) enter the
+    jax kernel as an input drawn at every call, not as constants compiled into it: the seeds
+    share one kernel (constants made a kernel per seed, 134 MB of constants each at 512² rays ×
+    64 samples), and each seed gives numpy's colours, on the sampler kernel of the CPU and on the
+    one fused kernel of a GPU.  100 rays: the kernel runs 128 rows, the padding rows' draws too."""
+    from impls.core.table import METHOD_TABLE
+    from impls.jax.backend import JaxBackend
+
+    resolve_or_skip("jax:cpu")
+    if fused:
+        monkeypatch.delattr(METHOD_TABLE["volume_nerf_stratified"], "stages")
+    scene, (o, d) = Sphere(center=(0.0, 0.0, 0.0), radius=0.75), _rays(100)
+    b = JaxBackend("cpu")
+    b._store = None
+    numpy = resolve_or_skip("numpy")
+    kw = dict(dtype="float64", t_min=0.0, t_max=6.0, n_samples=24, sharpness=20.0)
+    got = {}
+    for seed in (0, 1, 2):
+        prep = b.prepare("volume_nerf_stratified", scene, o, d, seed=seed, **kw)
+        got[seed] = prep.result(prep.run())
+        want = numpy.prepare("volume_nerf_stratified", scene, o, d, seed=seed, **kw)
+        want = want.result(want.run())
+        np.testing.assert_array_equal(got[seed].status, want.status)
+        np.testing.assert_allclose(got[seed].outputs["color"], want.outputs["color"], rtol=1e-12, atol=1e-15)
+        again = prep.result(prep.run())  # the next call draws the same offsets
+        np.testing.assert_array_equal(again.outputs["color"], got[seed].outputs["color"])
+    assert [k[0] for k in b._kernels] == (["volume_nerf_stratified"] if fused
+                                          else ["volume_samples_stratified", "volume_shading_nerf"])
+    # the draws matter: another seed, other colours
+    assert np.abs(got[0].outputs["color"] - got[1].outputs["color"]).max() > 1e-3

@@ -18,7 +18,9 @@ Density models (s = ``sharpness``; sigmoid(z) = 1/(1 + e^{−z}); the formulas a
   ρ_NeuS = max(−(d/dt)Φ(φ)/Φ(φ), 0) where φ is monotone over the bin.
 
 Samplers: ``uniform`` (N equal bins of [t_min, t_max], midpoints), ``stratified`` (one uniform
-random point per bin, seeded numpy generator so every backend sees the same points),
+random point per bin, drawn by :func:`stratified_jitter` — a seeded numpy generator, so every
+backend sees the same points; a backend that compiles kernels passes the draws in as ``jitter``
+instead of compiling them in as constants),
 ``band`` (N equal bins of [t̂ − Δ, t̂ + Δ] ∩ [t_min, ∞) around the given hit t̂; rays with no
 hit get colour 0 and status MISS), ``importance`` (NeRF hierarchical sampling: ``n_coarse``
 uniform samples, their weights (+1e-5, as NeRF) as a piecewise-constant pdf, N more samples by
@@ -92,8 +94,17 @@ def _grid(xp, t0, t1, n):
     return t0[:, None] + (t1 - t0)[:, None] * u[None, :]
 
 
-def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs):
-    """(edges (n, N + 1), sample points (n, N), status) for the samplers that fix bins up front."""
+def stratified_jitter(seed: int, n: int, n_samples: int) -> np.ndarray:
+    """The stratified sampler's offsets within its bins, u ∈ [0, 1), shape (n, n_samples),
+    float64: numpy's PCG64 seeded with ``seed``, drawn row by row (so the first m rows of n are
+    the draws of m rays)."""
+    return np.random.default_rng(seed).random((n, n_samples))
+
+
+def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs, jitter=None):
+    """(edges (n, N + 1), sample points (n, N), status) for the samplers that fix bins up front;
+    ``jitter``: the stratified sampler's offsets (:func:`stratified_jitter`) as an array of the
+    backend (n, N), where a caller draws them itself; None: drawn here from ``knobs["seed"]``."""
     n = o.shape[0]
     status = xp.astype(xp.where(bad_rays(xp, o, d), BAD, CONV), xp.int32)
     t0 = xp.full_like(o[:, 0], t_min)
@@ -106,8 +117,8 @@ def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs):
         status = xp.astype(xp.where((status == CONV) & ~ok, MISS, status), xp.int32)
     edges = _grid(xp, t0, t1, n_samples)
     if sampler == "stratified":
-        u = np.random.default_rng(knobs["seed"]).random((n, n_samples))
-        u = xp.asarray(u, dtype=o.dtype, device=_device(o))
+        u = jitter if jitter is not None else xp.asarray(stratified_jitter(knobs["seed"], n, n_samples),
+                                                         dtype=o.dtype, device=_device(o))
     else:
         u = 0.5
     pts = edges[:, :-1] + (edges[:, 1:] - edges[:, :-1]) * u
@@ -236,14 +247,17 @@ def _shade(xp, backend, scene, color, o, d, edges, pts, status, *, model, sharpn
 def make_volume_sampler(sampler):
     """The samples of a sampler that fixes its bins up front (``uniform``, ``stratified``,
     ``band``): ``sample(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, **knobs)`` →
-    ``{"edges", "pts", "status"}`` (:func:`bins`; the scene is not read)."""
+    ``{"edges", "pts", "status"}`` (:func:`bins`; the scene is not read).  ``sample.draws_jitter``:
+    whether it takes the keyword ``jitter`` (the stratified sampler: its offsets, given by a caller
+    that draws them itself; they are drawn from the knob ``seed`` otherwise)."""
 
-    def sample(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, **knobs):
+    def sample(backend, scene, o, d, *, t_min, t_max, t_hit, n_samples, jitter=None, **knobs):
         _check_far_end(t_max)
-        edges, pts, status = bins(backend.xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs)
+        edges, pts, status = bins(backend.xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs, jitter)
         return {"edges": edges, "pts": pts, "status": status}
 
     sample.__name__ = f"volume_samples_{sampler}"
+    sample.draws_jitter = sampler == "stratified"
     return sample
 
 
@@ -277,6 +291,7 @@ def make_volume_impl(model, sampler):
                          t_threshold=t_threshold)
 
         impl.stages = (sample, shade)
+        impl.draws_jitter = sample.draws_jitter
         impl.__name__ = f"volume_{model}_{sampler}"
         return impl
 

@@ -51,6 +51,7 @@ from jax import lax  # noqa: E402
 from ..base import ArrayBackend  # noqa: E402
 from ..protocol import Capabilities  # noqa: E402
 from reference.jax_host_call import traced_calls  # noqa: E402
+from ..core import rendering  # noqa: E402
 from . import derivatives, driver, executables  # noqa: E402
 
 
@@ -90,7 +91,9 @@ TRACEABLE_KNOBS = {
     **{f"volume_shading_{m}": () for m in ("nerf", "neus", "unisurf", "volsdf")},
     **{m: ("min_cos",) for m in ("dt_finite_diff", "dt_idr", "dt_implicit")},
     "dt_unrolled": ("min_cos", "steps"),
-    **{f"volume_{m}_{s}": ("delta",) if s == "band" else ()
+    # (the stratified sampler's seed is no knob of its kernels: its draws are an input, made at every
+    # call from the seed, JaxBackend.compile_configuration — a seed sweep runs one kernel)
+    **{f"volume_{m}_{s}": {"band": ("delta",), "stratified": ("seed",)}.get(s, ())
        for m in ("nerf", "neus", "unisurf", "volsdf") for s in ("band", "importance", "stratified", "uniform")},
 }
 
@@ -249,6 +252,33 @@ class JaxBackend(ArrayBackend):
         return compiled
 
     def compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
+        """:meth:`_compile_configuration`; for the stratified volume renderers (``draws_jitter``,
+        :func:`impls.core.rendering.make_volume_sampler`) the sampler's offsets are an input of the
+        kernel, drawn on the host at every call (:func:`impls.core.rendering.stratified_jitter`, the
+        draws numpy and torch make inside theirs), not constants compiled into it, which made every
+        such kernel as large as its draws (rays × samples floats) in XLA's compile and in both
+        caches (figures: docs/performance.md).  The seed is then no part of the kernel."""
+        impl = self._impl.get(method)
+        if th is not None or not getattr(impl, "draws_jitter", False) or "seed" not in knobs:
+            return self._compile_configuration(call, knobs, o, d, th, method=method, scene=scene, t_range=t_range,
+                                               extra=extra)
+        seed, knobs = knobs["seed"], {k: v for k, v in knobs.items() if k != "seed"}
+        shape = (driver.padded_size(o.shape[0], self.settings.pad), knobs["n_samples"])  # the padding rows too
+        dtype, device = o.dtype, self.jax_device
+
+        def draw():
+            return jax.device_put(np.asarray(rendering.stratified_jitter(seed, *shape), dtype), device)
+
+        t_min, t_max = t_range
+
+        def jittered(o, d, u, knobs):
+            return impl(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=None, jitter=u, **extra, **knobs)
+
+        run, spent = self._compile_configuration(jittered, knobs, o, d, draw(), method=method, scene=scene,
+                                                 t_range=t_range, extra=extra, jitter=True)
+        return (lambda o, d, th: run(o, d, draw())), spent
+
+    def _compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra, jitter=False):
         """One kernel per structure: the knobs are traced arguments of the jitted function where the
         method's code allows it (:func:`_traced_sets`), so configurations that differ only in
         those knobs run one compiled kernel (the backend object keeps the last ``KEEP_KERNELS``).
@@ -275,7 +305,10 @@ class JaxBackend(ArrayBackend):
           :func:`impls.core.rendering.make_volume_impl`), on the CPU: the sampler's kernel (it
           does not read the scene), then the density model's shading, one kernel for the uniform,
           stratified and band samplers.  Not on a GPU: there a second call's dispatch is as long
-          as such a kernel's work (docs/performance.md); a root finder's loops are not."""
+          as such a kernel's work (docs/performance.md); a root finder's loops are not.
+
+        ``jitter``: ``th`` is the stratified sampler's offsets (:meth:`compile_configuration`), which
+        the sampler takes as its ``jitter``, not as a hit."""
         n = o.shape[0]
         rows = driver.padded_size(n, self.settings.pad)
         given = (o, d, th)
@@ -296,7 +329,8 @@ class JaxBackend(ArrayBackend):
             sample, shade = stages
 
             def sample_call(o, d, th, knobs):
-                return sample(self, None, o, d, t_min=t_min, t_max=t_max, t_hit=th, **knobs)
+                given = {"t_hit": None, "jitter": th} if jitter else {"t_hit": th}  # th: the offsets (above)
+                return sample(self, None, o, d, t_min=t_min, t_max=t_max, **given, **knobs)
 
             def shade_call(o, d, samples, knobs):
                 return shade(self, scene, o, d, samples=samples, **extra, **knobs)
