@@ -211,6 +211,11 @@ class ArrayBackend:
         parts = [fn(*(None if a is None else a[i:i + rows] for a in arrays)) for i in range(0, n, rows)]
         return _join_rows(self.xp, parts)
 
+    #: ``fn`` runs eagerly on each block's slices (a block's arrays are values: a renderer may read
+    #: its first ray's index to draw that block's random numbers); an override that maps the blocks
+    #: inside a kernel (jax) does not have it
+    map_rays.loops_over_slices = True
+
     def synchronize(self, out: Any = None) -> None:
         """Block until device work (of ``out``, or all queued work) is done."""
 

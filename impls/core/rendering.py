@@ -27,8 +27,9 @@ uniform samples, their weights (+1e-5, as NeRF) as a piecewise-constant pdf, N m
 inverse CDF at u_k = (k + ½)/N, then all N + n_coarse composited, sorted, with bin edges
 halfway between neighbours).
 
-Rays are shaded in blocks of at most :data:`BLOCK_SAMPLES` samples (memory); a ray's outputs do
-not depend on its block.
+Rays are sampled and shaded in blocks of at most :data:`BLOCK_SAMPLES` samples (memory; where a
+backend maps the blocks inside a kernel, jax, the fixed bins of all rays are made first); a ray's
+outputs do not depend on its block.
 
 Early termination: samples are processed in blocks of ``BLOCK``; a sample contributes only
 while T_i ≥ ``t_threshold``, and a ray whose T fell below it takes no further blocks.  numpy
@@ -94,11 +95,16 @@ def _grid(xp, t0, t1, n):
     return t0[:, None] + (t1 - t0)[:, None] * u[None, :]
 
 
-def stratified_jitter(seed: int, n: int, n_samples: int) -> np.ndarray:
-    """The stratified sampler's offsets within its bins, u ∈ [0, 1), shape (n, n_samples),
-    float64: numpy's PCG64 seeded with ``seed``, drawn row by row (so the first m rows of n are
-    the draws of m rays)."""
-    return np.random.default_rng(seed).random((n, n_samples))
+def stratified_jitter(seed: int, n: int, n_samples: int, first: int = 0) -> np.ndarray:
+    """The stratified sampler's offsets within its bins, u ∈ [0, 1), of rays ``first`` to
+    ``first + n − 1``, shape (n, n_samples), float64: numpy's PCG64 seeded with ``seed``
+    (``default_rng(seed)``), drawn row by row from ray 0, one 64-bit output per float, so a
+    block of rays starts ``first · n_samples`` outputs on (``PCG64.advance``) and gets the rows
+    the whole batch's draw gives it."""
+    bits = np.random.PCG64(seed)
+    if first:
+        bits.advance(first * n_samples)
+    return np.random.Generator(bits).random((n, n_samples))
 
 
 def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs, jitter=None):
@@ -285,10 +291,32 @@ def make_volume_impl(model, sampler):
     if sampler != "importance":
         sample, shade = make_volume_sampler(sampler), make_volume_shading(model)
 
-        def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, **knobs):
-            samples = sample(backend, scene, o, d, t_min=t_min, t_max=t_max, t_hit=t_hit, n_samples=n_samples, **knobs)
-            return shade(backend, scene, o, d, samples=samples, color=color, sharpness=sharpness,
-                         t_threshold=t_threshold)
+        def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, jitter=None,
+                 **knobs):
+            xp = backend.xp
+            # the stratified draws of each block made in that block (PCG64 advanced to its first ray),
+            # where the backend's blocks are a loop over slices; drawn whole where they are mapped
+            # inside a kernel (a traced block does not know its first ray)
+            per_block = sampler == "stratified" and jitter is None
+            if per_block and not getattr(type(backend).map_rays, "loops_over_slices", False):
+                jitter = xp.asarray(stratified_jitter(knobs["seed"], o.shape[0], n_samples), dtype=o.dtype,
+                                    device=_device(o))
+                per_block = False
+
+            def block(o, d, t_hit, jitter, ray):
+                if per_block:
+                    first = 0 if ray is None else int(ray[0])  # (None: no ray)
+                    jitter = xp.asarray(stratified_jitter(knobs["seed"], o.shape[0], n_samples, first),
+                                        dtype=o.dtype, device=_device(o))
+                samples = sample(backend, scene, o, d, t_min=t_min, t_max=t_max, t_hit=t_hit, n_samples=n_samples,
+                                 jitter=jitter, **knobs)
+                return shade(backend, scene, o, d, samples=samples, color=color, sharpness=sharpness,
+                             t_threshold=t_threshold)
+
+            # the bins by blocks too (16–24 bytes a sample: edges, points, draws), the shading's blocks
+            ray = xp.arange(o.shape[0], device=_device(o)) if per_block and o.shape[0] else None
+            return backend.map_rays(block, (o, d, t_hit, jitter, ray),
+                                    block_rows(2 * n_samples + 1 if model == "neus" else n_samples))
 
         impl.stages = (sample, shade)
         impl.draws_jitter = sample.draws_jitter
