@@ -124,3 +124,39 @@ def test_numpys_memory_is_bounded_by_the_block_not_the_rays(method, monkeypatch)
     blocked, b = peak(1 << 14)
     assert blocked < whole / 4, (blocked, whole)
     np.testing.assert_array_equal(a["color"], b["color"])
+
+
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("method", ["volume_nerf_uniform", "volume_neus_stratified", "volume_volsdf_band"])
+def test_jax_runs_its_sampler_and_shading_kernels_block_by_block(method, monkeypatch):
+    """On the CPU a jax volume renderer whose bins are fixed up front is a sampler kernel and a
+    shading kernel (:meth:`impls.jax.backend.JaxBackend.compile_configuration`); for more rays than
+    a block both are compiled for a block and run block by block, so the bins one hands the other
+    are a block's, not the camera's: the kernels take a block's rows, and the outputs are those of
+    one block of all rays (to jax's rounding, as above)."""
+    from impls.jax.backend import JaxBackend
+    from tests.conftest import resolve_or_skip
+
+    resolve_or_skip("jax:cpu")
+    o, d = _rays(20)  # 400 rays: 512 rows padded
+    knobs = {"n_samples": 24, "sharpness": 30.0, "t_threshold": 0.2}
+    if method.endswith("band"):
+        knobs.update(delta=0.1, t_hit=_hits(o, d))
+    if method.endswith("stratified"):
+        knobs["seed"] = 3
+
+    def run(block):
+        monkeypatch.setattr(rendering, "BLOCK_SAMPLES", block)
+        b = JaxBackend("cpu")
+        b._store = None
+        prep = b.prepare(method, CASE.scene, o, d, dtype="float64", t_min=CASE.t_min, t_max=CASE.t_max, **knobs)
+        return {key[-3][0][0] for key in b._kernels}, prep.result(prep.run())  # the rays' rows of each kernel
+
+    rows_whole, whole = run(1 << 30)
+    rows_blocked, blocked = run(64 * 24)
+    assert rows_whole == {512}
+    assert rows_blocked == {rendering.shading_rows(method.split("_")[1], 24)} == ({16} if "neus" in method else {64})
+    np.testing.assert_array_equal(blocked.status, whole.status)
+    for k in ("color", "opacity", "samples_used"):
+        np.testing.assert_allclose(blocked.outputs[k], whole.outputs[k], rtol=1e-12, atol=1e-15, err_msg=k)
+    assert (whole.status == 0).sum() > 100

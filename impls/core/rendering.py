@@ -27,8 +27,7 @@ uniform samples, their weights (+1e-5, as NeRF) as a piecewise-constant pdf, N m
 inverse CDF at u_k = (k + ½)/N, then all N + n_coarse composited, sorted, with bin edges
 halfway between neighbours).
 
-Rays are sampled and shaded in blocks of at most :data:`BLOCK_SAMPLES` samples (memory; where a
-backend maps the blocks inside a kernel, jax, the fixed bins of all rays are made first); a ray's
+Rays are sampled and shaded in blocks of at most :data:`BLOCK_SAMPLES` samples (memory); a ray's
 outputs do not depend on its block.
 
 Early termination: samples are processed in blocks of ``BLOCK``; a sample contributes only
@@ -74,6 +73,12 @@ def block_rows(samples_per_ray: int) -> int:
     of rays, a power of two in jax, splits evenly) of at most ``BLOCK_SAMPLES / samples_per_ray``,
     and at least 1."""
     return 1 << max(0, (BLOCK_SAMPLES // max(1, samples_per_ray)).bit_length() - 1)
+
+
+def shading_rows(model: str, n_samples: int) -> int:
+    """Rays per block of a volume renderer with ``n_samples`` samples a ray whose bins are fixed
+    up front (:func:`block_rows` of the points φ is evaluated at: NeuS's bin edges too)."""
+    return block_rows(2 * n_samples + 1 if model == "neus" else n_samples)
 
 
 def alpha(xp, model, phi, delta, s):
@@ -278,6 +283,7 @@ def make_volume_shading(model):
                       model=model, sharpness=sharpness, t_threshold=t_threshold, planned=n_samples, coarse_cost=0)
 
     shade.__name__ = f"volume_shading_{model}"
+    shade.model = model
     shade.knobs = SHADING_KNOBS  # its knobs; the sampler takes the others
     return shade
 
@@ -315,8 +321,7 @@ def make_volume_impl(model, sampler):
 
             # the bins by blocks too (16–24 bytes a sample: edges, points, draws), the shading's blocks
             ray = xp.arange(o.shape[0], device=_device(o)) if per_block and o.shape[0] else None
-            return backend.map_rays(block, (o, d, t_hit, jitter, ray),
-                                    block_rows(2 * n_samples + 1 if model == "neus" else n_samples))
+            return backend.map_rays(block, (o, d, t_hit, jitter, ray), shading_rows(model, n_samples))
 
         impl.stages = (sample, shade)
         impl.draws_jitter = sample.draws_jitter

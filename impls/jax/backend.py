@@ -263,22 +263,21 @@ class JaxBackend(ArrayBackend):
             return self._compile_configuration(call, knobs, o, d, th, method=method, scene=scene, t_range=t_range,
                                                extra=extra)
         seed, knobs = knobs["seed"], {k: v for k, v in knobs.items() if k != "seed"}
-        shape = (driver.padded_size(o.shape[0], self.settings.pad), knobs["n_samples"])  # the padding rows too
+        rows, n_samples = driver.padded_size(o.shape[0], self.settings.pad), knobs["n_samples"]  # padding rows too
         dtype, device = o.dtype, self.jax_device
 
-        def draw():
-            return jax.device_put(np.asarray(rendering.stratified_jitter(seed, *shape), dtype), device)
+        def draw(first=0, count=rows):  # the offsets of rows first … first + count − 1
+            return jax.device_put(np.asarray(rendering.stratified_jitter(seed, count, n_samples, first), dtype), device)
 
         t_min, t_max = t_range
 
         def jittered(o, d, u, knobs):
             return impl(self, scene, o, d, t_min=t_min, t_max=t_max, t_hit=None, jitter=u, **extra, **knobs)
 
-        run, spent = self._compile_configuration(jittered, knobs, o, d, draw(), method=method, scene=scene,
-                                                 t_range=t_range, extra=extra, jitter=True)
-        return (lambda o, d, th: run(o, d, draw())), spent
+        return self._compile_configuration(jittered, knobs, o, d, None, method=method, scene=scene, t_range=t_range,
+                                           extra=extra, jitter=draw)
 
-    def _compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra, jitter=False):
+    def _compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra, jitter=None):
         """One kernel per structure: the knobs are traced arguments of the jitted function where the
         method's code allows it (:func:`_traced_sets`), so configurations that differ only in
         those knobs run one compiled kernel (the backend object keeps the last ``KEEP_KERNELS``).
@@ -304,11 +303,13 @@ class JaxBackend(ArrayBackend):
         * ``stages`` (the volume renderers whose bins are fixed up front,
           :func:`impls.core.rendering.make_volume_impl`), on the CPU: the sampler's kernel (it
           does not read the scene), then the density model's shading, one kernel for the uniform,
-          stratified and band samplers.  Not on a GPU: there a second call's dispatch is as long
+          stratified and band samplers; for more rays than a block (memory:
+          :func:`impls.core.rendering.shading_rows`) both compiled for a block and run block by block.  Not on a GPU: there a second call's dispatch is as long
           as such a kernel's work (docs/performance.md); a root finder's loops are not.
 
-        ``jitter``: ``th`` is the stratified sampler's offsets (:meth:`compile_configuration`), which
-        the sampler takes as its ``jitter``, not as a hit."""
+        ``jitter``: ``draw(first=0, count=all padded rows)``, the stratified sampler's offsets of
+        those rows (:meth:`compile_configuration`), drawn at every call and given to the kernel as
+        its ``th`` (the sampler takes them as its ``jitter``, not as a hit); ``th`` is then None."""
         n = o.shape[0]
         rows = driver.padded_size(n, self.settings.pad)
         given = (o, d, th)
@@ -339,11 +340,17 @@ class JaxBackend(ArrayBackend):
                          method=sample.__name__, impl=sample, scene=None, extra={})
             second = dict(call=shade_call, knobs={k: v for k, v in knobs.items() if k in shade.knobs},
                           method=shade.__name__, impl=shade, scene=scene, extra=extra)
-            return self._compile_chain(first, second, n, rows, given, padded, t_range)
+            return self._compile_chain(first, second, n, rows, given, padded, t_range,
+                                       block=rendering.shading_rows(shade.model, knobs["n_samples"]), draw=jitter)
         if impl is not None:
             call, knobs, t_range = self._ranged(impl, method, scene, extra, knobs, t_range, call)
+        if jitter is not None:  # the offsets of all rows, drawn at every call
+            padded = padded[:2] + (jitter(),)
         compiled, traced, spent = self._kernel(call, knobs, *padded, method=method, scene=scene, t_range=t_range,
                                                extra=extra)
+        if jitter is not None:
+            run = _padded_call(compiled, traced, n, rows, given, padded)
+            return (lambda o, d, th: run(o, d, jitter())), spent
         if rows == n:
             return (lambda o, d, th: compiled(o, d, th, traced)), spent
         return _padded_call(compiled, traced, n, rows, given, padded), spent
@@ -367,11 +374,24 @@ class JaxBackend(ArrayBackend):
 
         return ranged, {**knobs, "t_min": t_min, "t_max": t_max}, None
 
-    def _compile_chain(self, first: dict, second: dict, n, rows, given, padded, t_range):
+    def _compile_chain(self, first: dict, second: dict, n, rows, given, padded, t_range, block=None, draw=None):
         """``run(o, d, th)`` as two kernels (:meth:`compile_configuration`): ``first["call"](o, d,
         th, knobs)``, then ``second["call"](o, d, out, knobs)`` given the first's output ``out``;
-        ``last_compile_cache`` "reused" when both were."""
-        o, d, th = padded
+        ``last_compile_cache`` "reused" when both were.  ``block``: where the padded rows are
+        more, and a multiple of it, the two kernels are compiled for ``block`` rows and run block
+        by block in a loop here, so that what the first hands the second (a volume renderer's
+        bins: rays × samples) is a block's, not the camera's (the rays of every camera larger
+        than a block then share the kernels).  ``draw``: ``draw(first, count)`` gives the first
+        kernel's ``th`` of those rows at every call (the stratified draws, a block's at a time)."""
+        per = block if block is not None and rows > block and rows % block == 0 else rows
+
+        def part(a, i):  # rows i … i + per of an input (None, an array or a dict of arrays)
+            return jax.tree.map(lambda x: x[i:i + per], a)
+
+        def th_part(th, i):
+            return part(th, i) if draw is None else draw(i, per)
+
+        o, d, th = part(padded[0], 0), part(padded[1], 0), th_part(padded[2], 0)
         k1, traced1, spent = self._kernel(first["call"], first["knobs"], o, d, th, method=first["method"],
                                           impl=first["impl"], scene=first["scene"],
                                           t_range=first.get("t_range", t_range), extra=first["extra"])
@@ -386,7 +406,13 @@ class JaxBackend(ArrayBackend):
             self.last_compile_cache = "reused" if reused and self.last_compile_cache == "reused" else "compiled"
 
         def chained(o, d, th, _):
-            return k2(o, d, k1(o, d, th, traced1), traced2)
+            if per == rows:
+                return k2(o, d, k1(o, d, th_part(th, 0), traced1), traced2)
+            parts = []
+            for i in range(0, rows, per):
+                ob, db = o[i:i + per], d[i:i + per]
+                parts.append(k2(ob, db, k1(ob, db, th_part(th, i), traced1), traced2))
+            return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
 
         if rows == n:
             return (lambda o, d, th: chained(o, d, th, None)), spent + more
