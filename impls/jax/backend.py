@@ -304,8 +304,9 @@ class JaxBackend(ArrayBackend):
           :func:`impls.core.rendering.make_volume_impl`), on the CPU: the sampler's kernel (it
           does not read the scene), then the density model's shading, one kernel for the uniform,
           stratified and band samplers; for more rays than a block (memory:
-          :func:`impls.core.rendering.shading_rows`) both compiled for a block and run block by block.  Not on a GPU: there a second call's dispatch is as long
-          as such a kernel's work (docs/performance.md); a root finder's loops are not.
+          :func:`impls.core.rendering.shading_rows`) both compiled for a block and run block by
+          block.  Not on a GPU: there a second call's dispatch is as long as such a kernel's work
+          (docs/performance.md); a root finder's loops are not.
 
         ``jitter``: ``draw(first=0, count=all padded rows)``, the stratified sampler's offsets of
         those rows (:meth:`compile_configuration`), drawn at every call and given to the kernel as
@@ -385,8 +386,8 @@ class JaxBackend(ArrayBackend):
         kernel's ``th`` of those rows at every call (the stratified draws, a block's at a time)."""
         per = block if block is not None and rows > block and rows % block == 0 else rows
 
-        def part(a, i):  # rows i … i + per of an input (None, an array or a dict of arrays)
-            return jax.tree.map(lambda x: x[i:i + per], a)
+        def part(a, i):  # rows i … i + per of an input (None, an array or a dict of arrays); all: itself
+            return a if per == rows else jax.tree.map(lambda x: x[i:i + per], a)
 
         def th_part(th, i):
             return part(th, i) if draw is None else draw(i, per)
