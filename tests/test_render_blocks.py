@@ -59,6 +59,14 @@ def _render(backend, method, o, d, t_hit, **knobs):
     return {k: backend.to_numpy(v) for k, v in out.items()}
 
 
+def _knobs(method, n_samples, sharpness, t_threshold, *, delta=0.1, seed=3, n_coarse=16) -> dict:
+    """``method``'s knobs: the shared ones, and the one its sampler adds (band: ``delta``,
+    stratified: ``seed``, importance: ``n_coarse``)."""
+    knobs = {"n_samples": n_samples, "sharpness": sharpness, "t_threshold": t_threshold}
+    extra = {"band": {"delta": delta}, "stratified": {"seed": seed}, "importance": {"n_coarse": n_coarse}}
+    return {**knobs, **extra.get(method.rsplit("_", 1)[1], {})}
+
+
 @pytest.mark.parametrize("method", VOLUME)
 def test_a_rays_outputs_do_not_depend_on_its_block(backend, method, monkeypatch):
     """Blocks of 1–8 and of 16–64 rays against one block of all 400 (early termination on, so that the
@@ -67,13 +75,7 @@ def test_a_rays_outputs_do_not_depend_on_its_block(backend, method, monkeypatch)
     require_method(backend, method)
     o, d = _rays(20)
     t_hit = _hits(o, d)
-    knobs = {"n_samples": 24, "sharpness": 30.0, "t_threshold": 0.2}
-    if method.endswith("band"):
-        knobs["delta"] = 0.1
-    if method.endswith("stratified"):
-        knobs["seed"] = 3
-    if method.endswith("importance"):
-        knobs["n_coarse"] = 16
+    knobs = _knobs(method, 24, 30.0, 0.2)
     whole = _render(backend, method, o, d, t_hit, **knobs)
     # blocks of 8 (uniform, stratified, band), 2 (NeuS: φ at the edges too) or 1 ray (importance),
     # then of 64, 32 or 16 rays
@@ -105,11 +107,7 @@ def test_numpys_memory_is_bounded_by_the_block_not_the_rays(method, monkeypatch)
     backend = NumpyBackend()
     o, d = _rays(64)
     t_hit = _hits(o, d)
-    knobs = {"n_samples": 64, "sharpness": 50.0, "t_threshold": 0.0}
-    if method.endswith("importance"):
-        knobs["n_coarse"] = 32
-    if method.endswith("stratified"):
-        knobs["seed"] = 5
+    knobs = _knobs(method, 64, 50.0, 0.0, seed=5, n_coarse=32)
 
     def peak(block):
         monkeypatch.setattr(rendering, "BLOCK_SAMPLES", block)
@@ -139,11 +137,9 @@ def test_jax_runs_its_sampler_and_shading_kernels_block_by_block(method, monkeyp
 
     resolve_or_skip("jax:cpu")
     o, d = _rays(20)  # 400 rays: 512 rows padded
-    knobs = {"n_samples": 24, "sharpness": 30.0, "t_threshold": 0.2}
+    knobs = _knobs(method, 24, 30.0, 0.2)
     if method.endswith("band"):
-        knobs.update(delta=0.1, t_hit=_hits(o, d))
-    if method.endswith("stratified"):
-        knobs["seed"] = 3
+        knobs["t_hit"] = _hits(o, d)
 
     def run(block):
         monkeypatch.setattr(rendering, "BLOCK_SAMPLES", block)
