@@ -148,6 +148,8 @@ class Prepared:
 class Backend(Protocol):
     """Structural protocol; :class:`impls.base.ArrayBackend` is a convenient base class."""
 
+    #: the backend's name in rows, reports, ``--backend`` and ``bench compare``, however it was
+    #: loaded: letters, digits and ``_.:+-`` (:data:`impls.registry.ID_PATTERN`)
     id: str
     lib: str
     device: str

@@ -11,6 +11,9 @@
   :class:`Unavailable` with the reason, which the report lists as skipped.  An id that names
   nothing (a typo: no such built-in or entry point, a spec whose module or attribute does not
   exist) is an :class:`Unavailable` with ``unknown=True``, which the CLI refuses as a usage error.
+* A plug-in's own ``id`` names it everywhere (rows, reports, ``bench compare``, file names of its
+  records), so it must be a backend id (:func:`id_problem`: letters, digits and ``_.:+-``); one
+  that is not makes the plug-in an :class:`Unavailable` saying so, never a row under that name.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import importlib
 import importlib.metadata
 import importlib.util
 import inspect
+import re
 from typing import Any
 
 ENTRY_POINT_GROUP = "isobench.backends"
@@ -31,6 +35,27 @@ _BUILTIN = {
     "jax": ("jax", "impls.jax.backend:JaxBackend"),
 }
 _DEFAULT_DEVICE = {"numpy": "cpu", "torch": "cpu", "jax": "cpu"}
+
+
+#: a backend id: letters, digits and ``_.:+-`` (``numpy``, ``torch:cuda:0``, ``mitsuba:llvm``), so
+#: that it reads the same in a report's Markdown and HTML, a file name and a shell, and cannot split
+#: a table cell (``|``) or carry markup (``<``)
+ID_PATTERN = re.compile(r"[A-Za-z0-9_.:+\-]+")
+
+
+def id_problem(backend_id: Any) -> str | None:
+    """What makes ``backend_id`` (a backend's ``id``) unfit to name it (:data:`ID_PATTERN`), as a
+    phrase naming the id (its other characters escaped, so the message is safe to print anywhere),
+    or None when it is fine."""
+    if not isinstance(backend_id, str):
+        return f"its id is not a string but {type(backend_id).__name__}"
+    if not backend_id:
+        return "its id is empty"
+    if ID_PATTERN.fullmatch(backend_id):
+        return None
+    shown = "".join(c if ID_PATTERN.fullmatch(c) else f"\\u{ord(c):04x}" for c in backend_id[:80])
+    shown += "…" if len(backend_id) > 80 else ""
+    return f"its id '{shown}' holds characters other than letters, digits and _.:+-"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +71,19 @@ class Unavailable:
 
 class _NotFound(LookupError):
     """A plug-in spec names a module or attribute that does not exist."""
+
+
+def _checked_plugin(obj: Any, spec: str) -> Any:
+    """The plug-in ``obj`` (resolved from ``spec``), or an :class:`Unavailable` naming its ``id``
+    and the fix when that is no backend id (:func:`id_problem`)."""
+    try:
+        problem = id_problem(getattr(obj, "id", None))
+    except Exception as exc:  # noqa: BLE001 - a property of a user's class: whatever it raises
+        problem = f"reading its id raised {type(exc).__name__}: {exc}"
+    if problem is None:
+        return obj
+    return Unavailable(spec, f"{spec}: {problem}; set the backend's `id` attribute to a name of letters, digits and "
+                             "_.:+- (e.g. 'mine' or 'mylib:cuda'): it names the backend in rows, reports and --backend")
 
 
 def _no_module(name: str, spec: str) -> str:
@@ -103,7 +141,7 @@ def resolve(backend_id: str) -> Any:
                            unknown=True)
     if is_plugin_spec(backend_id):
         try:
-            return _instantiate(_load_attr(backend_id), None)
+            return _checked_plugin(_instantiate(_load_attr(backend_id), None), backend_id)
         except _NotFound as exc:
             return Unavailable(backend_id, f"could not load {backend_id}: {exc}", unknown=True)
         except (Exception, SystemExit) as exc:  # a broken plug-in is reported, never fatal
@@ -121,7 +159,7 @@ def resolve(backend_id: str) -> Any:
     eps = _entry_points()
     if lib in eps:
         try:
-            return _instantiate(eps[lib].load(), device or None)
+            return _checked_plugin(_instantiate(eps[lib].load(), device or None), backend_id)
         except (Exception, SystemExit) as exc:
             return Unavailable(backend_id, f"entry point {lib!r} failed: {type(exc).__name__}: {exc}")
     return Unavailable(backend_id, _unknown(backend_id, eps), unknown=True)

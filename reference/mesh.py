@@ -175,6 +175,11 @@ def _morton_order(p: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+#: a face whose height is at most this times its longest edge is degenerate (MeshSDF refuses it):
+#: collinear to float64 rounding (the cross product's own rounding is a few ε · longest²)
+_DEGENERATE_HEIGHT = 16 * float(np.finfo(np.float64).eps)
+
+
 class MeshSDF(Field):
     """Signed distance to a closed, watertight, outward-oriented triangle mesh (see the module).
 
@@ -198,18 +203,34 @@ class MeshSDF(Field):
 
         tm = trimesh.Trimesh(V, F, process=False, validate=False)
         area = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-        if np.any(area == 0):
-            raise ValueError(f"faces has {int(np.sum(area == 0))} degenerate (zero-area) triangles, e.g. face "
-                             f"{int(np.argmax(area == 0))}; remove them (trimesh: mesh.update_faces(mesh.nondegenerate_faces()))")
+        # collinear to rounding counts as zero area: the cross product of a face whose height is
+        # within rounding of 0 is rounding (|cross| = longest · height), not 0, and such a face made
+        # the rounding model (rounding_gain, ∝ longest/height ~ 1e16) flag every hit of the mesh
+        e = V[F] - V[F[:, [1, 2, 0]]]
+        longest2 = np.max(np.einsum("fij,fij->fi", e, e), axis=1)
+        flat = area <= _DEGENERATE_HEIGHT * longest2
+        if np.any(flat):
+            raise ValueError(f"faces has {int(np.sum(flat))} degenerate triangles (zero area, or collinear to rounding: "
+                             f"height ≤ {_DEGENERATE_HEIGHT:.0e} × longest edge), e.g. face {int(np.argmax(flat))}; "
+                             "remove them and merge what they split (trimesh: mesh.update_faces("
+                             "mesh.nondegenerate_faces()); mesh.merge_vertices()), then check it is still watertight")
         if not tm.is_watertight:
-            raise ValueError("faces does not form a watertight mesh (some edge is not shared by exactly two faces); "
-                             "close the holes first (e.g. trimesh.repair.fill_holes)")
+            raise ValueError("faces does not form a watertight mesh (some edge is not shared by exactly two faces): "
+                             "if its vertices are not merged (a triangle soup, as STL files load), merge them "
+                             "(trimesh: mesh.merge_vertices(), or trimesh.Trimesh(..., process=True)); otherwise close "
+                             "the holes (e.g. trimesh.repair.fill_holes)")
         if not tm.is_winding_consistent:
             raise ValueError("faces is not consistently oriented (two faces traverse a shared edge the same way); "
                              "fix with trimesh.repair.fix_winding")
-        if tm.volume <= 0:
+        # (a volume within rounding of 0 is no volume: the faces' signed contributions cancel)
+        vol, tiny = float(tm.volume), 1e-9 * float(np.max(np.ptp(V, axis=0))) ** 3
+        if vol < -tiny:
             raise ValueError("faces is oriented inward (negative volume); reverse each face's vertex order "
                              "(faces[:, ::-1]) so normals point outward")
+        if abs(vol) <= tiny:
+            raise ValueError("faces encloses no volume (0: e.g. every face twice, once each way, as filling the "
+                             "holes of an unmerged triangle soup makes); merge its vertices instead "
+                             "(trimesh: mesh.merge_vertices())")
         _check_solid_boundary(V, F, tm)
         self.vertices = V
         self.faces = F

@@ -1,7 +1,8 @@
 """A user's plug-in backend that kills its own process on one configuration, as a segfault or an
 abort in a native library would: it wraps numpy, and where the method, dtype, scene kind and knob
 match the environment (``CRASH_METHOD``, ``CRASH_DTYPE``, ``CRASH_KIND``, ``CRASH_KNOB`` as
-``name=value``; each optional), its ``run`` raises SIGSEGV (``CRASH_HOW=exit``: ``os._exit(3)``; ``CRASH_HOW=hang``: it blocks SIGALRM,
+``name=value``; each optional), its ``run`` raises SIGSEGV (``CRASH_HOW=exit``: ``os._exit(3)``; ``CRASH_HOW=exit0``:
+``os._exit(0)``, an exit that looks like success; ``CRASH_HOW=hang``: it blocks SIGALRM,
 the time limit's signal, and sleeps for an hour, as a kernel that never returns to Python would).
 Used by tests/test_crash_isolation.py through ``--backend tests.crash_backend:CrashBackend``."""
 
@@ -44,8 +45,8 @@ class CrashBackend(PluginBackend):
 
         def run():
             how = os.environ.get("CRASH_HOW")
-            if how == "exit":
-                os._exit(3)
+            if how in ("exit", "exit0"):
+                os._exit(3 if how == "exit" else 0)
             if how == "hang":  # as native code that never returns: the time limit's SIGALRM is never seen
                 signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
                 time.sleep(3600)

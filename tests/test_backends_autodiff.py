@@ -199,3 +199,29 @@ def test_torch_prepared_runs_record_no_autograd_graph():
         np.testing.assert_array_equal(on.t, off.t, err_msg=method)
         for k, v in on.outputs.items():
             np.testing.assert_array_equal(v, off.outputs[k], err_msg=f"{method} {k}")
+
+
+@pytest.mark.parametrize("backend_id", [
+    "numpy", "torch:cpu", pytest.param("jax:cpu", marks=pytest.mark.slow)])
+def test_finite_differences_decline_a_ray_whose_perturbed_twin_misses(backend_id):
+    """``dt_finite_diff`` re-solves t(θ ± h) by Newton from t̂.  On a ray grazing the torus's
+    outer equator 0.4 h inside it, the ray of R − h misses: its Newton steps run off, and the
+    quotient (87 % off on a 256² camera's such ray) was returned CONVERGED.  It is now declined
+    (ILL_CONDITIONED); a ray whose twins both hit keeps CONVERGED and the exact dt/dR."""
+    from impls.registry import resolve
+    from reference.primitives import Torus
+
+    scene = Torus(1.0, 0.25)
+    R, r, h = 1.0, 0.25, 1e-6
+    x0 = np.array([R + r - 0.4 * h, 0.6])  # grazing; and a ray through the tube's flank
+    o = np.stack([x0, np.full(2, -2.0), np.zeros(2)], axis=1)
+    d = np.tile([0.0, 1.0, 0.0], (2, 1))
+    y = -np.sqrt((R + r) ** 2 - x0 ** 2)  # both hit the outer flank, ρ = R + r
+    t_hit = y + 2.0
+    be = resolve(backend_id)
+    p = be.prepare("dt_finite_diff", scene, o, d, dtype="float64", t_min=0.0, t_max=6.0, t_hit=t_hit)
+    res = p.result(p.run())
+    assert list(res.status) == [-6, 0]  # ILL_CONDITIONED, CONVERGED
+    # the flank ray: ρ = R + r along it, so dt/dR = −(∂φ/∂R)/⟨∇φ, d⟩ = 1/⟨n, d⟩ with n = (x, y)/ρ
+    cos = abs(y[1]) / (R + r)
+    assert res.outputs["dt_dtheta"][1, 0] == pytest.approx(-1.0 / cos, rel=1e-6)

@@ -55,6 +55,33 @@ def test_normal_angle_is_the_rotation_angle_even_when_tiny():
     assert e[3] == np.inf and np.all(e[:3] < 1e-15)
 
 
+def test_a_normal_that_is_not_unit_is_wrong_whatever_its_direction():
+    """The angle atan2(|n × n*|, n·n*) is 0 for n = 0 and for any multiple of n*: a backend
+    returning zero or unnormalised normals scored a perfect 0 and was picked.  A normal's error
+    is also its length's distance from 1."""
+    n = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    got = np.array([[0.0, 0.0, 0.0], 3.0 * n[1], 1e-9 * n[2], n[3]])
+    e, _ = _per_ray(Quantity("normal_angle", "rad", got, n, np.ones(4, bool), angle=True))
+    assert e[0] == 1.0 and e[1] == pytest.approx(2.0) and e[2] == pytest.approx(1.0) and e[3] == 0.0
+
+
+def test_a_root_finders_uncertified_misses_are_declined_rays_not_answers():
+    """A miss the method did not certify (UNCERTIFIED, MAX_ITER on a ray that misses) has error 0
+    (neither calls a hit) but answers nothing: ``n_declined`` counts it with the flagged hits, so
+    that a root finder that never certifies a miss is not read as answering every ray."""
+    from types import SimpleNamespace
+
+    from bench.run.metrics import root_metrics
+
+    case = SimpleNamespace(exact_t=np.array([1.0, np.inf, np.inf, 2.0, np.inf]), judged_mask=None,
+                           exact_t_error_bounds=None)
+    res = result([1.0, np.inf, 3.0, 9.0, np.inf],
+                 [Status.CONVERGED, Status.UNCERTIFIED, Status.MAX_ITER, Status.UNCERTIFIED, Status.MISS])
+    row = root_metrics(res, case, "float64", {}, {})[0]
+    assert row["n_declined"] == 3 and row["n_miss_declined"] == 1 and row["n_false_miss"] == 1
+    assert row["error_max_finite"] == 0.0  # the misses' errors are 0: only the count shows them
+
+
 def test_fit_rate_recovers_known_orders_and_stops_at_the_floor():
     x = 2.0 ** np.arange(1, 9)
     for p in (0.5, 1.0, 2.0):

@@ -309,6 +309,9 @@ def test_best_accuracy_says_why_a_row_has_no_finite_error():
                  "n_converged_nonfinite": 3}) == ("inf: 2 false hit(s), 4 silent miss(es), 3 CONVERGED non-finite, "
                                                   "1 hitting ray(s) flagged")
     assert text({"error_max": float("inf"), "n_false_hit": float("nan")}) == "inf"
+    # the error of the answers given: a wrong CONVERGED depth beside flagged rays must not read like a right one
+    assert text({"error_max": float("inf"), "n_false_miss": 32, "n_miss_declined": 32, "error_max_finite": 0.51}) == \
+        "inf: 32 hitting ray(s) flagged; 0.51 on the rest"
     assert text({"error_max": float("nan"), "n_declined": 756.0}) == "none: no ray answered (756 declined)"
     assert text({"error_max": float("nan"), "n_declined": float("nan")}) == "none: no ray checked (see its statuses)"
     # and the table takes it, the most accurate setting first

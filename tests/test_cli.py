@@ -35,7 +35,9 @@ def test_the_quick_run_covers_its_whole_plan_and_shows_progress_when_piped(quick
     assert env["complete"] == "true" and env["budget_s"] == "none"
     df = read_results(quick_run)
     assert not df["reason"].fillna("").str.startswith("over the run's time budget").any()
-    ids = [b for b in registry.default_ids()]
+    from bench.commands._common import resolve_backends
+
+    ids = list(resolve_backends(registry.default_ids(), 1)[0])  # keyed by id, as the run names them (warp:cpu)
     plan = runner.plan(get_suite("quick"), ids, None, None, None)
     assert {tuple(map(str, c.key)) for c in plan} == set(map(tuple, df[runner.CONFIG_KEY].astype(str).itertuples(
         index=False, name=None)))

@@ -74,6 +74,25 @@ def test_planted_accuracy_regression_is_caught():
     assert "boom" in res3.loc[res3["case_id"] == "c0", "note"].item()
 
 
+def test_more_flagged_rays_are_worse_whatever_the_error_of_the_rest():
+    """A row that stops answering rays (its misses no longer certified: UNCERTIFIED instead of
+    MISS; a gradient's or renderer's rays declined, which its error leaves out) keeps its max error
+    or even lowers it: the status histogram is what shows it.  Before, `compare` called such a row
+    `same` (or `better`) and passed."""
+    base, new = rows(), rows(seed=1)
+    base["status_counts"] = json.dumps({"CONVERGED": 700, "MISS": 324})
+    new["status_counts"] = json.dumps({"CONVERGED": 700, "MISS": 324})
+    new.loc[1, "status_counts"] = json.dumps({"CONVERGED": 700, "UNCERTIFIED": 324})
+    new.loc[2, ["status_counts", "error_max"]] = [json.dumps({"CONVERGED": 7, "ILL_CONDITIONED": 693, "MISS": 324}),
+                                                  1e-12]
+    new.loc[3, "status_counts"] = ""  # a row without a histogram is judged by its errors alone
+    res = compare(base, new).set_index("case_id")
+    assert list(res.index[res["accuracy"] == "worse"]) == ["c1", "c2"]
+    assert "UNCERTIFIED" in res.loc["c1", "note"]
+    back = compare(new, base).set_index("case_id")
+    assert back.loc["c1", "accuracy"] == "better"  # (c2 back: more rays answered, but its max error grew 100×)
+
+
 def test_noise_only_rerun_passes():
     base = rows(err=1e-10)
     new = rows(err=1e-10 * (1 + 1e-3), seed=7)  # rounding-level accuracy change, timing noise

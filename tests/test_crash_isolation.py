@@ -34,11 +34,13 @@ def _configs(path) -> pd.DataFrame:
     return pd.read_csv(path).drop_duplicates(["case_id", "backend", "dtype", "method", "knob"])
 
 
-@pytest.mark.parametrize("how", ["segv", "exit"])
+@pytest.mark.parametrize("how", ["segv", "exit", "exit0"])
 def test_a_backend_that_kills_its_process_costs_only_its_configuration(tmp_path, how):
     """Before: the run died with it (status 139), wrote no row, and ``--resume`` died again on the
     same configuration.  Now: that configuration is a failed row saying it crashed, every other
-    configuration ran, the run is complete and says on stderr what happened."""
+    configuration ran, the run is complete and says on stderr what happened.  ``exit0``: a backend's
+    ``os._exit(0)`` ended the run with status 0, no results, no report and no word (its in-flight note
+    left behind); it is a crash like any other exit inside a configuration."""
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": how}
     p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method",
@@ -55,7 +57,7 @@ def test_a_backend_that_kills_its_process_costs_only_its_configuration(tmp_path,
     for bid in ("crashy", "numpy"):
         mine = g[g.backend == bid]
         assert (mine.outcome == "ok").sum() == (g[g.backend == "numpy"].outcome == "ok").sum() - (bid == "crashy")
-    assert not (out / INFLIGHT).exists()
+    assert not (out / INFLIGHT).exists() and (out / "report.md").exists()
     env_rec = json.loads((out / "environment.json").read_text())
     assert env_rec["complete"] == "true" and int(env_rec["resumed"]) == 1
 

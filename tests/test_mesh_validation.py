@@ -65,3 +65,60 @@ def test_touching_shells_are_refused():
     V, F = _boxes(((1, 1, 1), (0, 0, 0), False), ((1, 1, 1), (1, 1, 0.25), False))
     with pytest.raises(ValueError, match="faces intersect each other"):
         MeshSDF(V, F)
+
+
+def test_a_face_collinear_to_rounding_is_refused_as_degenerate():
+    """A vertex put on an edge of an icosphere and the sliver (a, b, m) added: watertight and
+    consistently oriented, but the three points are collinear, and their cross product is 4e-18,
+    not 0.  It was accepted, and its aspect ratio (~1e16) made the rounding model flag every hit
+    of the mesh (not judged) and every certified root finder answer UNCERTIFIED."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    f0 = F[0]
+    a, b = f0[0], f0[1]
+    mid = 0.5 * (V[a] + V[b])
+    V2 = np.vstack([V, mid])
+    k = len(V)
+    # split the two faces sharing edge (a, b) at m, then add the flat (a, m, b)/(b, m, a) pair's one face:
+    # here only the split, which keeps the mesh watertight with the collinear face (a, b, m) among its faces
+    other = np.nonzero([(b in f and a in f) for f in F])[0]
+    F2 = [f for i, f in enumerate(F) if i not in set(other)]
+    for i in other:
+        f = list(F[i])
+        j = f.index(a)
+        c = f[(j + 2) % 3] if f[(j + 1) % 3] == b else f[(j + 1) % 3]
+        if f[(j + 1) % 3] == b:  # a → b → c
+            F2 += [[a, k, c], [k, b, c]]
+        else:  # b → a → c
+            F2 += [[b, k, c], [k, a, c]]
+    F2 = np.asarray(F2, np.int64)
+    MeshSDF(V2, F2)  # the split alone is a fine mesh (its faces are not slivers)
+    # a mesh that adds a flat triangle: (a, m, b) and (b, m, a), each collinear; with the edges they add,
+    # the mesh stays closed (two faces per edge)
+    F3 = np.vstack([F2, [[a, k, b], [b, k, a]]])
+    assert np.linalg.norm(np.cross(V2[k] - V2[a], V2[b] - V2[a])) < 1e-15  # collinear, not exactly 0 in general
+    with pytest.raises(ValueError, match="degenerate triangles .*collinear to rounding.*merge_vertices"):
+        MeshSDF(V2, F3)
+
+
+def test_an_unmerged_triangle_soup_is_told_to_merge_its_vertices():
+    """A box as an STL loads it (36 vertices, none shared) is not watertight: the fix is to merge
+    the vertices, which the error says; filling its 'holes' doubles every face, a mesh of volume 0
+    that was called inward, and reversing it as told gave the same error again."""
+    import trimesh
+
+    box = trimesh.creation.box()
+    V = np.asarray(box.vertices)[np.asarray(box.faces)].reshape(-1, 3)
+    F = np.arange(len(V)).reshape(-1, 3)
+    with pytest.raises(ValueError, match="merge_vertices"):
+        MeshSDF(V, F)
+    filled = trimesh.Trimesh(V, F, process=False)
+    trimesh.repair.fill_holes(filled)  # what the old message advised
+    for faces in (filled.faces, filled.faces[:, ::-1]):  # and then reversed, as the next one advised
+        with pytest.raises(ValueError, match="encloses no volume.*merge"):
+            MeshSDF(np.asarray(filled.vertices), np.asarray(faces))
+    soup = trimesh.Trimesh(V, F, process=False)
+    soup.merge_vertices()
+    MeshSDF(np.asarray(soup.vertices), np.asarray(soup.faces))

@@ -71,26 +71,27 @@ def json_dict(text: str) -> dict:
 
 def resolve_backends(ids: list[str], threads: int, flag: str = "--backend", specs: dict | None = None):
     """{id: backend or Unavailable}, each loop driver given ``threads`` worker threads, or an
-    error message when an id names nothing (a typo) or two name one backend.  A plug-in given as
-    ``package.module:attribute`` is keyed (and named in rows and reports) by its own ``id``;
-    ``specs``, when given, receives {id: what to resolve it by} for other processes."""
+    error message when an id names nothing (a typo) or two name one backend.  Every backend is
+    keyed (and named in rows and reports) by its own ``id``, however it was given: a plug-in's
+    ``package.module:attribute`` spec or entry point name, a built-in without its device (``torch``
+    is ``torch:cpu``), so that one backend has one name whichever way it is loaded (the registry
+    checked a plug-in's id: :func:`impls.registry.id_problem`); an unavailable one, whose id cannot
+    be read, by the spec it was given.  ``specs``, when given, receives {id: what to resolve it
+    by} for other processes."""
     from impls import registry
 
     from ..run.environment import configure_driver
 
     backends: dict = {}
+    given: dict[str, str] = {}  # id → the spec that named it
     for spec in ids:
         b = registry.resolve(spec)
-        # the registry's own rule for a plug-in spec (package.module:attribute, not torch:cuda)
-        plugin = registry.is_plugin_spec(spec) and not isinstance(b, registry.Unavailable)
-        own = getattr(b, "id", None) if plugin else None
-        key = own if isinstance(own, str) and own.strip() else spec
+        key = spec if isinstance(b, registry.Unavailable) else b.id
         if key in backends:
-            return None, (f"{flag}: {spec!r} and {(specs or {}).get(key, key)!r} both name the backend {key!r}; "
-                          "give one of them")
-        backends[key] = b
-        if specs is not None:
-            specs[key] = spec
+            return None, f"{flag}: {spec!r} and {given[key]!r} both name the backend {key!r}; give one of them"
+        backends[key], given[key] = b, spec
+    if specs is not None:
+        specs.update(given)
     for b in backends.values():
         if not isinstance(b, registry.Unavailable):
             configure_driver(b, threads)

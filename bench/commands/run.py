@@ -96,14 +96,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from ..run.rundir import RunLock
+
     held: list = []  # the run directory's lock and the cluster executor, once taken: closed whatever happens
+    refused = False
     try:
         return _run(args, held)
     except UsageError as exc:
+        refused = True
         return error(str(exc))
     finally:
         for thing in reversed(held):  # the executor, then the run directory's lock
-            thing.close()
+            if refused and isinstance(thing, RunLock):  # a refused run leaves no new, empty --out behind
+                thing.discard()
+            else:
+                thing.close()
 
 
 def _check_options(args) -> None:
@@ -129,11 +136,14 @@ def _suite(args):
 def _precheck(args) -> None:
     """The options' errors that need neither the case catalog nor a backend object, raised
     before either is built (a suite's tag selection builds the whole catalog, several seconds;
-    the backends import their libraries): ``--out`` not empty (without creating anything:
-    :func:`bench.run.rundir.claim_out` checks again under its lock) and backend ids that name
-    nothing (:func:`impls.registry.unknown_reason`)."""
+    the backends import their libraries), and before ``--out`` is claimed (a refused run leaves no
+    directory behind): ``--out`` not empty (without creating anything:
+    :func:`bench.run.rundir.claim_out` checks again under its lock), ``--method`` and ``--dtype``
+    names that name nothing (:func:`bench.run.plan.method_names`, the plan checks them again), and
+    backend ids that name nothing (:func:`impls.registry.unknown_reason`)."""
     from impls import registry
 
+    from ..run.plan import check_dtypes, method_names
     from ..run.rundir import OutError, require_empty
 
     if args.out and not args.resume and Path(args.out).is_dir():
@@ -141,6 +151,11 @@ def _precheck(args) -> None:
             require_empty(Path(args.out))
         except OutError as exc:
             raise UsageError(str(exc)) from None
+    try:
+        method_names(split(args.method))
+        check_dtypes(split(args.dtype))
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     for spec in split(args.backend) or ():
         why = registry.unknown_reason(spec)
         if why:

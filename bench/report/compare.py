@@ -11,9 +11,11 @@ Rows are matched on ``results.KEY`` (case, backend, dtype, method, knob, quantit
   side only is ``missing`` (in BASE only) or ``new`` (in NEW only).
 * accuracy (deterministic, no statistics): ``worse`` when the new max error exceeds
   ``base·(1 + rtol) + atol`` with ``atol = atol_eps · eps(dtype)`` (so float32 rows get a
-  float32-sized slack), when false hits or false misses increase, when a finite error becomes
-  infinite, or when a row that ran now fails or is skipped; ``better`` symmetrically; else
-  ``same``.
+  float32-sized slack), when false hits or false misses increase, when more rays are flagged
+  (statuses other than CONVERGED and MISS in ``status_counts``: an answer withheld, a miss no
+  longer certified, a gradient's or renderer's declined ray, which its error leaves out), when a
+  finite error becomes infinite, or when a row that ran now fails or is skipped; ``better``
+  symmetrically; else ``same``.
 * timing (after asv ``compare`` and pyperf): ``worse``/``better`` only when the ratio of medians
   new/base is beyond ``factor`` (default 1.1) *and* the difference is significant: a one-sided
   Mann–Whitney U test at ``alpha`` (default 0.01) when both sides have ≥ 5 samples; with fewer,
@@ -111,6 +113,28 @@ def same_row_machine(b: Mapping, n: Mapping) -> bool:
     return not (kb and kn) or kb == kn
 
 
+#: the statuses that answer a ray (impls.protocol.Status); any other is a flagged, unanswered ray
+ANSWERS = ("CONVERGED", "MISS")
+
+
+def flagged_rays(status_counts) -> float:
+    """Rays of a row's status histogram (``status_counts``, JSON) with a status that does not
+    answer them (:data:`ANSWERS`); NaN where the row has none."""
+    try:
+        d = json.loads(status_counts) if isinstance(status_counts, str) and status_counts else None
+    except ValueError:
+        return float("nan")
+    if not isinstance(d, dict):
+        return float("nan")
+    return float(sum(int(v) for k, v in d.items() if k not in ANSWERS))
+
+
+def _fewer_answers(b: Mapping, n: Mapping) -> bool:
+    """NEW flags more rays than BASE (where both rows have a status histogram)."""
+    fb, fn = flagged_rays(b.get("status_counts")), flagged_rays(n.get("status_counts"))
+    return bool(np.isfinite(fb) and np.isfinite(fn) and fn > fb)
+
+
 def accuracy_verdict(b: Mapping, n: Mapping, rtol: float = 0.1, atol_eps: float = ATOL_EPS) -> str:
     if b["outcome"] != "ok":
         return "same" if n["outcome"] == b["outcome"] else ("better" if n["outcome"] == "ok" else "not comparable")
@@ -125,8 +149,11 @@ def accuracy_verdict(b: Mapping, n: Mapping, rtol: float = 0.1, atol_eps: float 
           _num(n.get("n_false_miss"), 0) > _num(b.get("n_false_miss"), 0))
     if np.isnan(en) and not np.isnan(eb):
         return "worse"
-    if any(fh) or (np.isfinite(eb) and not np.isfinite(en)) or (np.isfinite(en) and en > eb * (1 + rtol) + atol):
+    if any(fh) or _fewer_answers(b, n) or (np.isfinite(eb) and not np.isfinite(en)) or (
+            np.isfinite(en) and en > eb * (1 + rtol) + atol):
         return "worse"
+    if _fewer_answers(n, b):
+        return "better"
     if (np.isfinite(en) and not np.isfinite(eb)) or (np.isfinite(eb) and eb > en * (1 + rtol) + atol):
         return "better"
     return "same"

@@ -117,7 +117,8 @@ def _bench_sections(df: pd.DataFrame, figs: list, series_all: list, stab: list) 
     return [
         Heading("Best accuracy per backend"),
         Paragraph("Per case, method and checked quantity: the knob setting with the smallest max error over all "
-                  "rays. Time is the median over repeated synchronised calls (compile and first call excluded, "
+                  "rays (color_vs_integral: over the rays the rendering integral is computed on, a fixed sample of "
+                  "the case's; n_checked in results.csv). Time is the median over repeated synchronised calls (compile and first call excluded, "
                   "reported apart); IQR is its spread. '× closed form' divides by the time of the exact ray–sphere "
                   "formula on the same number of rays, measured right before and after the configuration's samples — "
                   "a unit that sees the same load as they do."), Table(summary_table(df)),

@@ -42,7 +42,8 @@ def error_text(row) -> str:
     hit or miss, a CONVERGED ray with a non-finite depth, a hitting ray the method flagged:
     bench/run/metrics.py), and says which and how many; no error at all (NaN) is a row with no
     ray checked: every hit declined (dt_unrolled's budget spent on every hit: MAX_ITER), or no ray
-    answered (a surface render whose every ray is UNCERTIFIED)."""
+    answered (a surface render whose every ray is UNCERTIFIED).  An infinite error also gives the
+    largest finite one, over the rays answered (``error_max_finite``)."""
     v = float(row.get("error_max", np.nan))
     if np.isfinite(v):
         return f"{v:.3g}"
@@ -59,7 +60,11 @@ def error_text(row) -> str:
                                            (count("n_false_miss") - flagged, "silent miss(es)"),
                                            (count("n_converged_nonfinite"), "CONVERGED non-finite"),
                                            (flagged, "hitting ray(s) flagged")) if k > 0]
-    return f"inf: {', '.join(parts)}" if parts else "inf"
+    # the error of the answers it did give: a wrong CONVERGED depth must not read like a correct one
+    # beside the same count of flagged rays
+    rest = float(row.get("error_max_finite", np.nan))
+    rest = f"; {rest:.3g} on the rest" if np.isfinite(rest) else ""
+    return (f"inf: {', '.join(parts)}" if parts else "inf") + rest
 
 
 def _kernel(cache) -> str:

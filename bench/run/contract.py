@@ -86,15 +86,53 @@ def backend_dtypes(backend: Any) -> tuple[str, ...]:
 _STATUS_CODES = frozenset(int(s) for s in Status if s != Status.IN_PROGRESS)
 
 
-def _array(res: Any, name: str, n: int) -> np.ndarray:
-    """``res.<name>`` as a numpy array of shape (n,) with a real numeric dtype (else BackendFault)."""
-    if not hasattr(res, name):
-        raise BackendFault(f"the result has no {name!r} (a RayResult has t, status, iterations, evals, outputs); "
-                           f"got {type(res).__name__}")
-    try:
-        a = np.asarray(getattr(res, name))
-    except Exception as exc:
-        raise BackendFault(f"result {name} is not an array: {type(exc).__name__}: {exc}") from exc
+#: the shape of one ray's entry in each output a method of the catalog declares
+#: (``MethodSpec.outputs``; :class:`impls.protocol.RayResult`, docs/backends.md): a result's output
+#: is (n, *shape); ``"P"`` is the scene's parameter count, ``scene.param_vector().size`` (dt/dθ
+#: has one column per entry of θ).  An output not listed here is checked on its leading dimension
+#: only (tests/test_plugin_robustness.py holds the catalog's outputs to this table).
+OUTPUT_SHAPES: dict[str, tuple] = {
+    "normal": (3,), "color": (3,), "dt_dtheta": ("P",),
+    "curvature_laplacian": (), "curvature_divergence": (), "gaussian_curvature": (),
+    "opacity": (), "samples_used": (), "work_saved": (),
+}
+
+
+def result_arrays(res: Any) -> RayResult:
+    """What ``Prepared.result`` returned with each of its arrays converted to numpy, nothing else
+    checked: the part of :func:`check_result` that runs the backend's code (``np.asarray`` calls
+    an array's ``__array__``: a lazy device array's queued work, a user type's conversion; reading
+    an attribute may call a property).  The runner calls it inside the configuration's time limit,
+    so that a conversion that is slow or hangs is a Timeout row like a slow ``run``; what
+    :func:`check_result` does after it is numpy's own work on numpy arrays.  A missing array, or
+    one that does not convert, is a :class:`BackendFault`; a :class:`Timeout` passes through."""
+    arrays = {}
+    for name in ("t", "status", "iterations", "evals"):
+        if not hasattr(res, name):
+            raise BackendFault(f"the result has no {name!r} (a RayResult has t, status, iterations, evals, "
+                               f"outputs); got {type(res).__name__}")
+        try:
+            arrays[name] = np.asarray(getattr(res, name))
+        except Exception as exc:
+            raise BackendFault(f"result {name} is not an array: {type(exc).__name__}: {exc}") from exc
+    outs = getattr(res, "outputs", None)
+    if outs is None:
+        outs = {}
+    if not isinstance(outs, dict):
+        raise BackendFault(f"result outputs must be a dict of arrays, got {type(outs).__name__}")
+    clean = {}
+    for name, a in outs.items():
+        try:
+            clean[name] = np.asarray(a)
+        except Exception as exc:
+            raise BackendFault(f"output {name} is not an array: {type(exc).__name__}: {exc}") from exc
+    return RayResult(outputs=clean, **arrays)
+
+
+def _array(arrays: RayResult, name: str, n: int) -> np.ndarray:
+    """``arrays.<name>`` (converted by :func:`result_arrays`), checked: shape (n,) and a real
+    numeric dtype (else BackendFault)."""
+    a = getattr(arrays, name)
     if a.shape != (n,):
         raise BackendFault(f"wrong shape: result {name} has shape {a.shape}, expected ({n},)")
     if a.dtype.kind not in "biuf":
@@ -102,16 +140,41 @@ def _array(res: Any, name: str, n: int) -> np.ndarray:
     return a
 
 
-def check_result(res: Any, n: int, outputs: tuple[str, ...]) -> RayResult:
+def output_shape(name: str, n: int, scene: Any = None) -> tuple | None:
+    """The shape output ``name`` must have for ``n`` rays (:data:`OUTPUT_SHAPES`) on ``scene``;
+    None where the table does not know it.  dt/dθ's column count is ``None`` (any) when no scene
+    is given or its parameters cannot be read (the reference answer then says what is wrong)."""
+    shape = OUTPUT_SHAPES.get(name)
+    if shape is None:
+        return None
+    if "P" in shape:
+        try:
+            p = int(np.asarray(scene.param_vector()).size) if scene is not None else None
+        except Exception:  # noqa: BLE001 - a scene without parameters: the metrics say so
+            p = None
+        shape = tuple(p if d == "P" else d for d in shape)
+    return (n, *shape)
+
+
+def _shape_text(shape: tuple) -> str:
+    return "(" + ", ".join("any" if d is None else str(d) for d in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = None,
+                 who: str = "the backend") -> RayResult:
     """The per-ray contract, checked on what a backend's ``Prepared.result`` returned, which is
     user code: ``t``, ``status``, ``iterations``, ``evals`` arrays of shape (n,) and real dtype;
     ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` finite
-    and ≥ 0; ``outputs`` a dict holding every declared output with leading dimension n; no silent
-    NaN (a non-finite ``t`` or output row on a ray whose status is CONVERGED).  Returns a clean
-    :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises
-    :class:`BackendFault` (a ValueError) naming the offending array."""
-    t = _array(res, "t", n).astype(np.float64)
-    status = _array(res, "status", n)
+    and ≥ 0; ``outputs`` a dict holding every declared output with its whole shape
+    (:data:`OUTPUT_SHAPES`, e.g. ``normal`` (n, 3); dt/dθ's columns those of ``scene``'s
+    parameters) and a numeric dtype; no silent NaN (a non-finite ``t`` or output row on a ray whose
+    status is CONVERGED).  ``res`` may be what :func:`result_arrays` made of it (the runner
+    converts inside the time limit); ``who`` names the backend in a shape error.  Returns a clean
+    :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises :class:`BackendFault`
+    (a ValueError) naming the offending array."""
+    arrays = result_arrays(res)  # numpy arrays already: np.asarray returns them as they are
+    t = _array(arrays, "t", n).astype(np.float64)
+    status = _array(arrays, "status", n)
     if status.dtype.kind == "f":
         if not np.all(np.isfinite(status)) or np.any(status != np.round(status)):
             raise BackendFault(f"result status holds non-integer values (dtype {status.dtype}); status codes are "
@@ -124,31 +187,26 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...]) -> RayResult:
                            f"{ {s.name: int(s) for s in Status if s != Status.IN_PROGRESS} }")
     counts = {}
     for name in ("iterations", "evals"):
-        a = _array(res, name, n)
+        a = _array(arrays, name, n)
         if not np.all(np.isfinite(a)) or np.any(a < 0):
             raise BackendFault(f"result {name} must be finite counts ≥ 0; got min {np.min(a)}, max {np.max(a)}")
         counts[name] = a.astype(np.int64) if a.dtype.kind != "f" else a.astype(np.float64)
-    outs = getattr(res, "outputs", None)
-    if outs is None:
-        outs = {}
-    if not isinstance(outs, dict):
-        raise BackendFault(f"result outputs must be a dict of arrays, got {type(outs).__name__}")
     conv = status == Status.CONVERGED
     nbad = int(np.sum(conv & ~np.isfinite(t)))
     if nbad:
         raise BackendFault(f"silent NaN: {nbad} rays have non-finite t with status CONVERGED")
-    clean = {}
-    for name, a in outs.items():
-        try:
-            clean[name] = np.asarray(a)
-        except Exception as exc:
-            raise BackendFault(f"output {name} is not an array: {type(exc).__name__}: {exc}") from exc
+    clean = arrays.outputs
     for name in outputs:
         if name not in clean:
             raise BackendFault(f"missing output {name!r}; returned {sorted(map(str, clean))}")
         a = clean[name]
-        if a.shape[:1] != (n,):
-            raise BackendFault(f"wrong shape: output {name} has shape {a.shape}, expected ({n}, …)")
+        want = output_shape(name, n, scene)
+        if want is None:  # an output the table does not know: its leading dimension
+            if a.shape[:1] != (n,):
+                raise BackendFault(f"wrong shape: output {name} of {who} has shape {a.shape}, expected ({n}, …)")
+        elif a.ndim != len(want) or any(w is not None and g != w for g, w in zip(a.shape, want)):
+            raise BackendFault(f"wrong shape: output {name} of {who} has shape {a.shape}, expected "
+                               f"{_shape_text(want)} ({n} rays; impls.protocol.RayResult gives each output's shape)")
         if a.dtype.kind not in "biufc":
             raise BackendFault(f"output {name} has dtype {a.dtype}, expected numbers")
         nbad = int(np.sum(conv & ~finite_rows(a)))

@@ -32,29 +32,31 @@ Conventions (the reference's, ``reference/scene.py``): κ > 0 where the surface 
 from its outward normal (a sphere of radius r has κ1 = κ2 = 1/r, Δφ = 2/r).
 
 Errors per ray: e = |got − exact| for scalars, the Euclidean norm of the difference for
-vectors (dt/dθ, colour), and the angle atan2(|n × n*|, n·n*) for normals (stable at 0 and π).
+vectors (dt/dθ, colour), and for normals the larger of the angle atan2(|n × n*|, n·n*) (stable at
+0 and π) and | |n| − 1 | (a normal is a unit vector: the angle alone scores n = 0 or 3·n* as exact).
 Columns per quantity: ``error_max``, ``error_p99``, ``error_median`` (absolute),
 ``error_rel_max`` = max e/|exact| (|exact| floored at the dtype's smallest normal),
 ``error_ulps_max`` = max e/ulp(exact) with ulp the spacing of |exact| in the run's dtype (ulp(1)
 where exact = 0), and ``error_max_eps`` = max e/(eps·max(|exact|, 1)).
 
-Root finders also report ``error_iterate_median``: the median over rays that hit of |t − t*| for
-the returned iterate whatever its status (the convergence plot's y: a budget that ran out still
+Root finders also report ``error_iterate_median``: the median over hitting rays of |t − t*| for the
+returned iterate whatever its status (the convergence plot's y: a budget that ran out still
 leaves an iterate whose error shrinks with the budget).
 
-Rays the reference flags (``case.judged_mask`` False: the reference has no certified answer, e.g.
-a declared Lipschitz bound seen to be false, or a near-tangent ray float64 cannot call a hit or a
-miss; :attr:`reference.cases.Case.exact_t_error_bounds`) are *not judged*: left out of the depth
-errors, of ``n_false_hit``/``n_false_miss`` and of ``color_vs_surface``, and counted in
-``n_not_judged``.  ``reference_error_bound`` is the largest per-ray depth bound of the judged rays.
-A row with ``n_not_judged > 0`` was not fully checked: :func:`bench.report.summary.which_to_pick` never
-picks it, :mod:`bench.studies.stability` counts its rays as not judged, :mod:`bench.report.compare` calls it not
-comparable when the count changed.
+Rays the reference flags (``case.judged_mask`` False: no certified answer, e.g. a declared
+Lipschitz bound seen to be false, or a near-tangent ray float64 cannot call a hit or a miss;
+:attr:`reference.cases.Case.exact_t_error_bounds`) are *not judged*: left out of the depth errors,
+of ``n_false_hit``/``n_false_miss`` and of ``color_vs_surface``, counted in ``n_not_judged``
+(``reference_error_bound``: the largest depth bound of the judged rays).  Such a row was not fully
+checked: :func:`bench.report.summary.which_to_pick` never picks it, :mod:`bench.studies.stability`
+counts its rays as not judged, :mod:`bench.report.compare` calls it not comparable when the count changed.
 
 Honesty rules: a root finder's false hit or false miss has e = inf (a max error cannot hide a
-wrong answer); a non-finite output on a ray whose status says ``CONVERGED`` (a silent NaN) has
-e = inf; rays a method *declined* with a failure status (e.g. ``ILL_CONDITIONED`` for grazing
-dt/dθ) are left out of the error and counted in ``n_declined`` and the status histogram.
+wrong answer), and so has a non-finite output on a ray whose status says ``CONVERGED`` (a silent
+NaN); rays a method *declined* with a failure status (e.g. ``ILL_CONDITIONED`` for grazing dt/dθ)
+are left out of the error and counted in ``n_declined`` and the status histogram; a root finder's
+``n_declined`` also counts a miss it did not certify (UNCERTIFIED, MAX_ITER: e = 0, no answer), a
+renderer's every declined ray.  ``which_to_pick`` picks such a row only under ``FLAGGED_SHARE``.
 """
 
 from __future__ import annotations
@@ -106,9 +108,10 @@ def _per_ray(q: Quantity) -> tuple[np.ndarray, np.ndarray]:
     rays = q.rays & finite_rows(q.exact)
     got, ex = q.got[rays], q.exact[rays]
     if q.angle:
+        # (the angle alone scores n = 0 or 3·n* as exact; a normal is a unit vector: impls.protocol)
         cross = np.linalg.norm(np.cross(got, ex), axis=-1)
         dot = np.einsum("ij,ij->i", got, ex)
-        e = np.arctan2(cross, dot)
+        e = np.maximum(np.arctan2(cross, dot), np.abs(np.linalg.norm(got, axis=-1) - 1.0))
         mag = np.ones(e.shape)
     elif got.ndim == 2:
         e = np.linalg.norm(got - ex, axis=1)
@@ -206,7 +209,7 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
         ref_bound = float(getattr(case, "exact_t_error_bound", 0.0) or 0.0)
     row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
            "n_false_hit": int(np.sum(got_hit & ~exact_hit & judged)), "n_false_miss": int(np.sum(~got_hit & jh)),
-           "n_miss_declined": int(np.sum(_declined(res) & jh)),
+           "n_miss_declined": int(np.sum(_declined(res) & jh)), "n_declined": int(np.sum(_declined(res) & judged)),
            "n_converged_nonfinite": int(np.sum(got_hit & ~np.isfinite(np.asarray(res.t, np.float64)))),
            "n_not_judged": int(np.sum(~judged)),
            "error_iterate_median": float(np.median(it)) if it.size else float("nan"),
@@ -309,26 +312,21 @@ def render_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict, s
         # so that a case whose every hit is flagged reads 'not judged' rather than 'none reached')
         judged = {"n_not_judged": int(np.sum(~judged_rays(case)))} if name == "color_vs_surface" else {}
         rows.append({"quantity": name, "unit": "colour units", **error_stats(e, mag, dtype), **judged,
+                     "n_declined": int(np.sum(~everywhere)),
                      "reference_error_bound": bound,
                      "reference_s": cache.pop(("reference_s", case.id, density_model(spec, knobs),
                                                float(knobs.get("sharpness", 0) or 0)), 0.0)})
     return rows
 
 
-def _root(res, case, dtype, knobs, cache, spec):
-    return root_metrics(res, case, dtype, knobs, cache)
-
-
-def _pointwise(res, case, dtype, knobs, cache, spec):
-    return pointwise_metrics(res, case, dtype, knobs, cache, tuple(spec.outputs))
-
-
 #: family → metric function ``(res, case, dtype, knobs, cache, spec) -> list of row dicts``;
 #: a row with a ``skip`` key records a quantity that could not be checked, and why.
 FAMILY_METRICS: dict[str, Callable[..., list[dict]]] = {
-    "root": _root,
-    "gradient": _pointwise,
-    "param_grad": _pointwise,
+    "root": lambda res, case, dtype, knobs, cache, spec: root_metrics(res, case, dtype, knobs, cache),
+    "gradient": lambda res, case, dtype, knobs, cache, spec: pointwise_metrics(res, case, dtype, knobs, cache,
+                                                                               tuple(spec.outputs)),
+    "param_grad": lambda res, case, dtype, knobs, cache, spec: pointwise_metrics(res, case, dtype, knobs, cache,
+                                                                                 tuple(spec.outputs)),
     "render": render_metrics,
 }
 

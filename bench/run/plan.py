@@ -45,6 +45,25 @@ def select_cases(suite: Suite, case_pattern: str | None) -> list[Case]:
     return catalog(suite.case_pattern, set(suite.case_tags) or None)
 
 
+def method_names(methods: list[str] | None) -> list[str] | None:
+    """The catalog's methods that ``--method`` names (names or globs such as ``volume_*``, as
+    ``--case`` takes), in catalog order; None when not given.  A name or glob that matches nothing
+    is a ValueError naming it (checked by ``bench run`` before it claims its ``--out``, too)."""
+    if not methods:
+        return None
+    unknown = [m for m in methods if not any(fnmatch.fnmatchcase(n, m) for n in METHODS)]
+    if unknown:
+        raise ValueError(f"--method: unknown method(s) {unknown}; known: {sorted(METHODS)}")
+    return [n for n in METHODS if any(fnmatch.fnmatchcase(n, m) for m in methods)]
+
+
+def check_dtypes(dtypes: list[str] | None) -> None:
+    """A ValueError naming the first of ``--dtype``'s that is no dtype a backend may run."""
+    for dt in dtypes or ():
+        if dt not in ("float64", "float32", "float16", "bfloat16"):
+            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
+
+
 def applies(spec, case) -> str | None:
     """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
     reference answers), or None."""
@@ -70,15 +89,9 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
     interleave in time and none is always first.  ``reference_disk``: where numerical first hits
     are kept between runs (:func:`bench.run.references.load_numerical_hits`)."""
-    if methods:  # names or globs ('volume_*'), as --case takes; a name or glob that matches nothing is an error
-        unknown = [m for m in methods if not any(fnmatch.fnmatchcase(n, m) for n in METHODS)]
-        if unknown:
-            raise ValueError(f"--method: unknown method(s) {unknown}; known: {sorted(METHODS)}")
-        methods = [n for n in METHODS if any(fnmatch.fnmatchcase(n, m) for m in methods)]
+    methods = method_names(methods)
     names = [m for m in (suite.methods or tuple(METHODS)) if not methods or m in methods]
-    for dt in dtypes or ():
-        if dt not in ("float64", "float32", "float16", "bfloat16"):
-            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
+    check_dtypes(dtypes)
     cases = select_cases(suite, case_pattern)
     for case in cases:  # numerical first hits from the cache directory, where it has them
         load_numerical_hits(case, reference_disk)

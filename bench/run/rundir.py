@@ -7,7 +7,8 @@ workers never write the directory; the client does).  A second process asking fo
 :class:`LockHeld` naming the holder (pid, host, start time, command) recorded in the lock file.
 
 ``--out`` must be absent or an empty directory (:func:`claim_out`), or with ``--resume`` a run
-directory: anything else found there is named in the error, never overwritten.
+directory: anything else found there is named in the error, never overwritten.  A run refused
+after its claim gives back a directory it created and wrote nothing to (:meth:`RunLock.discard`).
 
 Why ``fcntl.flock`` and no library (``filelock``, ``portalocker``): the lock is advisory on one
 POSIX file system, which is exactly what a run directory needs; the kernel drops it when the
@@ -76,6 +77,8 @@ class RunLock:
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / LOCK_FILE
         self._fd: int | None = None
+        #: the directories :func:`claim_out` created for this claim, ``run_dir`` first (:meth:`discard`)
+        self.created: list[Path] = []
 
     def acquire(self) -> "RunLock":
         import fcntl
@@ -90,6 +93,10 @@ class RunLock:
         except OSError:
             os.close(fd)
             raise
+        if not _same_file(fd, self.path):  # removed by a holder that gave the directory up (discard)
+            os.close(fd)
+            raise LockHeld(f"--out: {self.run_dir} was given up by the process that held it as this one claimed it; "
+                           "run the command again")
         rec = {"pid": os.getpid(), "host": socket.gethostname(),
                "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                "command": " ".join([os.path.basename(sys.executable), *sys.argv])}
@@ -106,11 +113,46 @@ class RunLock:
 
     close = release
 
+    def discard(self) -> None:
+        """Release the lock, first removing the run directory when :func:`claim_out` created it
+        for this claim and it still holds nothing but the lock file (with the parents it created):
+        a run refused after its claim (an argument checked only once the backends are loaded)
+        leaves nothing behind.  Done under the lock, so no other process writes the directory;
+        one that opened the lock file meanwhile finds it removed when it gets the lock
+        (:meth:`acquire`).  A directory that holds anything else is kept as it is."""
+        try:
+            if self._fd is not None and self.created and not foreign_files(self.run_dir):
+                self.path.unlink()
+                for d in self.created:
+                    d.rmdir()
+        except OSError:  # something appeared in it (or above it) meanwhile: it stays
+            pass
+        finally:
+            self.release()
+
     def __enter__(self) -> "RunLock":
         return self.acquire()
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """Whether ``path`` still names the file open as ``fd``."""
+    try:
+        a, b = os.fstat(fd), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def _missing_dirs(path: Path) -> list[Path]:
+    """``path`` and its ancestors that do not exist yet, deepest first."""
+    missing, p = [], Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    return missing
 
 
 def make_dir(path: Path, flag: str = "--out") -> Path:
@@ -142,6 +184,7 @@ def claim_out(out: Path, *, resume: bool = False) -> RunLock:
     if resume and not Path(out).is_dir():
         raise OutError(f"--out: {out} is not a directory, so there is no run to --resume there; drop --resume to "
                        "start a new run")
+    created = _missing_dirs(out)
     out = make_dir(out)
     if not resume:
         require_empty(out)  # before the lock file is made: a foreign directory is left untouched
@@ -156,6 +199,7 @@ def claim_out(out: Path, *, resume: bool = False) -> RunLock:
         except OutError:
             lock.release()
             raise
+    lock.created = created
     return lock
 
 

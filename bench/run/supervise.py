@@ -13,14 +13,24 @@ that note present, this process says so and starts the same command again with
 at least every few seconds: :data:`bench.run.runner.FLUSH_COST_FACTOR`).  Each restart passes at
 least the configuration that crashed, so it ends; :data:`MAX_RESTARTS` bounds it anyway.
 
-Not restarted: an exit without the note (the command ended, whatever its status), and a child
-stopped by SIGINT or SIGTERM (the user's or the machine's stop, which this process passes on).
-A library user calling :func:`bench.commands.main` in-process is not supervised.
+Restarted: a child that ends, whatever its exit status (0 too: a backend's ``os._exit(0)``), with
+a note it wrote itself (the note's ``pid``) still there: the runner removes the note as each
+configuration ends and on every Python path out of it, so only a process that died inside a
+configuration leaves its own note.  Not restarted: an exit without such a note (the command
+ended, whatever its status; a note an earlier process left, which the child did not get as far
+as taking over, restarts nothing), and a child stopped by SIGINT or SIGTERM (the user's or the
+machine's stop, which this process passes on).  A library user calling
+:func:`bench.commands.main` in-process is not supervised.
+
+The child runs in a session of its own, so that a configuration killed as hung (below) takes the
+processes its backend started with it (its process group; a helper that starts a session of its
+own escapes this); the terminal's Ctrl-C then reaches this process only, which passes SIGINT on to
+the child's process group, as the terminal did, and SIGTERM likewise.
 
 Hangs: ``--timeout`` interrupts Python code at once and a compiled kernel when it returns to
 Python (:func:`bench.run.timing.time_limit`).  The note carries that limit; a configuration that
 has run :data:`HUNG_AFTER` past it is inside native code that does not return, and its process is
-killed (:func:`kill_if_hung`): by this process for the run's own, by the first process
+killed (:func:`kill_if_hung`): by this process for the run's own (with its process group), by the first process
 for the second's share of the plan (:class:`bench.run.sharing.SharingExecutor`), by the side
 stages' waiter for the stability stage; on a cluster the client cancels the task and restarts its
 worker (:class:`bench.run.cluster.ClusterExecutor`).  Each is a ``Timeout`` row.
@@ -175,26 +185,49 @@ def _wait_gone(pid: int, seconds: float = 10.0) -> None:
         time.sleep(0.05)
 
 
-def _child(argv: list[str], env: dict, note_of_out) -> int:
-    """Run ``python -m bench <argv>`` and wait for it; SIGTERM given to this process is passed
-    on, SIGINT (a terminal's Ctrl-C reaches both) left to the child.  Every :data:`POLL_S` it
-    looks at the run's in-flight note (``note_of_out()``: its path, once the child claimed a run
-    directory): a configuration hung in native code is marked so and the child killed
-    (:func:`kill_if_hung`)."""
-    proc = subprocess.Popen([sys.executable, "-m", "bench", *argv], env={**env, PARENT_ENV: str(os.getpid())})
+def _command(args: list[str]) -> list[str]:
+    """The child's command line: ``python -m bench <args>`` (a seam for the tests)."""
+    return [sys.executable, "-m", "bench", *args]
 
-    def forward(signum, frame):
+
+def _signal_group(proc: subprocess.Popen, signum: int) -> None:
+    """Send ``signum`` to the process group of ``proc`` (the session it leads, :func:`_child`),
+    or to ``proc`` alone when it has no group of its own; nothing once ``proc`` was reaped (its
+    pid may then be another process's)."""
+    if proc.returncode is not None:
+        return
+    try:
+        os.killpg(proc.pid, signum)
+    except (ProcessLookupError, PermissionError):  # no group led by it (it left it): the child itself
         proc.send_signal(signum)
 
-    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+def _child(cmd: list[str], env: dict, note_of_out) -> tuple[int, int]:
+    """Run ``cmd`` (:func:`_command`) and wait for it; returns ``(exit status, its pid)``.
+
+    The child leads a session of its own (``start_new_session``): a configuration hung in native
+    code is killed with every process of that group, its backend's helpers too, not the child
+    alone (they outlived the run).  A session of its own takes the child out of the terminal's
+    foreground process group, so SIGINT (the terminal's Ctrl-C, which now reaches only this
+    process) and SIGTERM given to this process are passed on to the child's process group, as
+    the terminal or a job's ``kill`` of the group reached them before.  Every :data:`POLL_S` it
+    looks at the run's in-flight note (``note_of_out()``: its path, once the child claimed a run
+    directory): a configuration hung in native code is marked so and the group killed
+    (:func:`kill_if_hung`)."""
+    proc = subprocess.Popen(cmd, env={**env, PARENT_ENV: str(os.getpid())}, start_new_session=True)
+
+    def forward(signum, frame):
+        _signal_group(proc, signum)
+
+    old_int = signal.signal(signal.SIGINT, forward)
     old_term = signal.signal(signal.SIGTERM, forward)
     try:
         while True:
             try:
-                return proc.wait(timeout=POLL_S)
+                return proc.wait(timeout=POLL_S), proc.pid
             except subprocess.TimeoutExpired:
                 pass
-            kill_if_hung(note_of_out(), proc.pid, proc.kill, "the run's process")
+            kill_if_hung(note_of_out(), proc.pid, lambda: _signal_group(proc, signal.SIGKILL), "the run's process")
     finally:
         signal.signal(signal.SIGINT, old_int)
         signal.signal(signal.SIGTERM, old_term)
@@ -218,9 +251,12 @@ def supervise(argv: list[str]) -> int:
 
     try:
         for restart in range(MAX_RESTARTS + 1):
-            code = _child(args, env, note_of_out)
+            code, pid = _child(_command(args), env, note_of_out)
             out = out_dir()
-            if code == 0 or code in _STOPPED or out is None or not (out / INFLIGHT).exists():
+            # died inside a configuration: its own note is left, whatever the exit status (a
+            # backend's os._exit(0) too); a note of an earlier process it never took over is not its
+            left = read_note(out / INFLIGHT) if out is not None else None
+            if code in _STOPPED or left is None or left.get("pid") != pid:
                 return code if code >= 0 else 128 - code
             # the side stages' process died with this one (PR_SET_PDEATHSIG): what it was running is
             # not to blame, and the resumed stability stage must not record it as crashed
@@ -228,7 +264,7 @@ def supervise(argv: list[str]) -> int:
             if side is not None:
                 _wait_gone(int(side.get("pid") or 0))
                 (out / SIDE_DIR / INFLIGHT).unlink(missing_ok=True)
-            what = (read_note(out / INFLIGHT) or {}).get("what", "a configuration")
+            what = left.get("what", "a configuration")
             if restart == MAX_RESTARTS:
                 print(f"the run's process died ({_status(code)}) while running {what}, after {MAX_RESTARTS} restarts; "
                       f"stopping: finish it with --resume --out {out}", file=sys.stderr, flush=True)

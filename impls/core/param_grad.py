@@ -17,7 +17,9 @@ tracer's loop).
   t left [t_min, t_max], else MAX_ITER (its derivative is then not dt/dθ of a hit).
 * ``dt_finite_diff`` — (t(θ⁺) − t(θ⁻)) / (θ⁺_i − θ⁻_i), θ^± = θ ± h_i e_i rounded to the dtype
   (≈ 2h_i), h_i = h·max(1, |θ_i|), each t re-solved from t̂ by ``NEWTON_STEPS`` safeguard-free
-  Newton steps (the root moves by O(h)).
+  Newton steps (the root moves by O(h)); ILL_CONDITIONED where the last Newton step of either
+  re-solve is above √ε·max(1, |t|): it did not converge (the perturbed ray misses, as a grazing
+  hit's neighbour can), so the quotient is not a derivative.
 
 Guard: where |⟨∇φ, d⟩|/|∇φ| < ``min_cos`` (grazing) the status is ILL_CONDITIONED (the value is
 still returned: it is the method's answer, just not trustworthy).
@@ -144,8 +146,10 @@ def dt_finite_diff(backend, scene, o, d, *, t_min, t_max, t_hit, h, min_cos):
     steps_b = backend.asarray(h * np.maximum(1.0, np.abs(th)), dtype)  # h_i
     index_b = backend.asarray(np.arange(th.size), dtype)
 
+    tol = float(np.sqrt(np.finfo(dtype).eps))
+
     def column(i, carry):
-        dt, cost = carry
+        dt, cost, stuck = carry
         e_i = index_b == i
         ends = (theta_b[i] + steps_b[i], theta_b[i] - steps_b[i])  # θ_i ± h_i, rounded to the dtype
         ts = []
@@ -154,14 +158,21 @@ def dt_finite_diff(backend, scene, o, d, *, t_min, t_max, t_hit, h, min_cos):
             t = t0
             for _ in range(NEWTON_STEPS):
                 f, df, c = ev(o, d, t, True)
-                t = xp.where(newton, t - f / df, t)
+                step = f / df
+                t = xp.where(newton, t - step, t)
                 cost = cost + c
+            # Newton from t̂ converges quadratically to the moved root; a last step above √ε·|t|
+            # (or none finite) means it did not: the perturbed ray misses the surface (a grazing
+            # hit's neighbour) and t is no root, so the quotient is no derivative
+            # (a non-finite step is φ's NaN or a zero slope: NON_FINITE, which _finish_dt gives)
+            stuck = stuck | (xp.isfinite(step) & (xp.abs(step) > tol * xp.maximum(xp.abs(t), 1.0)))
             ts.append(t)
         col = (ts[0] - ts[1]) / (ends[0] - ends[1])  # the step actually taken, not 2h_i
-        return xp.where(e_i[None, :], col[:, None], dt), cost
+        return xp.where(e_i[None, :], col[:, None], dt), cost, stuck
 
     dt0 = backend.asarray(np.zeros((o.shape[0], th.size)), dtype)
-    dt, cost = backend.fori_loop(0, th.size, column, (dt0, c1))
+    dt, cost, stuck = backend.fori_loop(0, th.size, column, (dt0, c1, xp.zeros_like(newton)))
+    status = xp.astype(xp.where(newton & stuck, ILL, status), xp.int32)
     out = _finish_dt(xp, status, dt, t_hit, cost)
     out["iterations"] = xp.full_like(out["iterations"], NEWTON_STEPS)
     return out
