@@ -239,3 +239,20 @@ def test_the_checker_sees_each_kind_of_violation():
     assert "CONVERGED" in violations(res([math.inf], [C]), ())[0]
     assert "MAX_ITER" in violations(res([1.0], [MX], normal=[[0, 0, 1]]), ("normal",))[0]
     assert "not impls.Status" in violations(res([1.0], [7]), ())[0]
+
+
+@pytest.mark.parametrize("bid", ["numpy", "torch:cpu", pytest.param("jax:cpu", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_no_certified_miss_when_the_surface_passes_through_t_max(bid, dtype):
+    """φ = z (a user's field), rays straight down from z = 3 with t_max = 3: φ = 0 exactly at the
+    range's end, the surface through t_max.  The spheres certify [t_min, t_max) free of surface,
+    not t_max itself, and sphere tracing called these rays certified MISSes; now UNCERTIFIED (the
+    hybrids and the marches already were)."""
+    be = resolve_or_skip(bid)
+    scene = CallableField(lambda x, xp: x[..., 2] * 1.0, lipschitz=1.0, name="plane.through.tmax")
+    o = np.array([[0.0, 0.0, 3.0], [0.25, -0.5, 3.0]])
+    d = np.array([[0.0, 0.0, -1.0]] * 2)
+    for method in ("sphere_trace", "hybrid_secant"):
+        p = be.prepare(method, scene, o, d, dtype=dtype, t_min=0.0, t_max=3.0)
+        status = np.asarray(p.result(p.run()).status)
+        assert not np.any(status == int(Status.MISS)), (method, [Status(int(s)).name for s in status])

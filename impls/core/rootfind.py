@@ -336,7 +336,8 @@ class SphereTrace(_Search):
     cannot resolve the depth to tol: along a ray at slope s, φ's sign is rounding over a stretch
     about 2·rounding/s long).  MISS when the next t exceeds t_max
     (or leaves the scene's ray bounds, see :func:`clip_to_bounds`), if no probe stood without a
-    sign change on the way (each leaves up to its reach uncovered), else UNCERTIFIED; a crossing
+    sign change on the way (each leaves up to its reach uncovered) and φ is resolved where the last
+    step ends (φ = 0 at t_max is a surface through the range's end), else UNCERTIFIED; a crossing
     found after a probe that left more than max(tol/L, 2ε|t|) uncovered is UNCERTIFIED too (with
     its depth: it is not proved the first where a pair could hide in that stretch); MAX_ITER
     after ``max_steps`` steps; LIPSCHITZ_VIOLATED when a step's ends differ by more than L
@@ -481,7 +482,9 @@ class SphereTrace(_Search):
         give_up = give_up | (stood & (gap > allow)) | coarse
         miss = out & ~cross
         covered = (tb + rb >= hi) | (t_eval - r_new <= tb + rb)
-        unc_miss = miss & (unc | ~covered)
+        # φ within rounding of 0 where the ray ends (φ = 0 exactly at t_max: a surface through the
+        # range's end point) proves no side there: the spheres cover [t_min, t_max), not t_max itself
+        unc_miss = miss & (unc | ~covered | unres)
         # the step's two ends are evaluated: a slope above L shows the declared bound is false
         lipv = lipschitz_violated(xp, f, f_new, t, t_eval, self.inv_lip, mag, self.gain) & ~beyond
         if self.check_inside:
