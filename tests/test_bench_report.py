@@ -312,6 +312,8 @@ def test_best_accuracy_says_why_a_row_has_no_finite_error():
     # the error of the answers given: a wrong CONVERGED depth beside flagged rays must not read like a right one
     assert text({"error_max": float("inf"), "n_false_miss": 32, "n_miss_declined": 32, "error_max_finite": 0.51}) == \
         "inf: 32 hitting ray(s) flagged; 0.51 on the rest"
+    # rays the reference flags are in no error: the text says how many (it read as the error over every ray)
+    assert text({"error_max": 4.02e-7, "n_not_judged": 484}) == "4.02e-07 (484 ray(s) not judged: the reference flags them)"
     assert text({"error_max": float("nan"), "n_declined": 756.0}) == "none: no ray answered (756 declined)"
     assert text({"error_max": float("nan"), "n_declined": float("nan")}) == "none: no ray checked (see its statuses)"
     # and the table takes it, the most accurate setting first

@@ -43,14 +43,20 @@ def error_text(row) -> str:
     bench/run/metrics.py), and says which and how many; no error at all (NaN) is a row with no
     ray checked: every hit declined (dt_unrolled's budget spent on every hit: MAX_ITER), or no ray
     answered (a surface render whose every ray is UNCERTIFIED).  An infinite error also gives the
-    largest finite one, over the rays answered (``error_max_finite``)."""
-    v = float(row.get("error_max", np.nan))
-    if np.isfinite(v):
-        return f"{v:.3g}"
-
+    largest finite one, over the rays answered (``error_max_finite``), and either says how many
+    rays the reference flags (``n_not_judged``), which no error covers."""
     def count(column: str) -> int:  # (absent or NaN where the row's family has no such count)
         x = row.get(column)
         return int(x) if isinstance(x, (int, float, np.number)) and np.isfinite(x) else 0
+
+    # rays the reference flags (no certified answer there: a declared Lipschitz bound it saw to be
+    # false, a near-tangent ray) are left out of every error: the number must say so, or it reads
+    # as the error over every ray
+    unjudged = count("n_not_judged")
+    unjudged = f" ({unjudged} ray(s) not judged: the reference flags them)" if unjudged else ""
+    v = float(row.get("error_max", np.nan))
+    if np.isfinite(v):
+        return f"{v:.3g}{unjudged}"
 
     if np.isnan(v):
         declined = count("n_declined")
@@ -64,7 +70,7 @@ def error_text(row) -> str:
     # beside the same count of flagged rays
     rest = float(row.get("error_max_finite", np.nan))
     rest = f"; {rest:.3g} on the rest" if np.isfinite(rest) else ""
-    return (f"inf: {', '.join(parts)}" if parts else "inf") + rest
+    return (f"inf: {', '.join(parts)}" if parts else "inf") + rest + unjudged
 
 
 def _kernel(cache) -> str:
