@@ -202,12 +202,13 @@ class MeshSDF(Field):
         import trimesh
 
         tm = trimesh.Trimesh(V, F, process=False, validate=False)
-        area = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-        # collinear to rounding counts as zero area: the cross product of a face whose height is
-        # within rounding of 0 is rounding (|cross| = longest · height), not 0, and such a face made
-        # the rounding model (rounding_gain, ∝ longest/height ~ 1e16) flag every hit of the mesh
+        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        area = np.linalg.norm(n, axis=1)  # twice the face's area: |cross| = longest edge · height
         e = V[F] - V[F[:, [1, 2, 0]]]
         longest2 = np.max(np.einsum("fij,fij->fi", e, e), axis=1)
+        # collinear to rounding counts as zero area: the cross product of a face whose height is
+        # within rounding of 0 is rounding, not 0, and such a face made the rounding model
+        # (rounding_gain, ∝ longest/height ~ 1e16) flag every hit of the mesh
         flat = area <= _DEGENERATE_HEIGHT * longest2
         if np.any(flat):
             raise ValueError(f"faces has {int(np.sum(flat))} degenerate triangles (zero area, or collinear to rounding: "
@@ -237,8 +238,7 @@ class MeshSDF(Field):
         self.name = str(name)
         self.vertices.setflags(write=False)
         self.faces.setflags(write=False)
-        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-        self.face_normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+        self.face_normals = n / area[:, None]
         adj = tm.face_adjacency
         fold = np.einsum("ij,ij->i", self.face_normals[adj[:, 0]], self.face_normals[adj[:, 1]])
         self._parallel_sign_ok = bool(np.all(fold >= -_PARALLEL_COS))
@@ -248,9 +248,7 @@ class MeshSDF(Field):
         self.size = float(np.linalg.norm(hi - lo))
         # libigl's closest point on a skinny triangle rounds like eps · (longest edge)/(height)
         # times the coordinates: the surface tolerance scales with the worst such ratio
-        e = np.stack([V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 1]], V[F[:, 0]] - V[F[:, 2]]], axis=1)
-        longest2 = np.max(np.sum(e * e, axis=2), axis=1)
-        self._skinny = float(np.max(longest2 / area))  # |cross| = longest · height: longest/height
+        self._skinny = float(np.max(longest2 / area))  # longest/height
 
     @classmethod
     def load(cls, name: str) -> "MeshSDF":

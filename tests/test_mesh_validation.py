@@ -68,39 +68,24 @@ def test_touching_shells_are_refused():
 
 
 def test_a_face_collinear_to_rounding_is_refused_as_degenerate():
-    """A vertex put on an edge of an icosphere and the sliver (a, b, m) added: watertight and
-    consistently oriented, but the three points are collinear, and their cross product is 4e-18,
-    not 0.  It was accepted, and its aspect ratio (~1e16) made the rounding model flag every hit
-    of the mesh (not judged) and every certified root finder answer UNCERTIFIED."""
+    """An icosphere's face (a, b, c) split at a point m on its edge ab into (a, m, c), (m, b, c),
+    and the sliver (a, b, m) closing the edge: watertight and consistently oriented, but the
+    sliver's three points are collinear and their cross product is rounding (4e-18), not 0.  It
+    was accepted, and its aspect ratio (~1e16) made the rounding model flag every hit of the mesh
+    (not judged) and every certified root finder answer UNCERTIFIED."""
     import trimesh
 
-    m = trimesh.creation.icosphere(subdivisions=2)
-    V, F = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
-    f0 = F[0]
-    a, b = f0[0], f0[1]
-    mid = 0.5 * (V[a] + V[b])
-    V2 = np.vstack([V, mid])
-    k = len(V)
-    # split the two faces sharing edge (a, b) at m, then add the flat (a, m, b)/(b, m, a) pair's one face:
-    # here only the split, which keeps the mesh watertight with the collinear face (a, b, m) among its faces
-    other = np.nonzero([(b in f and a in f) for f in F])[0]
-    F2 = [f for i, f in enumerate(F) if i not in set(other)]
-    for i in other:
-        f = list(F[i])
-        j = f.index(a)
-        c = f[(j + 2) % 3] if f[(j + 1) % 3] == b else f[(j + 1) % 3]
-        if f[(j + 1) % 3] == b:  # a → b → c
-            F2 += [[a, k, c], [k, b, c]]
-        else:  # b → a → c
-            F2 += [[b, k, c], [k, a, c]]
-    F2 = np.asarray(F2, np.int64)
-    MeshSDF(V2, F2)  # the split alone is a fine mesh (its faces are not slivers)
-    # a mesh that adds a flat triangle: (a, m, b) and (b, m, a), each collinear; with the edges they add,
-    # the mesh stays closed (two faces per edge)
-    F3 = np.vstack([F2, [[a, k, b], [b, k, a]]])
-    assert np.linalg.norm(np.cross(V2[k] - V2[a], V2[b] - V2[a])) < 1e-15  # collinear, not exactly 0 in general
-    with pytest.raises(ValueError, match="degenerate triangles .*collinear to rounding.*merge_vertices"):
-        MeshSDF(V2, F3)
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(ico.vertices, np.float64), np.asarray(ico.faces, np.int64)
+    a, b, c = F[0]
+    V2 = np.vstack([V, V[a] + (V[b] - V[a]) * 0.3])
+    m = len(V)
+    F2 = np.vstack([F[1:], [[a, m, c], [m, b, c], [a, b, m]]])
+    tm = trimesh.Trimesh(V2, F2, process=False)
+    assert tm.is_watertight and tm.is_winding_consistent and tm.volume > 0  # the other checks pass
+    assert 0 < np.linalg.norm(np.cross(V2[b] - V2[a], V2[m] - V2[a])) < 1e-15  # not exactly 0
+    with pytest.raises(ValueError, match="degenerate triangles .*collinear to rounding.*face 321.*merge_vertices"):
+        MeshSDF(V2, F2)
 
 
 def test_an_unmerged_triangle_soup_is_told_to_merge_its_vertices():

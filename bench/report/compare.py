@@ -113,20 +113,15 @@ def same_row_machine(b: Mapping, n: Mapping) -> bool:
     return not (kb and kn) or kb == kn
 
 
-#: the statuses that answer a ray (impls.protocol.Status); any other is a flagged, unanswered ray
-ANSWERS = ("CONVERGED", "MISS")
-
-
 def flagged_rays(status_counts) -> float:
     """Rays of a row's status histogram (``status_counts``, JSON) with a status that does not
-    answer them (:data:`ANSWERS`); NaN where the row has none."""
-    try:
-        d = json.loads(status_counts) if isinstance(status_counts, str) and status_counts else None
-    except ValueError:
+    answer them (:data:`bench.studies.stability.ANSWER_STATUSES`, the stability matrix's
+    "flagged"); NaN where the row has none."""
+    from ..studies.stability import ANSWER_STATUSES, status_histogram
+
+    if not isinstance(status_counts, str) or not status_counts:
         return float("nan")
-    if not isinstance(d, dict):
-        return float("nan")
-    return float(sum(int(v) for k, v in d.items() if k not in ANSWERS))
+    return float(sum(n for k, n in status_histogram(status_counts).items() if k not in ANSWER_STATUSES))
 
 
 def _fewer_answers(b: Mapping, n: Mapping) -> bool:

@@ -188,7 +188,7 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
     judged = judged_rays(case)
     e = depth_errors(res, exact_t)[judged]
     exact_hit = np.isfinite(exact_t)
-    got_hit = res.status == Status.CONVERGED
+    got_hit, declined = res.status == Status.CONVERGED, _declined(res)
     mag = np.where(exact_hit, np.abs(np.where(exact_hit, exact_t, 0.0)), 0.0)[judged]
     # The iterate's error whatever its status (a budget that ran out leaves a finite last
     # iterate): what a convergence plot in the step budget needs; the max error above stays inf.
@@ -209,7 +209,7 @@ def root_metrics(res: RayResult, case, dtype: str, knobs: dict, cache: dict) -> 
         ref_bound = float(getattr(case, "exact_t_error_bound", 0.0) or 0.0)
     row = {"quantity": "depth", "unit": "scene units", **error_stats(e, mag, dtype),
            "n_false_hit": int(np.sum(got_hit & ~exact_hit & judged)), "n_false_miss": int(np.sum(~got_hit & jh)),
-           "n_miss_declined": int(np.sum(_declined(res) & jh)), "n_declined": int(np.sum(_declined(res) & judged)),
+           "n_miss_declined": int(np.sum(declined & jh)), "n_declined": int(np.sum(declined & judged)),
            "n_converged_nonfinite": int(np.sum(got_hit & ~np.isfinite(np.asarray(res.t, np.float64)))),
            "n_not_judged": int(np.sum(~judged)),
            "error_iterate_median": float(np.median(it)) if it.size else float("nan"),

@@ -124,7 +124,8 @@ def _num(v, default=0.0) -> float:
     return default if math.isnan(f) else f
 
 
-def _statuses(v) -> dict[str, int]:
+def status_histogram(v) -> dict[str, int]:
+    """A row's ``status_counts`` (JSON, or a dict) as {status name: rays}; {} where it has none."""
     if isinstance(v, dict):
         return {str(k): int(n) for k, n in v.items()}
     if not isinstance(v, str) or not v:
@@ -165,7 +166,7 @@ def judge_cell(rows, dtype: str, scale_of=catalog_scale, origin_of=catalog_origi
         judged_rows += 1
         tol = depth_tolerance(dtype, scale_of(str(r["case_id"])), origin_of(str(r["case_id"])))
         out["tolerance"] = tol if math.isnan(out["tolerance"]) else max(out["tolerance"], tol)
-        st = _statuses(r.get("status_counts"))
+        st = status_histogram(r.get("status_counts"))
         for k, n in st.items():
             statuses[k] = statuses.get(k, 0) + n
         flagged = sum(n for k, n in st.items() if k not in ANSWER_STATUSES)
@@ -328,7 +329,7 @@ def stability_matrix(cells: pd.DataFrame, detail: bool = False) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["method", "backend", "dtype"] + present)
 
 
-__all__ = ["ANSWER_STATUSES", "MARKS", "cell_detail", "cell_text", "depth_tolerance", "judge_cell", "scoreboard",
+__all__ = ["ANSWER_STATUSES", "MARKS", "status_histogram", "cell_detail", "cell_text", "depth_tolerance", "judge_cell", "scoreboard",
            "scoreboard_lines", "stability_cells", "stability_matrix", "survived"]
 
 
