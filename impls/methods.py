@@ -159,7 +159,15 @@ class MethodSpec:
 # "good" setting.  The first knob of each method is its main accuracy dial.
 
 _MAX_STEPS = Knob("max_steps", 512, int, 1, "step budget per ray (MAX_ITER when spent)", role="budget")
-_XTOL = Knob("xtol", 1e-12, float, 0.0, "converged when the sign-change bracket is ≤ xtol wide or its ends are adjacent floats (depth units)", role="tolerance")
+_XTOL = Knob("xtol", 1e-12, float, 0.0, "converged when the sign-change bracket is ≤ xtol wide or its ends are adjacent floats "
+             "(depth units)", role="tolerance")
+# the hybrids certify their bracket against φ's rounding, so their default is one float64 certifies on
+# the catalog's meshes: φ's modelled rounding on mesh.fin (rounding gain 400) is ~4e-12 at its depths,
+# and the stretch where its sign is rounding, 2·rounding/σ at slope σ, exceeds 1e-12 on a quarter of
+# its 1024² camera's hits (sphere_trace's default tol is 1e-10 likewise)
+_CERT_XTOL = Knob("xtol", 1e-10, float, 0.0, "converged when the bracket of resolved signs of φ (|φ|/L beyond φ's "
+                  "modelled rounding) around the crossing is ≤ max(xtol, 4 roundings, 2 float spacings) wide "
+                  "(depth units; the depth found is usually far closer)", role="tolerance")
 _MIN_STEP = Knob("min_step", 1e-4, float, 1e-9,
                  "first-crossing tolerance: a CONVERGED depth is within min_step + xtol of the first crossing (a pair "
                  "of crossings with chord < min_step just before it can be passed over); a step this short may stand "
@@ -225,7 +233,7 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="hybrid_secant",
             family="root",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+            knobs=(_CERT_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
                    _REACH),
             requires=("lipschitz",), build=methods_root.build_hybrid,
             description="IDR-style hybrid: sphere tracing with steps max(|φ|/L, Δ) to the first sign change, Δ in "
@@ -236,7 +244,7 @@ def _specs() -> list[MethodSpec]:
         MethodSpec(
             name="hybrid_chandrupatla",
             family="root",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+            knobs=(_CERT_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
                    _REACH),
             requires=("lipschitz",), build=methods_root.build_hybrid_chandrupatla, libs=_REFINE_LIBS["chandrupatla"],
             description="hybrid_secant's certified march to the first sign change, then "
@@ -302,7 +310,7 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="render_surface", family="render",
-            knobs=(_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
+            knobs=(_CERT_XTOL, _MIN_STEP, _OVERSTEP, _HYBRID_MAX_STEPS, _BOUNDS, _LADDER, _LADDER_AFTER, _EXTRAPOLATE,
                    _REACH),
             requires=("lipschitz",), outputs=("color",), needs_color=True, build=methods_root.build_hybrid,
             description="surface rendering: colour ρ(x̂) at the first hit found by hybrid_secant; 0 for a miss",

@@ -95,7 +95,7 @@ def test_converged_only_on_a_certified_returned_bracket(monkeypatch, bracket, f_
     a, b = np.array([0.5, 0.5]), np.array([2.0, 2.0])
     o, d = np.zeros((2, 3)), np.tile([1.0, 0.0, 0.0], (2, 1))
     ev = lambda o, d, t, deriv: (t - 1.0, None, 1)  # noqa: E731
-    t, status, nit, evals = chandrupatla.refine(a, b, a - 1.0, b - 1.0, o, d, ev, xtol=1e-12, budget=np.array([100, 100]))
+    t, status, nit, evals, _ = chandrupatla.refine(a, b, a - 1.0, b - 1.0, o, d, ev, xtol=1e-12, budget=np.array([100, 100]))
     assert np.all(status == want)
     assert np.all(np.isnan(t)) if want == Status.NON_FINITE else np.all(np.isfinite(t))
     assert np.all(nit == 3) and np.all(evals == 5)  # the fake never asks for φ: nothing served from the march
@@ -112,11 +112,11 @@ def test_real_scipy_counts_evaluations_and_respects_the_budget():
         seen.append(t.size)
         return np.cbrt(t - 1.0), None, 1
 
-    t, status, nit, evals = chandrupatla.refine(a, b, np.cbrt(a - 1), np.cbrt(b - 1), o, d, ev, xtol=1e-12,
+    t, status, nit, evals, _ = chandrupatla.refine(a, b, np.cbrt(a - 1), np.cbrt(b - 1), o, d, ev, xtol=1e-12,
                                                 budget=np.array([200, 200]))
     assert np.all(status == Status.CONVERGED) and np.all(np.abs(t - 1.0) <= 1e-12)
     assert int(evals.sum()) == sum(seen) and np.all(nit >= 1)
-    t, status, nit, evals = chandrupatla.refine(a, b, np.cbrt(a - 1), np.cbrt(b - 1), o, d, ev, xtol=1e-12,
+    t, status, nit, evals, _ = chandrupatla.refine(a, b, np.cbrt(a - 1), np.cbrt(b - 1), o, d, ev, xtol=1e-12,
                                                 budget=np.array([1, 200]))
     assert status[0] == Status.MAX_ITER and status[1] == Status.CONVERGED
 

@@ -21,6 +21,10 @@ Contract (φ along the ray t ↦ φ(o + t d), bracket [a, b] with φ(a)φ(b) < 0
   not from its flag: finite ends with a sign change (or φ = 0 exactly at the returned x) that are
   no more than ``xtol`` apart or adjacent floats (their midpoint rounds to an end), within the
   ray's step budget.  ``t`` is scipy's ``x`` (the end with the smaller |φ|), inside that bracket.
+  Behind a certifying march (``hybrid_chandrupatla``) that closed bracket is the refiner's, of
+  φ's signs as computed: the answer then stands once the certified bracket taken from scipy's
+  returned ends is within the closing width, else it is verified first, as ``hybrid_secant``'s
+  (:meth:`impls.core.rootfind.MarchRefine._verify`).
 * Otherwise: NON_FINITE (t NaN) where scipy reports a non-finite value (status −3) or returns a
   non-finite x; MAX_ITER (t scipy's last x, or the bracket's midpoint where that is NaN) where
   the budget ran out (scipy −2, or more iterations than the ray's ``max_steps`` left: scipy's
@@ -48,7 +52,8 @@ def refine(a, b, fa, fb, o, d, ev, *, xtol: float, budget):
     """Refine brackets [a, b] (φ(a) = ``fa``, φ(b) = ``fb`` of opposite signs) on rays ``o``, ``d``
     ((m, 3)) with ``scipy.optimize.elementwise.find_root``; ``budget`` (m,) iterations left per ray.
 
-    Returns ``(t, status, nit, evals)`` per ray as the module docstring states.  φ is evaluated
+    Returns ``(t, status, nit, evals, (xl, xr, fl, fr))`` per ray as the module docstring states, the
+    last scipy's returned bracket and φ at its ends.  φ is evaluated
     through the backend's ``ev(o, d, t, deriv) -> (φ, _, cost)`` on the rays scipy still works on
     (it compacts its arguments, so the ray components travel as ``args``)."""
     from scipy.optimize.elementwise import find_root
@@ -93,7 +98,7 @@ def refine(a, b, fa, fb, o, d, ev, *, xtol: float, budget):
     status = np.where(certified & within, CONV, np.where(nonf & ~(certified & within), NONF, MAXI)).astype(np.int32)
     t = np.where(status == NONF, np.nan, np.where(np.isfinite(x), x, mid))
     evals = (np.asarray(res.nfev, np.int64) - calls["served"]) * calls["cost"]
-    return t.astype(a.dtype), status, nit, evals
+    return t.astype(a.dtype), status, nit, evals, (xl, xr, fl, fr)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,19 +112,36 @@ class MarchChandrupatla(MarchRefine):
             raise TypeError("march_chandrupatla refines with scipy.optimize.elementwise.find_root on numpy arrays; "
                             f"the array namespace here is {getattr(xp, '__name__', xp)!r} (numpy backend only)")
         budget = self.max_steps - s["iterations"]
-        t, status, nit, evals = refine(s["a"], s["b"], s["fa"], s["f"], o, d, ev, xtol=self.xtol, budget=budget)
+        t, status, nit, evals, (xl, xr, fl, fr) = refine(s["a"], s["b"], s["fa"], s["f"], o, d, ev, xtol=self.xtol,
+                                                         budget=budget)
         new = dict(t=t, status=status, iterations=s["iterations"] + nit, evals=s["evals"] + evals)
         if self.rule.certifies:
-            # scipy's root lies in a closed bracket; it is the ray's first crossing when the march's
-            # frontier reaches it (MarchRefine._certify), else the certification stage samples
-            # towards it from the last certified point, bisecting an earlier crossing it finds
-            later = (status == CONV) & (s["u"] + self.rule.min_step < t)
+            # the certified bracket [A, B] from scipy's returned ends (MarchRefine._bracket_sample: its
+            # left end has the march's start side)
+            with np.errstate(invalid="ignore"):
+                lft = self._bracket_sample(np, s, xl, fl, (fl > 0) == (s["fa"] > 0))
+                got = self._bracket_sample(np, dict(s, **lft), xr, fr, (fr > 0) == (s["fa"] > 0))
+            fin = np.isfinite(xl) & np.isfinite(xr) & np.isfinite(fl) & np.isfinite(fr) & (xl <= xr)
+            new.update(A=np.where(fin, got["A"], s["A"]), B=np.where(fin, got["B"], s["B"]))
+            # scipy's root lies in a closed bracket; it is an answer once the certified bracket is
+            # within the closing width (else it is verified first: MarchRefine._verify), and the ray's
+            # first crossing when the march's frontier reaches it (MarchRefine._certify), else the
+            # certification stage samples towards it from the last certified point, bisecting an
+            # earlier crossing it finds
+            closed = status == CONV
+            ok = closed & (new["B"] - new["A"] <= self.closing_width(np, t, s["mag"]))
+            new.update(a=s["a"], b=s["b"])
+            self._settle(np, new, ok)
+            t = new["t"]
+            verify = closed & ~ok
+            later = ok & (s["u"] + self.rule.min_step < new["a"])
             # a frontier stopped behind the last certified sample (MarchRefine.step_refine): UNCERTIFIED
             unc = later & (s["u"] < s["cp"])
             later = later & ~unc
             status = np.where(unc, UNC, status)
-            new.update(status=np.where(later, IN, status), a=np.where(later, t, s["a"]), b=np.where(later, t, s["b"]),
-                       cm=later, phase=np.where(later, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
+            on = later | verify
+            new.update(status=np.where(on, IN, status), cm=later, vm=verify, zl=t, zr=t,
+                       phase=np.where(on, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
         else:
             # the march's frontier (ConstantStep.late): a root it leaves more than a step behind is
             # not certified the first crossing (scipy's bracket is not returned: its root bounds it)

@@ -990,7 +990,10 @@ class MarchRefine(_Search):
     whose ends are adjacent floats (far from the origin ``xtol`` can be below the float
     spacing).  The reported ``t`` lies in that bracket: the last iterate (bisection), or the
     zero of the chord through the last two iterates (secant, Newton), which after a lengthened
-    step are the bracket's ends.  A marching step whose sign change spans ≤ ``xtol`` is
+    step are the bracket's ends.  For a certifying rule the refiner's bracket, whose sides are
+    the signs of φ as computed, is not the certificate: a closed bracket is an answer only once
+    the *certified* bracket [A, B] (from resolved samples only, :meth:`_bracket_sample`) is
+    within :meth:`closing_width`, else after verification (:meth:`_verify`).  A marching step whose sign change spans ≤ ``xtol`` is
     converged at once.  Every marching and ladder step of the hybrid, and of constant-step
     marching where the scene declares a bound (``ConstantStep.check_inv_lip``), checks it: a step whose ends
     differ by more than L·h (beyond rounding, :func:`lipschitz_violated`) ends the ray with
@@ -1052,6 +1055,8 @@ class MarchRefine(_Search):
             s.update(f=f, fp=f, fa=f)
             # the certification of a bracket's crossing as the first (step_refine): set on a crossing
             s.update(u=t, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(f, dtype=xp.bool))
+            # the certified bracket [A, B] and its verification (_verify): set on a crossing
+            s.update(A=t, B=t, vm=xp.zeros_like(f, dtype=xp.bool), zl=t, zr=t)
         # a certifying rule starts only from a resolved point (a start on the surface to rounding
         # is UNCERTIFIED); a constant-step march from φ = 0 exactly shows no side either: the first
         # crossing lies strictly after the start (reference.scene.first_hit_from_intervals), and
@@ -1128,7 +1133,10 @@ class MarchRefine(_Search):
                               unc=unc_miss | unres | (conv & (g + rule.min_step < t)))
             t_n = xp.where(unc_miss, math.inf, xp.where(unres, t_land, t_n))
             # the frontier: the end of the stretch certified spheres covered from the start on
-            new.update(g=g, u=xp.minimum(t + rc, g), cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross))
+            new.update(g=g, u=xp.minimum(t + rc, g), cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(cross),
+                       # a crossing's ends are resolved (an unresolved landing is no crossing): the
+                       # first crossing of the bracket lies between their spheres
+                       A=t + rc, B=t_land - rc_n, vm=xp.zeros_like(cross), zl=t, zr=t)
         else:
             g = s["g"]
             inv = rule.check_inv_lip
@@ -1266,7 +1274,8 @@ class MarchRefine(_Search):
             status = _verdict(xp, nonf, conv, iters >= self.max_steps, miss & ~unc_miss, lipv,
                               unc=unc_miss | unres_e | (conv & (g + rule.min_step < Tpe)))
             t_new = xp.where(unc_miss, math.inf, xp.where(unres_e, Te, xp.where(onto, Te, Tpe)))
-            new.update(g=g, u=xp.minimum(Tpe + Rpe, g), cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto))
+            new.update(g=g, u=xp.minimum(Tpe + Rpe, g), cp=Tpe, fcp=Fpe, kap=xp.ones_like(t), cm=xp.zeros_like(onto),
+                       A=Tpe + Rpe, B=Te - at(R), vm=xp.zeros_like(onto), zl=t, zr=t)
         else:
             conv = cross_e & ((Fe == 0) | (Te - Tpe <= self.xtol))
             g = s["g"]
@@ -1334,7 +1343,45 @@ class MarchRefine(_Search):
         t_out = self.refiner.report(xp, c, f_c, t, f, na, nb, closed)
         new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, iterations=s["iterations"] + 1, evals=s["evals"] + cost)
         new.update(self.refiner.after(xp, s, i2, a, b, df_c))
+        if self.rule.certifies:
+            new.update(self._bracket_sample(xp, s, c, f_c, same_a))
         return new, c, f_c, same_a, closed
+
+    def _bracket_sample(self, xp, s, c, f_c, same_a) -> dict:
+        """The certified bracket [A, B] after a sample (c, φ(c)) in it: a resolved sample of the
+        start's side moves A to c + r_c, one of the other side B to c − r_c (r_c its certified
+        radius, :func:`certified_radius`); an unresolved one moves neither.  The refiner's bracket
+        [a, b] takes its sides from the sign of the computed φ, also where that sign is rounding;
+        [A, B] only from signs that are proved, so a crossing of φ itself lies in it.  (Where φ's
+        rounding is not modelled, ``rg`` = 0, only φ = 0 is unresolved, and inside a bracket of
+        resolved signs it is taken as the root, [c, c], as sphere tracing takes it.)"""
+        r_c, unres = radius_and_unresolved(xp, f_c, c, self.rule.inv_lip, s["mag"], self.rg)
+        A = xp.where(~unres & same_a, xp.maximum(s["A"], c + r_c), s["A"])
+        B = xp.where(~unres & ~same_a, xp.minimum(s["B"], c - r_c), s["B"])
+        if self.rg == 0.0:
+            A, B = xp.where(f_c == 0, c, A), xp.where(f_c == 0, c, B)
+        return dict(A=A, B=B)
+
+    def closing_width(self, xp, t, mag):
+        """The widest certified bracket [A, B] a CONVERGED depth t may stand in, in depth units:
+        max(``xtol``, 4·rounding, 2ε|t|) + 4ε|t| — the tolerance, or what the dtype resolves where
+        that is more: φ's modelled rounding (:func:`resolution`, with the field's gain ``rg``: 0
+        where φ is not a distance bound; along a ray meeting the surface at slope σ φ's sign is
+        rounding over a stretch about 2·rounding/σ long) and two spacings of the floats at t
+        (adjacent floats)."""
+        at = xp.abs(t)
+        res0 = 4.0 * resolution(xp, t, mag, self.rg)
+        return xp.maximum(xp.maximum(res0, (2.0 * _eps(t)) * at), self.xtol) + (4.0 * _eps(t)) * at
+
+    def _settle(self, xp, new, ok):
+        """For the rows ``ok`` (a closed bracket whose certified bracket is within
+        :meth:`closing_width`): the depth moved into [A, B] and the refiner's bracket set to it, so
+        that the certification of the first crossing (:meth:`_certify`) covers the ray up to A."""
+        A, B = new["A"], new["B"]
+        t_c = xp.minimum(xp.maximum(new["t"], A), B)
+        new["t"] = xp.where(ok, t_c, new["t"])
+        new["a"] = xp.where(ok, xp.minimum(A, t_c), new["a"])
+        new["b"] = xp.where(ok, xp.maximum(B, t_c), new["b"])
 
     def step_refine(self, xp, s, o, d, ev):
         """One refinement step of the bracket [a, b].  For a certifying step rule a closed bracket
@@ -1346,14 +1393,20 @@ class MarchRefine(_Search):
         conv = closed
         unc = None
         if self.rule.certifies:
-            lo = xp.where(f_c == 0, c, new["a"])
-            later = closed & (s["u"] + self.rule.min_step < lo)
+            # a closed bracket is an answer only once its certified bracket [A, B] is within the
+            # closing width; else the answer is verified first (step_certify, _verify)
+            ok = closed & (new["B"] - new["A"] <= self.closing_width(xp, new["t"], s["mag"]))
+            self._settle(xp, new, ok)
+            later = ok & (s["u"] + self.rule.min_step < new["a"])
             # a frontier stopped behind the last certified sample by a stretch that stood
             # uncertified cannot be moved on by samples from there: UNCERTIFIED, with its depth
             unc = later & (s["u"] < s["cp"])
-            conv = closed & ~later
+            conv = ok & ~later
+            verify = closed & ~ok
             new["cm"] = later & ~unc
-            new["phase"] = xp.astype(later, xp.int32) + (len(self.stages) - 2)
+            new["vm"] = verify
+            new["zl"], new["zr"] = new["t"], new["t"]
+            new["phase"] = xp.astype(later | verify, xp.int32) + (len(self.stages) - 2)
         else:
             # the march's frontier (ConstantStep): a closed bracket it leaves more than a step
             # behind is not certified the first crossing
@@ -1367,17 +1420,24 @@ class MarchRefine(_Search):
         evaluates a certification sample instead of the refiner's iterate; a row whose sample
         found an earlier crossing refines that bracket here, and is certified in turn."""
         mag = s["mag"]
-        cm = s["cm"]
+        cm, vm = s["cm"], s["vm"]
+        width = self.closing_width(xp, s["t"], mag)
+        probe, left = self._verify_sample(xp, s, width)
         new, c, f_c, same_a, closed = self._refine_step(
-            xp, s, o, d, ev, c=lambda prop: xp.where(cm, self._certify_sample(xp, s, s["a"], mag), prop))
+            xp, s, o, d, ev,
+            c=lambda prop: xp.where(vm, probe, xp.where(cm, self._certify_sample(xp, s, s["a"], mag), prop)))
         conv, unc = self._certify(xp, s, new, c, f_c, same_a, closed, mag)
+        conv_v, unc_v = self._verify(xp, s, new, c, f_c, same_a, left, width, mag)
+        conv, unc = xp.where(vm, conv_v, conv), xp.where(vm, unc_v, unc)
         # a certification sample is a step from the last certified sample cp: its two ends check the
         # bound as every marching step's do (and, for a bound taken on trust, its midpoint too)
         lipv = cm & lipschitz_violated(xp, s["fcp"], f_c, s["cp"], c, self.rule.inv_lip, mag, self.gain)
         if self.check_inside:
             inside, extra = mid_probe(xp, self, o, d, ev, s["cp"], s["fcp"], c, f_c, self.rule.inv_lip, mag)
             lipv = lipv | (cm & inside)
-            new["evals"] = new["evals"] + xp.astype(cm, xp.int32) * extra
+            # (every row of the stage was evaluated there, and counts it; only a certification
+            # sample's step is checked)
+            new["evals"] = new["evals"] + extra
         new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, lipv=lipv, unc=unc)
         return _typed(xp, dict(s, **new), s)
 
@@ -1396,6 +1456,86 @@ class MarchRefine(_Search):
             sig = xp.minimum(rp / y, 1.0)
         h = rp + s["kap"] * (2.0 * rp / (1.0 + sig) - rp)
         return xp.minimum(cp + h, a)
+
+    def _verify_sample(self, xp, s, width):
+        """Where a row in verification mode (``vm``) evaluates next, and whether that is left of its
+        answer t (:meth:`_verify`): in the larger of the two stretches not yet searched, [A, zl]
+        and [zr, B], the point w/2 beyond the unresolved stretch [zl, zr] (w the closing width: the
+        first sample, w/2 from t, brings that end within w/2 when it is resolved; a second one, w
+        from t, shows [zl, zr] as wide as w when it is not), where that lies beyond the stretch's
+        middle, else its middle (a bisection for where φ's sign stops being rounding)."""
+        A, B, zl, zr = s["A"], s["B"], s["zl"], s["zr"]
+        left = zl - A >= B - zr
+        mid_l, mid_r = 0.5 * (A + zl), 0.5 * (zr + B)
+        out_l, out_r = zl - 0.5 * width, zr + 0.5 * width
+        c_l = xp.where(out_l > mid_l, out_l, mid_l)
+        c_r = xp.where(out_r < mid_r, out_r, mid_r)
+        return xp.where(left, c_l, c_r), left
+
+    def _verify(self, xp, s, new, c, f_c, same_a, left, width, mag):
+        """Verification of a closed bracket's answer t whose certified bracket [A, B] (a crossing
+        of φ itself lies in it: :meth:`_bracket_sample`) is wider than the closing width w
+        (:meth:`closing_width`): the refiner closed on samples whose sign was φ's rounding, so the
+        crossing may lie outside its bracket.  [zl, zr] ∋ t is the stretch found unresolved so
+        far; a row in verification mode (``vm``) samples the larger of [A, zl] and [zr, B], w/2
+        beyond [zl, zr] or at its middle (:meth:`_verify_sample`), a search for the ends of the
+        stretch where φ's sign is rounding.  Returns the rows CONVERGED and the rows that give up
+        (UNCERTIFIED, with the depth t), and sets ``new`` for the rest.
+
+        * An unresolved sample widens [zl, zr] to it.
+        * A resolved sample of its side's sign (the start's left of t, the other right) moves that
+          end of [A, B] past it (by its sphere).  Once B − A ≤ w the answer stands: t moves into
+          [A, B], which becomes the bracket, and the row is CONVERGED, or certified the first
+          crossing (:meth:`_certify`) where the march's frontier is more than ``min_step`` behind A.
+        * A resolved sample of the other sign: the crossing lies beyond it, outside the bracket
+          the refiner closed.  Refinement resumes on the bracket from that sample, [a, c] left of
+          t (a at most A), [c, b] right of it (b at least B), from the secant through t and c.
+        * The row gives up when [zl, zr] is as wide as w (no certified bracket within w can hold
+          it), or when the stretch it would bisect has no float inside.
+
+        Cost: nothing where the refiner's own samples certify the bracket (a resolved sample on
+        each side near the crossing), a few samples where its last one is within φ's rounding of 0
+        (measured in docs/methods.md)."""
+        rule = self.rule
+        vm, t = s["vm"], s["t"]
+        A, B = new["A"], new["B"]
+        unres = unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
+        ours = ~unres & (same_a == left)
+        theirs = ~unres & (same_a != left)
+        zl = xp.where(unres & left, xp.minimum(s["zl"], c), s["zl"])
+        zr = xp.where(unres & ~left, xp.maximum(s["zr"], c), s["zr"])
+        done = vm & ours & (B - A <= width)
+        # (the next sample: the middle of the larger stretch left, which must hold a float)
+        nl = zl - A >= B - zr
+        lo, hi = xp.where(nl, A, zr), xp.where(nl, zl, B)
+        mid = 0.5 * (lo + hi)
+        give_up = vm & ~done & ~theirs & ((zr - zl >= width) | (mid <= lo) | (mid >= hi))
+        t_c = xp.minimum(xp.maximum(t, A), B)
+        later = done & (s["u"] + rule.min_step < xp.minimum(A, t_c))
+        # (a frontier stopped behind the last certified sample: UNCERTIFIED, as in step_refine)
+        give_up = give_up | (later & (s["u"] < s["cp"]))
+        later = later & ~give_up
+        # the rows that go on sampling, or stop: their answer and bracket stay
+        stay = vm & ~theirs
+        for k in ("t", "f", "p", "fp", "a", "b", "wq", "df"):
+            if k in new and k in s:
+                new[k] = xp.where(stay, s[k], new[k])
+        new["t"] = xp.where(done, t_c, new["t"])
+        new["a"] = xp.where(done, xp.minimum(A, t_c), new["a"])
+        new["b"] = xp.where(done, xp.maximum(B, t_c), new["b"])
+        # refinement resumes on the bracket beyond a sample of the other sign (the refiner's step on
+        # it set a or b to it by its sign; the far end is kept at least as wide as [A, B])
+        resume = vm & theirs
+        new["t"], new["f"] = xp.where(resume, c, new["t"]), xp.where(resume, f_c, new["f"])
+        new["p"], new["fp"] = xp.where(resume, t, new["p"]), xp.where(resume, s["f"], new["fp"])
+        new["a"] = xp.where(resume & left, xp.minimum(s["a"], A), new["a"])
+        new["b"] = xp.where(resume & ~left, xp.maximum(s["b"], B), new["b"])
+        for k, v in self.refiner.on_bracket(xp, new["b"] - new["a"]).items():
+            new[k] = xp.where(resume, v, new[k])
+        new["vm"] = xp.where(vm, ~done & ~give_up & ~theirs, new["vm"])
+        new["cm"] = xp.where(vm, later, new["cm"])
+        new["zl"], new["zr"] = xp.where(vm, zl, new["zl"]), xp.where(vm, zr, new["zr"])
+        return done & ~later & ~give_up, give_up
 
     def _certify(self, xp, s, new, c, f_c, same_a, closed, mag):
         """Certification that the bracket's crossing is the ray's first, for a certifying step
@@ -1417,6 +1557,14 @@ class MarchRefine(_Search):
         answer's depth."""
         rule = self.rule
         cm, u, cp = s["cm"], s["u"], s["cp"]
+        # a row refining here (an earlier crossing's bracket) closes as in step_refine: on a
+        # certified bracket within the closing width, else it verifies its answer first
+        # (rows in verification mode are left to _verify)
+        free = ~cm & ~s["vm"]
+        ok = closed & (new["B"] - new["A"] <= self.closing_width(xp, new["t"], mag))
+        self._settle(xp, new, free & ok)
+        verify = free & closed & ~ok
+        closed = ok
         # a sample within φ's rounding of 0 shows no side: no earlier crossing is taken from it, and
         # it extends the frontier only as far as the min_step allowance reaches (its sphere is empty)
         rc, unres = radius_and_unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
@@ -1426,7 +1574,7 @@ class MarchRefine(_Search):
         stands = side & (c - rc - u <= (4.0 * _eps(c)) * xp.abs(c))
         u_n = xp.where(stands, xp.maximum(u, c + rc), u)
         adv = stands & (c > cp)
-        lo = xp.where(cm, s["a"], xp.where(f_c == 0, c, new["a"]))
+        lo = xp.where(cm, s["a"], new["a"])
         certified = u_n + rule.min_step >= lo
         conv = xp.where(cm, ~earlier & certified, closed & certified)
         # a frontier that moves on by less than 1/CERTIFY_REACH of what is left to cover is near a
@@ -1435,9 +1583,12 @@ class MarchRefine(_Search):
         give_up = cm & ~certified & ((stands & (rc * CERTIFY_REACH < lo - rule.min_step - u_n)) | unres)
         keep = cm & ~earlier  # certification goes on: the answer and its bracket stay
         restart = earlier  # refinement of [cp, c] from the secant (cp, fcp) → (c, f_c)
-        for k in ("t", "f", "p", "fp", "a", "b", "wq", "df"):
+        for k in ("t", "f", "p", "fp", "a", "b", "wq", "df", "A", "B"):
             if k in new and k in s:
                 new[k] = xp.where(keep, s[k], new[k])
+        # the earlier crossing lies between the spheres of cp (certified) and of c (resolved)
+        new["A"] = xp.where(restart, cp + certified_radius(xp, s["fcp"], cp, rule.inv_lip, mag, self.rg), new["A"])
+        new["B"] = xp.where(restart, c - rc, new["B"])
         new["a"] = xp.where(restart, cp, new["a"])
         new["p"] = xp.where(restart, cp, new["p"])
         new["fp"] = xp.where(restart, s["fcp"], new["fp"])
@@ -1448,14 +1599,16 @@ class MarchRefine(_Search):
             new[k] = xp.where(restart, v, new[k])
         new.update(u=u_n, cp=xp.where(adv, c, cp), fcp=xp.where(adv, f_c, s["fcp"]),
                    kap=xp.where(cm, xp.where(stands, xp.minimum(2.0 * s["kap"], 1.0), 0.5 * s["kap"]), s["kap"]),
-                   cm=keep | (~cm & closed & ~certified))
+                   cm=keep | (~cm & closed & ~certified), vm=verify, zl=new["t"], zr=new["t"])
         return conv, give_up
 
 
 #: the state a certifying rule's refinement stage keeps (:meth:`MarchRefine._certify`): the
 #: frontier ``u``, the last certified sample ``cp`` and its φ ``fcp``, the certification step's
-#: relaxation ``kap`` and the mode ``cm``
-CERTIFY_STATE = frozenset({"u", "cp", "fcp", "kap", "cm"})
+#: relaxation ``kap`` and the mode ``cm``; the certified bracket ``A``, ``B``
+#: (:meth:`MarchRefine._bracket_sample`), the verification mode ``vm`` and the stretch found
+#: unresolved ``zl``, ``zr`` (:meth:`MarchRefine._verify`)
+CERTIFY_STATE = frozenset({"u", "cp", "fcp", "kap", "cm", "A", "B", "vm", "zl", "zr"})
 
 #: certification gives up (UNCERTIFIED) when a sample's sphere is under 1/this of the stretch left
 #: to cover: at slope σ each sample covers about a factor (1 + σ)/(1 − σ), so this stops the rays

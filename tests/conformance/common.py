@@ -165,37 +165,44 @@ def applicable(method, scene) -> bool:
     return METHODS[method].skip_reason(scene) is None
 
 
-def sphere_trace_allowance(scene, o, exact, knobs, dtype="float64"):
-    """Per ray, sphere tracing's allowance δ = max(tol/L, 4·rounding, 2ε|t|) at depth ``exact``
-    (docs/methods.md; rounding = 8ε(|t| + |o|₁ + the scene's extent and offset), the model of
-    :func:`impls.core.rootfind.resolution`, 0 where φ is not a distance bound): a CONVERGED depth
-    lies within it of the first crossing."""
-    from impls.core.methods_root import resolves, rounding_scale
+def sphere_trace_allowance(scene, o, exact, knobs, dtype="float64", method="sphere_trace"):
+    """Per ray, a certified method's allowance δ at depth ``exact`` (docs/methods.md): for
+    ``sphere_trace`` δ = max(tol/L, 4·rounding, 2ε|t|), for the hybrids (``hybrid_*``, their closing
+    width) δ = max(xtol, 4·gain·rounding, 2ε|t|), rounding = 8ε(|t| + |o|₁ + the scene's extent
+    and offset), the model of :func:`impls.core.rootfind.resolution` (0 where φ is not a distance
+    bound), gain the scene's rounding gain: a CONVERGED depth lies within it of the first crossing
+    (the hybrids' to within ``min_step`` more)."""
+    from impls.core.methods_root import resolves, rounding_gain, rounding_scale
 
     eps = float(np.finfo(dtype).eps)
-    tol = knobs.get("tol", {k.name: k.default for k in METHODS["sphere_trace"].knobs}["tol"])
+    defaults = {k.name: k.default for k in METHODS[method].knobs}
     t = np.abs(np.where(np.isfinite(exact), exact, 0.0))
     rounding = 8.0 * eps * (t + np.abs(o).sum(axis=1) + rounding_scale(scene)) if resolves(scene) else 0.0 * t
-    return np.maximum(np.maximum(tol / float(scene.info.lipschitz), 4.0 * rounding), 2.0 * eps * t)
+    if method == "sphere_trace":
+        tol = knobs.get("tol", defaults["tol"]) / float(scene.info.lipschitz)
+    else:
+        tol, rounding = knobs.get("xtol", defaults["xtol"]), rounding_gain(scene) * rounding
+    return np.maximum(np.maximum(tol, 4.0 * rounding), 2.0 * eps * t)
 
 
 def depth_resolved(method, scene, o, d, exact, knobs, dtype="float64", margin=0.75):
-    """The hits a certified method must answer CONVERGED at ``knobs``: for ``sphere_trace``, those
-    whose depth the dtype resolves to its allowance δ = max(tol/L, 4·rounding, 2ε|t|)
-    (docs/methods.md).  Along a ray meeting the surface at slope s = |∇φ·d|/L, φ's sign is
-    rounding (:func:`impls.core.rootfind.resolution`, the rounding model the finder certifies
-    with) over a stretch 2·rounding/s long, so no bracket of resolved signs is narrower: a hit
-    where that stretch exceeds ``margin``·δ may be UNCERTIFIED instead.  For the other methods,
-    every hit (their allowances are knobs: ``xtol``, ``min_step``)."""
+    """The hits a certified method must answer CONVERGED at ``knobs``: for ``sphere_trace`` and
+    the hybrids, those whose depth the dtype resolves to their allowance δ
+    (:func:`sphere_trace_allowance`).  Along a ray meeting the surface at slope s = |∇φ·d|/L, φ's
+    sign is rounding (:func:`impls.core.rootfind.resolution`, the rounding model the finder
+    certifies with) over a stretch 2·rounding/s long, so no bracket of resolved signs is
+    narrower: a hit where that stretch exceeds ``margin``·δ may be UNCERTIFIED instead.  For the
+    other methods, every hit (their allowances are knobs: ``xtol``, ``step``)."""
     hit = np.isfinite(exact)
-    from impls.core.methods_root import resolves, rounding_gain, rounding_scale
+    from impls.core.methods_root import resolves, rounding_gain, rounding_scale, step_field
 
-    if method != "sphere_trace" or not resolves(scene):  # (rounding not modelled: only φ = 0 is unresolved)
-        return hit
+    scene = step_field(scene)  # (what the certified methods march on: impls.base)
+    if not (method == "sphere_trace" or method.startswith("hybrid_")) or not resolves(scene):
+        return hit  # (rounding not modelled: only φ = 0 is unresolved)
     lip = float(scene.info.lipschitz)
     t = np.where(hit, exact, 0.0)
     rounding = 8.0 * float(np.finfo(dtype).eps) * (np.abs(t) + np.abs(o).sum(axis=1) + rounding_scale(scene))
-    delta = sphere_trace_allowance(scene, o, exact, knobs, dtype)
+    delta = sphere_trace_allowance(scene, o, exact, knobs, dtype, method)
     h = 1e-6  # (a central difference of φ along the ray: any scene, error O(h²) on a smooth surface)
     slope = np.abs(scene.value(o + (t + h)[:, None] * d) - scene.value(o + (t - h)[:, None] * d)) / (2.0 * h * lip)
     with np.errstate(divide="ignore"):
