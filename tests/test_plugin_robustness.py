@@ -160,7 +160,11 @@ def test_sigint_and_sigterm_to_the_supervisor_stop_the_child_and_its_processes(m
     of the terminal's foreground group: Ctrl-C reaches the supervisor only.  The supervisor passes
     SIGINT and SIGTERM on to the child's process group (before: SIGINT was ignored by the
     supervisor, SIGTERM passed to the child alone), and the run ends as stopped (128 + signal),
-    not restarted."""
+    not restarted.  (The test process takes the signal's interactive disposition first: started
+    as a background job of a non-interactive shell, it ignores SIGINT, and so does every process
+    it starts; the supervisor then leaves SIGINT ignored, as the next test checks.)"""
+    interactive = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
+    launched = signal.signal(signum, interactive)
     out = _fake_child(monkeypatch, tmp_path, """
         helper = subprocess.Popen(["sleep", "600"])
         (out / "helper.pid").write_text(str(helper.pid))
@@ -184,8 +188,37 @@ def test_sigint_and_sigterm_to_the_supervisor_stop_the_child_and_its_processes(m
         assert code == 128 + signum and len(_calls(out)) == 1
         assert _gone(int((out / "helper.pid").read_text())), "the child's process group did not get the signal"
     finally:
+        signal.signal(signum, launched)
         if (out / "helper.pid").exists() and _alive(int((out / "helper.pid").read_text())):
             os.kill(int((out / "helper.pid").read_text()), signal.SIGKILL)
+
+
+def test_a_supervisor_started_ignoring_sigint_leaves_it_ignored(monkeypatch, tmp_path):
+    """Started ignoring SIGINT (a background job of a non-interactive shell, nohup), the supervisor
+    installs no handler for it: the child inherits the ignored SIGINT, and the run goes on to its end
+    (here the fake child's, exit 0) instead of the supervisor forwarding a signal the run ignores."""
+    out = _fake_child(monkeypatch, tmp_path, """
+        (out / "ready").write_text("")
+        time.sleep(1.0)
+    """)
+    launched = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    seen = []
+    try:
+        def stop():
+            deadline = time.monotonic() + HANG_GUARD_S
+            while time.monotonic() < deadline and not (out / "ready").exists():
+                time.sleep(0.02)
+            seen.append(signal.getsignal(signal.SIGINT))  # while the child runs
+            os.kill(os.getpid(), signal.SIGINT)
+
+        stopper = threading.Thread(target=stop, daemon=True)
+        stopper.start()
+        assert supervise.supervise(["run"]) == 0
+        stopper.join()
+        assert seen == [signal.SIG_IGN], seen
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN and len(_calls(out)) == 1
+    finally:
+        signal.signal(signal.SIGINT, launched)
 
 
 # --- the time limit bounds the conversion of the result ---------------------------------------------

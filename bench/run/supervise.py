@@ -210,7 +210,9 @@ def _child(cmd: list[str], env: dict, note_of_out) -> tuple[int, int]:
     alone (they outlived the run).  A session of its own takes the child out of the terminal's
     foreground process group, so SIGINT (the terminal's Ctrl-C, which now reaches only this
     process) and SIGTERM given to this process are passed on to the child's process group, as
-    the terminal or a job's ``kill`` of the group reached them before.  Every :data:`POLL_S` it
+    the terminal or a job's ``kill`` of the group reached them before — unless this process was
+    started ignoring them (a background job of a non-interactive shell ignores SIGINT): the
+    child then inherits the ignored signal, and so does this process.  Every :data:`POLL_S` it
     looks at the run's in-flight note (``note_of_out()``: its path, once the child claimed a run
     directory): a configuration hung in native code is marked so and the group killed
     (:func:`kill_if_hung`)."""
@@ -219,8 +221,12 @@ def _child(cmd: list[str], env: dict, note_of_out) -> tuple[int, int]:
     def forward(signum, frame):
         _signal_group(proc, signum)
 
-    old_int = signal.signal(signal.SIGINT, forward)
-    old_term = signal.signal(signal.SIGTERM, forward)
+    # (a signal this process was started ignoring — SIGINT in a background job of a
+    # non-interactive shell, or under nohup — stays ignored: the child inherits that too)
+    old_int, old_term = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    for signum, old in ((signal.SIGINT, old_int), (signal.SIGTERM, old_term)):
+        if old is not signal.SIG_IGN:
+            signal.signal(signum, forward)
     try:
         while True:
             try:
