@@ -70,5 +70,5 @@ def grad_hess(scene, x, hess, theta=None):
 
 
 def theta_jacobian(fun, theta):
-    """Central differences in θ, h_i = ε^{1/3}·max(1, |θ_i|) (:func:`impls.core.param_grad.central_jacobian`)."""
+    """Central differences in θ, h_i = ε^{1/3}·max(1, |θ_i|), ε the run dtype's (:func:`impls.core.param_grad.central_jacobian`)."""
     return central_jacobian(np, fun, np.asarray(theta, np.float64), lambda a: a.astype(theta.dtype))
