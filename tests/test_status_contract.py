@@ -178,6 +178,21 @@ def test_pointwise_methods_map_depths_as_root_finders_report_them(bid, method):
     assert [Status(int(s)).name for s in np.asarray(r.status)] == ["CONVERGED", "MISS", "NON_FINITE", "NON_FINITE"]
 
 
+@pytest.mark.parametrize("bid", BACKEND_IDS)
+def test_the_band_renderers_map_depths_as_root_finders_report_them(bid):
+    """``volume_*_band`` takes a depth too: +inf is a MISS (colour 0, the background), NaN and −inf
+    NON_FINITE (colour NaN).  Before: every non-finite depth was a MISS, so a ray whose root finder
+    met a NaN field was drawn as background (found by the 2026-11-30 renderer probe)."""
+    o, d = rays_at_origin_ball()
+    t_hit = np.array([2.0, math.inf, math.nan, -math.inf])
+    r = _run(resolve_or_skip(bid), "volume_nerf_band", Sphere(center=(0.0, 0.0, 0.0), radius=1.0), o, d,
+             t_max=6.0, t_hit=t_hit)
+    assert violations(r, METHODS["volume_nerf_band"].outputs) == []
+    assert [Status(int(s)).name for s in np.asarray(r.status)] == ["CONVERGED", "MISS", "NON_FINITE", "NON_FINITE"]
+    color = np.asarray(r.outputs["color"])
+    assert np.all(color[1] == 0) and np.all(np.isnan(color[2:]))
+
+
 @pytest.mark.parametrize("method", POINTWISE)
 @pytest.mark.parametrize("bid", BACKEND_IDS)
 def test_pointwise_methods_on_a_nan_field_are_non_finite_with_t_nan(bid, method):

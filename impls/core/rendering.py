@@ -43,8 +43,8 @@ Colour ρ: the ``color`` input (``ArrayBackend.prepare(..., color=...)``; a fiel
 
 Flagged rays: a BAD_INPUT ray (non-finite origin or direction, zero direction) is not sampled and
 every float output is NaN (``samples_used`` 0); a ray whose colour, opacity or depth comes out
-non-finite (φ or ρ NaN along it) is NON_FINITE with every float output NaN; a band ray without a hit is MISS with ``t`` = inf
-and colour and opacity 0 (the background).
+non-finite (φ or ρ NaN along it) is NON_FINITE with every float output NaN; a band ray without a hit (t_hit = +inf) is MISS
+with ``t`` = inf and colour and opacity 0 (the background), one whose t_hit is NaN or −inf NON_FINITE.
 """
 
 from __future__ import annotations
@@ -125,7 +125,9 @@ def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs, jitt
         th = xp.where(ok, t_hit, t0)
         t0 = xp.maximum(th - knobs["delta"], t0)
         t1 = th + knobs["delta"]
-        status = xp.astype(xp.where((status == CONV) & ~ok, MISS, status), xp.int32)
+        # t_hit as a root finder reports it: +inf a MISS, NaN (or −inf) NON_FINITE (a depth that is
+        # no number is not a ray without a hit)
+        status = xp.astype(xp.where((status == CONV) & ~ok, xp.where(t_hit == math.inf, MISS, NONF), status), xp.int32)
     edges = _grid(xp, t0, t1, n_samples)
     if sampler == "stratified":
         u = jitter if jitter is not None else xp.asarray(stratified_jitter(knobs["seed"], n, n_samples),
