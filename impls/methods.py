@@ -303,7 +303,7 @@ def _specs() -> list[MethodSpec]:
         ),
         MethodSpec(
             name="dt_finite_diff", family="param_grad",
-            knobs=(Knob("h", 1e-6, float, 1e-14, "central-difference step on each θ_i (relative to max(1, |θ_i|))", role="step"),
+            knobs=(Knob("h", 1e-6, float, 1e-14, "central-difference step on each θ_i (relative to max(1, |θ_i|); at least √ε of the dtype)", role="step"),
                    _MIN_COS),
             requires=("smooth",), needs_t_hit=True, outputs=("dt_dtheta",),
             description="central differences (t(θ + h e_i) − t(θ − h e_i))/2h, each t re-solved by Newton from t_hit",

@@ -254,3 +254,29 @@ def test_numpy_float32_hit_depth_gradient_steps_by_float32s_epsilon():
         assert ok.sum() > 1000
         rel = np.max(np.abs(got.astype(np.float64) - exact) / np.maximum(1.0, np.abs(exact)), axis=1)[ok]
         assert rel.max() <= 5e-3, (method, rel.max())
+
+
+def test_float32_finite_difference_step_is_at_least_the_square_root_of_epsilon():
+    """``dt_finite_diff`` re-solves the hit at θ_i ± h_i; its default h = 1e-6 is below what float32
+    resolves, and the quotient was the re-solved depths' rounding: dt/dθ 0.8–2.2 off on every
+    CONVERGED ray of a user blob's 64² camera, numpy and torch alike.  The step is now at least √ε
+    of the dtype (float64 keeps h): the median error is 1.9e-4, the worst 0.14 (rays whose
+    slope amplifies the rounding), float32's finite-difference limit."""
+    from impls import registry
+    from reference import CallableField, Case, rays
+
+    def blob(x, xp, theta):
+        return xp.sqrt(xp.sum(x * x, axis=-1)) - theta[0] + theta[1] * xp.sin(3.0 * x[..., 0]) * xp.cos(2.0 * x[..., 1])
+
+    scene = CallableField(blob, lipschitz=1.8, name="test.fd.blob", smooth=True, params=(0.9, 0.1))
+    o, d = rays.pinhole(eye=(0.6, 1.3, 3.2), look_at=(0, 0, 0), fov_deg=30, width=64, height=64)
+    case = Case(id="test.fd.blob.cam", scene=scene, origins=o, directions=d, t_min=0.0, t_max=7.0)
+    exact = case.exact_dt_dtheta
+    p = registry.resolve("numpy").prepare("dt_finite_diff", scene, o, d, dtype="float32", t_min=0.0, t_max=7.0,
+                                          t_hit=case.exact_t)
+    r = p.result(p.run())
+    ok = (np.asarray(r.status) == 0) & case.hit_mask
+    assert ok.sum() > 3000
+    rel = np.max(np.abs(np.asarray(r.outputs["dt_dtheta"], np.float64) - exact) / np.maximum(1.0, np.abs(exact)),
+                 axis=1)[ok]
+    assert np.median(rel) <= 1e-3 and rel.max() <= 0.3, (np.median(rel), rel.max())
