@@ -1465,12 +1465,12 @@ class MarchRefine(_Search):
         from t, shows [zl, zr] as wide as w when it is not), where that lies beyond the stretch's
         middle, else its middle (a bisection for where φ's sign stops being rounding)."""
         A, B, zl, zr = s["A"], s["B"], s["zl"], s["zr"]
-        left = zl - A >= B - zr
-        mid_l, mid_r = 0.5 * (A + zl), 0.5 * (zr + B)
-        out_l, out_r = zl - 0.5 * width, zr + 0.5 * width
-        c_l = xp.where(out_l > mid_l, out_l, mid_l)
-        c_r = xp.where(out_r < mid_r, out_r, mid_r)
-        return xp.where(left, c_l, c_r), left
+        left, lo, hi = _verify_stretch(xp, A, B, zl, zr)
+        mid = 0.5 * (lo + hi)
+        out = xp.where(left, zl - 0.5 * width, zr + 0.5 * width)
+        # (w/2 beyond [zl, zr] where that lies past the stretch's middle, seen from [zl, zr])
+        c = xp.where(left, xp.where(out > mid, out, mid), xp.where(out < mid, out, mid))
+        return c, left
 
     def _verify(self, xp, s, new, c, f_c, same_a, left, width, mag):
         """Verification of a closed bracket's answer t whose certified bracket [A, B] (a crossing
@@ -1506,8 +1506,7 @@ class MarchRefine(_Search):
         zr = xp.where(unres & ~left, xp.maximum(s["zr"], c), s["zr"])
         done = vm & ours & (B - A <= width)
         # (the next sample: the middle of the larger stretch left, which must hold a float)
-        nl = zl - A >= B - zr
-        lo, hi = xp.where(nl, A, zr), xp.where(nl, zl, B)
+        _, lo, hi = _verify_stretch(xp, A, B, zl, zr)
         mid = 0.5 * (lo + hi)
         give_up = vm & ~done & ~theirs & ((zr - zl >= width) | (mid <= lo) | (mid >= hi))
         t_c = xp.minimum(xp.maximum(t, A), B)
@@ -1601,6 +1600,13 @@ class MarchRefine(_Search):
                    kap=xp.where(cm, xp.where(stands, xp.minimum(2.0 * s["kap"], 1.0), 0.5 * s["kap"]), s["kap"]),
                    cm=keep | (~cm & closed & ~certified), vm=verify, zl=new["t"], zr=new["t"])
         return conv, give_up
+
+
+def _verify_stretch(xp, A, B, zl, zr):
+    """(left, lo, hi): the larger of the two stretches a verification has not searched, [A, zl]
+    (left) or [zr, B] (:meth:`MarchRefine._verify_sample`, :meth:`MarchRefine._verify`)."""
+    left = zl - A >= B - zr
+    return left, xp.where(left, A, zr), xp.where(left, zl, B)
 
 
 #: the state a certifying rule's refinement stage keeps (:meth:`MarchRefine._certify`): the
