@@ -143,6 +143,12 @@ class MethodSpec:
         missing = [r for r in self.requires if not getattr(info, r)]
         if missing:
             return f"{self.name} needs a scene with {', '.join(missing)}; {type(scene).__name__} states none"
+        if self.family == "param_grad":
+            params = getattr(scene, "param_vector", None)
+            if not callable(params) or np.asarray(params()).size == 0:
+                return (f"{self.name} differentiates hits by the scene's parameters θ and {type(scene).__name__} has "
+                        "none (param_vector() is empty); a user's field takes them as CallableField(fn, ..., "
+                        "params=θ), called fn(x, xp, theta)")
         return None
 
     def validate(self, knobs: dict[str, Any]) -> dict[str, Any]:
@@ -207,6 +213,13 @@ DENSITIES = {
     "neus": "NeuS discrete opacity α = max((Φ_s(φ_i) − Φ_s(φ_{i+1}))/Φ_s(φ_i), 0), Φ_s = sigmoid(s·)",
     "volsdf": "VolSDF Laplace density σ = s·Ψ(−sφ) (Ψ the Laplace CDF, β = 1/s), α = 1 − exp(−σδ)",
 }
+#: most samples per ray a volume renderer takes (64 times the 1,024 of the lecture's finest
+#: sampling; the claims' paths end at 4,096): one ray's samples, points and φ temporaries
+#: (~100 bytes a sample for a primitive, ~1 KB for a neural field) stay under 100 MB
+MAX_SAMPLES = 2**16
+#: most coarse samples of the importance sampler: its inverse CDF counts, for each of the
+#: ≤ MAX_SAMPLES quantiles, the coarse bins below it (one ray: ≤ 2^26 counts, 0.5 GB as int64)
+MAX_COARSE = 2**10
 SAMPLERS = {
     "uniform": "bin midpoints of N equal bins of [t_min, t_max]",
     "stratified": "one uniform random point per bin (seeded)",
@@ -318,7 +331,9 @@ def _specs() -> list[MethodSpec]:
     ]
     for density, ddoc in DENSITIES.items():
         for sampler, sdoc in SAMPLERS.items():
-            knobs = [Knob("n_samples", 64, int, 1, "samples per ray N", role="budget"),
+            # the caps bound one ray's memory: a block holds at least one ray, whose samples (and,
+            # importance, its (n_samples, n_coarse) bin count) must fit however few rays there are
+            knobs = [Knob("n_samples", 64, int, 1, "samples per ray N", MAX_SAMPLES, role="budget"),
                      Knob("sharpness", 50.0, float, 1e-9, "density sharpness s (1/β)", role="setting"),
                      Knob("t_threshold", 0.0, float, 0.0, "early termination when transmittance < this (0: off)", 1.0, role="setting")]
             if sampler == "band":
@@ -326,7 +341,8 @@ def _specs() -> list[MethodSpec]:
             if sampler == "stratified":
                 knobs.append(Knob("seed", 0, int, 0, "seed of the stratified jitter", role="seed"))
             if sampler == "importance":
-                knobs.append(Knob("n_coarse", 32, int, 1, "coarse uniform samples that build the importance pdf", role="budget"))
+                knobs.append(Knob("n_coarse", 32, int, 1, "coarse uniform samples that build the importance pdf",
+                                  MAX_COARSE, role="budget"))
             specs.append(MethodSpec(
                 name=f"volume_{density}_{sampler}", family="render", knobs=tuple(knobs), requires=(),
                 needs_t_hit=sampler == "band", outputs=("color", "opacity", "samples_used", "work_saved"), needs_color=True,

@@ -36,7 +36,9 @@ class Status(enum.IntEnum):
     MISS = 2  #: the ray left [t_min, t_max] with no hit; ``t`` is ``inf``
     MAX_ITER = -2  #: the step budget ran out; ``t`` is the last iterate
     NON_FINITE = -3  #: φ or t became NaN/inf; ``t`` is NaN
-    BAD_INPUT = -5  #: the ray itself is invalid (non-finite origin or direction, zero direction); outputs NaN
+    #: the ray itself is invalid (non-finite origin or direction, zero direction), or the band
+    #: renderers' finite t_hit lies outside [t_min, t_max]; outputs NaN
+    BAD_INPUT = -5
     ILL_CONDITIONED = -6  #: derivative along the ray ≈ 0 (grazing), e.g. for dt/dθ
     #: a step observed |φ(t₁) − φ(t₀)| > L·|t₁ − t₀|: the scene's declared Lipschitz bound L is
     #: false there, so no certified answer exists; ``t`` is NaN

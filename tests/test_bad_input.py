@@ -260,6 +260,33 @@ def test_non_finite_knobs_are_rejected(numpy_backend, value):
             numpy_backend.prepare(method, SPHERE, o, d, t_max=6.0, **{knob: value})
 
 
+@pytest.mark.parametrize("bid", ["numpy", "torch:cpu", "jax:cpu"])
+@pytest.mark.parametrize("method", [m for m, s in METHODS.items() if s.family == "param_grad"])
+def test_dt_dtheta_of_a_field_without_parameters_is_an_error_naming_them(bid, method):
+    """dt/dθ of a field with no θ is refused by prepare, saying how a user's field takes θ.  Before:
+    numpy's run raised numpy's own 'need at least one array to stack' (a user's CallableField without
+    ``params``; the runner skipped such cases itself, a caller of the backend got the crash)."""
+    backend = registry.resolve(bid)
+    if isinstance(backend, registry.Unavailable):
+        pytest.skip(backend.reason)
+    f = CallableField(lambda x, xp: xp.sqrt(xp.sum(x * x, axis=-1)) - 1, lipschitz=1.0, name="plain", smooth=True)
+    o, d = good_rays(2)
+    hits = {"t_hit": np.full(2, 2.0)} if METHODS[method].needs_t_hit else {}
+    with pytest.raises(ValueError, match=r"parameters θ.*none.*params=θ"):
+        backend.prepare(method, f, o, d, t_max=6.0, **hits)
+
+
+@pytest.mark.parametrize("method, knob, value", [("volume_nerf_uniform", "n_samples", 10**9),
+                                                 ("volume_neus_importance", "n_samples", 2**16 + 1),
+                                                 ("volume_nerf_importance", "n_coarse", 10**6)])
+def test_sample_counts_beyond_one_rays_memory_are_rejected(numpy_backend, method, knob, value):
+    """A sample count whose single ray does not fit in memory is an error naming the knob and its
+    range, raised by prepare (before any allocation): 1e9 samples a ray ran out of memory."""
+    o, d = good_rays(2)
+    with pytest.raises(ValueError, match=rf"{method}: knob {knob}={value}.*out of range.*\[1, \d+\]"):
+        numpy_backend.prepare(method, SPHERE, o, d, t_max=6.0, **{knob: value})
+
+
 # -- finding 10 (cameras) ----------------------------------------------------------------------------
 
 

@@ -80,7 +80,7 @@ def violations(r, outputs: tuple[str, ...]) -> list[str]:
     return bad
 
 
-def _run(backend, method, scene, o, d, *, t_max=10.0, t_hit=None, dtype="float64", **knobs):
+def _run(backend, method, scene, o, d, *, t_min=0.0, t_max=10.0, t_hit=None, dtype="float64", **knobs):
     spec = METHODS[method]
     extra = {"color": SineColor()} if getattr(spec, "needs_color", False) else {}
     if spec.needs_t_hit:
@@ -91,7 +91,7 @@ def _run(backend, method, scene, o, d, *, t_max=10.0, t_hit=None, dtype="float64
         pytest.skip(f"{backend.id} does not support {dtype}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        p = backend.prepare(method, scene, o, d, dtype=dtype, t_min=0.0, t_max=t_max, **extra, **knobs)
+        p = backend.prepare(method, scene, o, d, dtype=dtype, t_min=t_min, t_max=t_max, **extra, **knobs)
         return p.result(p.run())
 
 
@@ -191,6 +191,26 @@ def test_the_band_renderers_map_depths_as_root_finders_report_them(bid):
     assert [Status(int(s)).name for s in np.asarray(r.status)] == ["CONVERGED", "MISS", "NON_FINITE", "NON_FINITE"]
     color = np.asarray(r.outputs["color"])
     assert np.all(color[1] == 0) and np.all(np.isnan(color[2:]))
+
+
+@pytest.mark.parametrize("bid", BACKEND_IDS)
+def test_a_band_around_a_depth_outside_the_interval_is_bad_input(bid):
+    """A finite t_hit before t_min or after t_max is no hit of the ray's interval: BAD_INPUT with
+    colour NaN.  Before: CONVERGED, its band [t_hit − Δ, t_hit + Δ] clipped below at t_min only, so
+    bins of negative width (t_hit = −1: colour 0.0 reported as a converged render).  A hit within Δ
+    of t_max gets a band clipped at t_max, the end of the integral it stands for."""
+    o, d = rays_at_origin_ball()
+    sphere = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+    r = _run(resolve_or_skip(bid), "volume_nerf_band", sphere, o, d, t_min=0.5, t_max=6.0,
+             t_hit=np.array([-1.0, 0.25, 6.5, 2.0]))
+    assert violations(r, METHODS["volume_nerf_band"].outputs) == []
+    assert [Status(int(s)).name for s in np.asarray(r.status)] == ["BAD_INPUT"] * 3 + ["CONVERGED"]
+    assert np.all(np.isnan(np.asarray(r.outputs["color"])[:3]))
+    near_end = _run(resolve_or_skip(bid), "volume_nerf_band", sphere, o, d, t_min=0.5, t_max=2.05,
+                    t_hit=np.full(N, 2.0))
+    assert np.all(np.asarray(near_end.status) == int(Status.CONVERGED))
+    edges = np.asarray(near_end.outputs["color"])
+    assert np.all(np.isfinite(edges)) and np.all(edges >= 0) and np.all(edges <= 1)
 
 
 @pytest.mark.parametrize("method", POINTWISE)

@@ -122,12 +122,16 @@ def bins(xp, backend, sampler, o, d, t_min, t_max, t_hit, n_samples, knobs, jitt
     t1 = xp.full_like(o[:, 0], t_max)
     if sampler == "band":
         ok = xp.isfinite(t_hit)
-        th = xp.where(ok, t_hit, t0)
+        inside = ok & (t_hit >= t0) & (t_hit <= t1)
+        th = xp.where(inside, t_hit, t0)
+        # the band is clipped to [t_min, t_max], the interval of the integral it stands for
         t0 = xp.maximum(th - knobs["delta"], t0)
-        t1 = th + knobs["delta"]
+        t1 = xp.minimum(th + knobs["delta"], t1)
         # t_hit as a root finder reports it: +inf a MISS, NaN (or −inf) NON_FINITE (a depth that is
-        # no number is not a ray without a hit)
-        status = xp.astype(xp.where((status == CONV) & ~ok, xp.where(t_hit == math.inf, MISS, NONF), status), xp.int32)
+        # no number is not a ray without a hit); a finite depth outside [t_min, t_max] is no hit of
+        # this ray's interval: BAD_INPUT (its band was empty or reversed, bins of negative width)
+        status = xp.where((status == CONV) & ~ok, xp.where(t_hit == math.inf, MISS, NONF), status)
+        status = xp.astype(xp.where((status == CONV) & ok & ~inside, BAD, status), xp.int32)
     edges = _grid(xp, t0, t1, n_samples)
     if sampler == "stratified":
         u = jitter if jitter is not None else xp.asarray(stratified_jitter(knobs["seed"], n, n_samples),

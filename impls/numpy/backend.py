@@ -20,7 +20,8 @@ class NumpyBackend(HostArrayBackend):
         jit=False,
         notes=("no autodiff (scenes provide no analytic gradient yet): every derivative is a central difference — "
                "dφ/dt and ∇φ with h = ε^(1/3)·max(1,|·|) (≈1e-10 relative), the Hessian with h = ε^(1/4)·max(1,|x|) "
-               "(≈1e-8), ∂φ/∂θ and the IDR/unrolled Jacobians in θ with h = ε^(1/3)·max(1,|θ_i|)",
+               "(≈1e-8), ∂φ/∂θ and the IDR Jacobian in θ with h = ε^(1/3)·max(1,|θ_i|); the unrolled tracer's "
+               "dt/dθ by the chain rule through every step (impls.core.param_grad.unrolled_chain_rule)",
                "active-set loops: only rays still iterating are evaluated; early-terminated volume rays are dropped"),
     )
     settings = CompactingSettings()
