@@ -73,11 +73,22 @@ class _NotFound(LookupError):
     """A plug-in spec names a module or attribute that does not exist."""
 
 
-def _checked_plugin(obj: Any, spec: str) -> Any:
-    """The plug-in ``obj`` (resolved from ``spec``), or an :class:`Unavailable` naming its ``id``
-    and the fix when that is no backend id (:func:`id_problem`)."""
+def _checked_plugin(obj: Any, spec: str, own: str | None = None) -> Any:
+    """The plug-in ``obj`` (resolved from ``spec``; ``own``: the entry point's name it was loaded
+    by), or an :class:`Unavailable` naming its ``id`` and the fix when that is no backend id
+    (:func:`id_problem`) or names another backend: a built-in's library (``numpy``, ``torch``,
+    ``jax``) or another installed entry point.  (A plug-in called ``torch:cpu`` in a run without
+    torch had its rows reported, compared and baselined as torch's.)"""
     try:
-        problem = id_problem(getattr(obj, "id", None))
+        bid = getattr(obj, "id", None)
+        problem = id_problem(bid)
+        if problem is None:
+            lib = bid.partition(":")[0]
+            eps = _entry_points()
+            # (the entry point's own target named as a spec is that backend, not another)
+            if lib in _BUILTIN or (lib != own and lib in eps and eps[lib].value != spec):
+                problem = (f"its id {bid!r} names the backend {lib!r} (built-in or installed), whose rows it would pass "
+                           "for")
     except Exception as exc:  # noqa: BLE001 - a property of a user's class: whatever it raises
         problem = f"reading its id raised {type(exc).__name__}: {exc}"
     if problem is None:
@@ -159,7 +170,7 @@ def resolve(backend_id: str) -> Any:
     eps = _entry_points()
     if lib in eps:
         try:
-            return _checked_plugin(_instantiate(eps[lib].load(), device or None), backend_id)
+            return _checked_plugin(_instantiate(eps[lib].load(), device or None), backend_id, own=lib)
         except (Exception, SystemExit) as exc:
             return Unavailable(backend_id, f"entry point {lib!r} failed: {type(exc).__name__}: {exc}")
     return Unavailable(backend_id, _unknown(backend_id, eps), unknown=True)

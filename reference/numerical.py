@@ -401,7 +401,7 @@ class CallableField(Field):
             out = self.fn(x, xp) if self.params is None else self.fn(x, xp, cursor.take(self.params.copy()))
         except FieldError:
             raise
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:  # (a field's sys.exit() is its failure, not the caller's exit)
             call = "fn(x, xp)" if self.params is None else "fn(x, xp, theta)"
             raise FieldError(f"{field_label(self)} raised {type(exc).__name__}: {exc} (evaluating {call} at "
                              f"points x of shape {tuple(getattr(x, 'shape', ()))}, {type(x).__module__.split('.')[0]} "

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import numbers
 import re
 from importlib import metadata
 
@@ -75,6 +76,11 @@ def validate(case, source: str) -> Case:
         raise ValueError(f"{source}: case {case.id!r} directions must be unit vectors to float64's rounding "
                          f"(|‖d‖ − 1| ≤ {tol:.1e}; worst is {off:.2g} off); "
                          "normalise them in float64 (d / np.linalg.norm(d, axis=1, keepdims=True))")
+    for name in ("t_min", "t_max"):
+        v = getattr(case, name)
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+            raise TypeError(f"{source}: case {case.id!r} {name} must be a real number (depth along the ray), got "
+                            f"{type(v).__name__} {v!r}")
     if not (float(case.t_min) < float(case.t_max)):
         raise ValueError(f"{source}: case {case.id!r} needs t_min < t_max, got {case.t_min} and {case.t_max}")
     if not (hasattr(case.scene, "value") and hasattr(case.scene, "info")):

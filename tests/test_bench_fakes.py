@@ -7,6 +7,7 @@ method raise, return a wrong shape, a silent NaN, or hang (to test failure rows 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -349,6 +350,49 @@ class ExitsBackend(_WrapsNumpy):
             raise SystemExit(3)
 
         return Prepared(run=run, result=p.result)
+
+
+class KeyboardInterruptBackend(_WrapsNumpy):
+    """``run`` raises KeyboardInterrupt itself, with no Ctrl-C behind it."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def run():
+            raise KeyboardInterrupt("planted")
+
+        return Prepared(run=run, result=p.result)
+
+
+class OwnBaseException(BaseException):
+    pass
+
+
+class BaseExceptionBackend(_WrapsNumpy):
+    """``prepare`` raises a BaseException subclass of the plug-in's own."""
+
+    def prepare(self, *a, **kw):
+        raise OwnBaseException("planted")
+
+
+class CountsLieBackend(_WrapsNumpy):
+    """``evals`` of ``EVALS`` per ray: beyond int32 (1e300 overflowed the results file) or a
+    fraction (0.001 a ray won "which to pick")."""
+
+    EVALS = 1e300
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+
+        def result(out):
+            r = p.result(out)
+            return dataclasses.replace(r, evals=np.full(r.evals.shape, self.EVALS))
+
+        return Prepared(run=p.run, result=result)
+
+
+class FractionalEvalsBackend(CountsLieBackend):
+    EVALS = 0.001
 
 
 class SleepyBackend(_WrapsNumpy):

@@ -52,6 +52,11 @@ def _numpy_rows_all_there(df):
     (fakes.MethodsRaiseBackend, "failed", ["methods() raised", "planted"]),
     (fakes.CapabilitiesRaiseBackend, "failed", ["capabilities raised", "planted"]),
     (fakes.ExitsBackend, "failed", ["Prepared.run() raised SystemExit"]),
+    # (before: each of these four ended the run, every row lost and --resume stopped at the same place)
+    (fakes.KeyboardInterruptBackend, "failed", ["raised KeyboardInterrupt: planted", "no Ctrl-C"]),
+    (fakes.BaseExceptionBackend, "failed", ["raised OwnBaseException: planted"]),
+    (fakes.CountsLieBackend, "failed", ["result evals must be whole counts in [0, 2147483647]"]),
+    (fakes.FractionalEvalsBackend, "failed", ["not whole numbers"]),
     (fakes.NoCompileSBackend, "ok", []),
     (fakes.NoStatusCountsBackend, "ok", []),
     (fakes.StatusCountsLiesBackend, "ok", []),
@@ -260,3 +265,30 @@ def test_registry_tells_unknown_ids_from_broken_backends():
     b = registry.resolve("tests.test_bench_fakes:BrokenFactoryBackend")
     assert isinstance(b, registry.Unavailable) and not b.unknown and "planted" in b.reason
     assert not isinstance(registry.resolve("tests.test_bench_fakes:BadStatusBackend"), registry.Unavailable)
+
+
+def test_a_ctrl_c_is_told_apart_from_a_plugins_own_keyboard_interrupt():
+    """While a run watches SIGINT (bench.run.interrupts), a KeyboardInterrupt raised by code is a
+    fault of that code, and one raised by a real SIGINT stops the run."""
+    import signal
+    import threading
+
+    from bench.run import interrupts
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals are handled in the main thread")
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with interrupts.watching():
+            try:
+                raise KeyboardInterrupt("planted")
+            except KeyboardInterrupt as exc:
+                assert interrupts.is_fault(exc)
+            with pytest.raises(KeyboardInterrupt) as info:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(5)
+            assert not interrupts.is_fault(info.value)
+        # not watching: every KeyboardInterrupt stops the run (it cannot be told apart)
+        assert not interrupts.is_fault(KeyboardInterrupt("planted"))
+    finally:
+        signal.signal(signal.SIGINT, old)

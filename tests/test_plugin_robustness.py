@@ -29,7 +29,7 @@ import pytest
 
 from bench.run import supervise
 from bench.run.contract import OUTPUT_SHAPES, BackendFault, check_result
-from impls import METHODS, Prepared, RayResult, registry
+from impls import METHODS, Prepared, RayResult, Status, registry
 from tests.conftest import HANG_GUARD_S, bench_cli
 from tests.plugin_backend import PluginBackend
 
@@ -401,6 +401,49 @@ def test_outputs_of_the_right_shape_pass():
     check_result(_result(8, dt_dtheta=np.ones((8, 2))), 8, ("dt_dtheta",))
 
 
+@pytest.mark.parametrize("name, value, words", [
+    ("evals", 1e300, r"whole counts in \[0, 2147483647\] \(int32\); got min 1e\+300"), ("iterations", 1e20, "whole counts"),
+    ("evals", 0.001, "not whole numbers"), ("evals", 2**31, "whole counts"),
+])
+def test_counts_beyond_int32_or_fractional_are_a_fault(name, value, words):
+    """Before: any finite count ≥ 0 passed.  1e300 evaluations then overflowed the results file's
+    int64 column, which lost every backend's rows and stopped --resume at the same place, and
+    0.001 evaluations a ray won "which to pick" for the backend that claimed it (the 2026-11-30
+    plug-in probe)."""
+    res = _result(8)
+    setattr(res, name, np.full(8, value))
+    with pytest.raises(BackendFault, match=f"result {name} must be {words}" if "whole counts" in words
+                       else f"result {name} .*{words}"):
+        check_result(res, 8, ())
+
+
+def test_a_float32_answer_in_a_float64_configuration_is_a_fault():
+    res = _result(8)
+    res.t = np.asarray(res.t, np.float32)
+    with pytest.raises(BackendFault, match="result t has dtype float32 in a float64 configuration"):
+        check_result(res, 8, (), dtype="float64")
+    check_result(res, 8, (), dtype="float32")
+    with pytest.raises(BackendFault, match="output normal has dtype float32"):
+        check_result(_result(8, normal=np.ones((8, 3), np.float32)), 8, ("normal",), dtype="float64")
+
+
+def test_a_root_finders_depth_outside_its_interval_or_a_finite_miss_is_a_fault():
+    """A CONVERGED depth before t_min (a plug-in's negated depths) or past t_max, and a MISS with
+    a finite t, break the status table; before, they were scored as depth errors or false misses."""
+    res = _result(8)
+    res.status = np.zeros(8, np.int32)
+    res.t = np.full(8, 2.0)
+    check_result(res, 8, (), t_range=(0.0, 6.0))
+    res.t[3] = -2.0
+    with pytest.raises(BackendFault, match=r"1 rays CONVERGED at a depth outside \[t_min, t_max\] = \[0, 6\] \(ray 3"):
+        check_result(res, 8, (), t_range=(0.0, 6.0))
+    res.t[3] = 6.0 + 4e-15  # within rounding of t_max
+    check_result(res, 8, (), t_range=(0.0, 6.0))
+    res.status[5] = int(Status.MISS)
+    with pytest.raises(BackendFault, match=r"1 rays are MISS with t ≠ inf \(ray 5"):
+        check_result(res, 8, (), t_range=(0.0, 6.0))
+
+
 # --- a plug-in's id ----------------------------------------------------------------------------------
 
 class BadId(PluginBackend):
@@ -432,6 +475,30 @@ def test_a_plugin_whose_id_is_no_backend_id_is_unavailable_naming_it(cls, words)
     assert "<" not in b.reason and "|" not in b.reason
     backends, msg = resolve_backends([spec, "numpy"], 1)  # a run skips it, named by its spec
     assert msg == "" and list(backends) == [spec, "numpy"]
+
+
+class AsTorch(PluginBackend):
+    def __init__(self, device: str = "cpu"):
+        super().__init__(device)
+        self.id = "torch:cpu"
+
+
+class AsNumba(PluginBackend):
+    def __init__(self, device: str = "cpu"):
+        super().__init__(device)
+        self.id = "numba"
+
+
+@pytest.mark.parametrize("cls, lib", [("AsTorch", "torch"), ("AsNumba", "numba")])
+def test_a_plugin_may_not_take_another_backends_id(cls, lib):
+    """Before: a plug-in called ``torch:cpu`` in a run without torch had its rows labelled, compared
+    and baselined as torch's (the 2026-11-30 plug-in probe).  A built-in's library or another
+    entry point's name is refused; the entry point's own target named as a spec is that backend."""
+    b = registry.resolve(f"tests.test_plugin_robustness:{cls}")
+    assert isinstance(b, registry.Unavailable)
+    assert f"names the backend {lib!r}" in b.reason, b.reason
+    numba = registry.resolve("impls.numba.backend:NumbaBackend")
+    assert getattr(numba, "id", None) == "numba" or isinstance(numba, registry.Unavailable)
 
 
 def test_the_builtin_and_test_backend_ids_are_backend_ids():

@@ -82,6 +82,64 @@ def test_invalid_cases_are_refused_with_the_reason():
     with pytest.raises(ValueError, match=r"'user.x.one' has no closed-form hits.*t_max=inf"):
         user_cases.validate(Case(**{**good, "scene": blob, "t_max": np.inf}), "t")
     user_cases.validate(Case(**{**good, "t_max": np.inf}), "t")  # closed forms need no finite range
+    # (before: t_max="6" passed, float("6") being 6, and every row then failed with "must be real
+    # number, not str", naming neither t_max nor the fix)
+    for value in ("6", None, True):
+        with pytest.raises(TypeError, match=r"'user.x.one' t_max must be a real number"):
+            user_cases.validate(Case(**{**good, "t_max": value}), "t")
+
+
+def test_a_user_field_that_exits_interrupts_or_hangs_costs_only_its_cases_rows(monkeypatch, tmp_path):
+    """A user's field runs at planning (its numerical first hits, the truth of its case): one that
+    calls sys.exit, raises KeyboardInterrupt by itself or hangs made the whole run end (exit 3
+    silently, exit 130) or stay in planning past every limit (the 2026-11-30 probe).  Now each is
+    its own case's reason, the hang cut at --reference-timeout, and the healthy case runs."""
+    import sys
+    import time
+
+    from bench.run import runner
+    from bench.run.suites import Suite
+    from bench.run.timing import TimingPolicy
+    from impls import registry
+    from reference import CallableField
+    from reference import cases as cases_mod
+    from reference.cases import register_cases
+    from reference.rays import pinhole
+
+    monkeypatch.setattr(cases_mod, "_FACTORIES", dict(cases_mod._FACTORIES))
+
+    def sphere(x, xp):
+        return xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0
+
+    def exits(x, xp):
+        sys.exit(3)
+
+    def interrupts(x, xp):
+        raise KeyboardInterrupt("planted")
+
+    def hangs(x, xp):
+        time.sleep(600)
+
+    fields = {"ok": sphere, "exits": exits, "interrupts": interrupts, "hangs": hangs}
+    ids = tuple(f"user.ff.{k}" for k in fields)
+
+    def build():
+        o, d = pinhole((0, 0, 3), (0, 0, 0), width=4, height=4)
+        return [user_cases.validate(Case(id=f"user.ff.{k}", scene=CallableField(fn, lipschitz=1.0, name=f"ff.{k}"),
+                                         origins=o, directions=d, t_min=0.0, t_max=6.0), "t") for k, fn in fields.items()]
+
+    register_cases(ids, build)
+    suite = Suite(name="t", case_pattern="user.ff.*", dtypes=("float64",), sweeps={"sphere_trace": [{}]},
+                  methods=("sphere_trace",))
+    policy = TimingPolicy(min_repeats=1, min_time_s=0.0, min_sample_s=0.0, warmup=0, timeout_s=60.0, accuracy_only=True)
+    started = time.monotonic()
+    df = runner.run(suite, {"numpy": registry.resolve("numpy")}, tmp_path, policy=policy, reference_timeout_s=5.0)
+    assert time.monotonic() - started < 300  # the hang was cut (it sleeps 600 s)
+    by_case = {r.case_id: r for r in df.itertuples()}
+    assert by_case["user.ff.ok"].outcome == "ok"
+    assert "SystemExit" in by_case["user.ff.exits"].reason
+    assert "KeyboardInterrupt: planted" in by_case["user.ff.interrupts"].reason
+    assert "ran past the time limit of 5 s (--reference-timeout)" in by_case["user.ff.hangs"].reason
 
 
 def test_a_case_is_held_to_the_backends_unit_tolerance():

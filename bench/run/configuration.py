@@ -19,7 +19,7 @@ from impls.protocol import Declined, declined_reason
 from reference import Case
 from reference.quadric import ray_sphere_roots
 
-from . import environment, references
+from . import environment, interrupts, references
 from .contract import (BackendFault, backend_call, backend_dtypes, backend_methods, check_result, compile_seconds,
                        library_state_kept, result_arrays, status_counts)
 from .metrics import measure_accuracy, primary_quantity
@@ -67,7 +67,7 @@ def failed_rows(run_id: str, cfg: Config, backends: dict, reason: str) -> list[d
     return [{**base_row(run_id, cfg, backends.get(cfg.backend_id)), "outcome": "failed", "reason": reason}]
 
 
-def skip_reason(cfg: Config, backend: Any) -> str | None:
+def skip_reason(cfg: Config, backend: Any, limit_s: float | None = None) -> str | None:
     """Why ``cfg`` does not apply, or None.  Checked in the order a reader needs it, the backend's
     optional ``declines(method, scene)`` hook last (:func:`impls.protocol.declined_reason`).  A
     backend whose ``methods()``, ``capabilities`` or ``declines`` break raises :class:`BackendFault`."""
@@ -80,7 +80,7 @@ def skip_reason(cfg: Config, backend: Any) -> str | None:
         return f"{cfg.backend_id} does not implement {cfg.method}{why}"
     if cfg.dtype not in backend_dtypes(backend):
         return f"{cfg.backend_id} does not support {cfg.dtype}"
-    reason = applies(get_method(cfg.method), cfg.case)
+    reason = applies(get_method(cfg.method), cfg.case, limit_s)  # (limit_s: a user case's reference)
     if reason:
         return reason
     declined = backend_call(backend, "backend.declines(method, scene)",
@@ -180,8 +180,10 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
     row = base_row(run_id, cfg, backend)
     seconds, what = limit if limit is not None else (policy.timeout_s, "--timeout")
     try:
-        reason = skip_reason(cfg, backend)
-    except Exception as exc:  # e.g. the reference cannot answer for this case, or methods() broke
+        reason = skip_reason(cfg, backend, getattr(cache.get("_options"), "timeout_s", None))
+    except BaseException as exc:  # e.g. the reference cannot answer for this case, or methods() broke
+        if not interrupts.is_fault(exc):
+            raise
         return [{**row, "outcome": "failed", "reason": f"planning: {type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]
     if reason:
@@ -197,7 +199,8 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
             raw = result_arrays(raw)
             compile_s = compile_seconds(prep)
             compile_cache = getattr(prep, "compile_cache", None)
-        res = check_result(raw, case.n_rays, tuple(spec.outputs), scene=case.scene, who=cfg.backend_id)
+        res = check_result(raw, case.n_rays, tuple(spec.outputs), scene=case.scene, who=cfg.backend_id,
+                           dtype=cfg.dtype, t_range=(case.t_min, case.t_max) if spec.family == "root" else None)
         counts = status_counts(res.status)
         quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
     except Timeout as exc:
@@ -205,7 +208,9 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
                  "traceback": traceback.format_exc(limit=5)}]
     except Declined as exc:  # the backend does not run this method on this scene: a skip, with its reason
         return [{**row, "outcome": "skipped", "reason": f"{cfg.backend_id} declines {cfg.method} on this scene: {exc}"}]
-    except (Exception, SystemExit) as exc:  # a failing configuration becomes a row; the run goes on
+    except BaseException as exc:  # a failing configuration becomes a row; the run goes on
+        if not interrupts.is_fault(exc):
+            raise
         return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]
     timed = {

@@ -13,6 +13,7 @@ import numpy as np
 
 from impls.protocol import Declined, RayResult, Status
 
+from . import interrupts
 from .metrics import finite_rows
 from .timing import Timeout
 
@@ -59,7 +60,12 @@ def backend_call(backend: Any, what: str, fn: Callable[[], Any]) -> Any:
         return fn()
     except (Timeout, Declined):  # a declined configuration is skipped, not failed (run_one)
         raise
-    except (Exception, SystemExit) as exc:  # user code: whatever it raises is its fault, not the run's
+    except KeyboardInterrupt as exc:  # a Ctrl-C stops the run; the backend's own raise is its fault
+        if interrupts.signalled():
+            raise
+        raise BackendFault(f"{what} raised KeyboardInterrupt: {exc} (no Ctrl-C was pressed: the backend "
+                           "raised it itself)") from exc
+    except BaseException as exc:  # user code: whatever it raises (SystemExit too) is its fault, not the run's
         raise BackendFault(f"{what} raised {type(exc).__name__}: {exc}") from exc
 
 
@@ -81,6 +87,9 @@ def backend_dtypes(backend: Any) -> tuple[str, ...]:
         raise BackendFault(f"backend.capabilities.dtypes must be dtype names (strings), got {dts!r:.200}")
     return tuple(dts)
 
+
+#: the largest count ``iterations`` and ``evals`` may hold: the int32 of RayResult's counters
+COUNT_MAX = 2**31 - 1
 
 #: the codes a result may hold (IN_PROGRESS is internal to the drivers, never returned)
 _STATUS_CODES = frozenset(int(s) for s in Status if s != Status.IN_PROGRESS)
@@ -161,19 +170,23 @@ def _shape_text(shape: tuple) -> str:
 
 
 def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = None,
-                 who: str = "the backend") -> RayResult:
+                 who: str = "the backend", dtype: str | None = None, t_range: tuple | None = None) -> RayResult:
     """The per-ray contract, checked on what a backend's ``Prepared.result`` returned, which is
     user code: ``t``, ``status``, ``iterations``, ``evals`` arrays of shape (n,) and real dtype;
     ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` finite
     and ≥ 0; ``outputs`` a dict holding every declared output with its whole shape
     (:data:`OUTPUT_SHAPES`, e.g. ``normal`` (n, 3); dt/dθ's columns those of ``scene``'s
     parameters) and a numeric dtype; no silent NaN (a non-finite ``t`` or output row on a ray whose
-    status is CONVERGED).  ``res`` may be what :func:`result_arrays` made of it (the runner
+    status is CONVERGED).  With ``dtype`` "float64": ``t`` and real outputs at least float64 (a
+    float32 answer is no float64 row).  With ``t_range`` (t_min, t_max; root finders): a CONVERGED
+    ``t`` within it (to 4 spacings of the dtype at t) and a MISS's ``t`` = inf (the status table).  ``res`` may be what :func:`result_arrays` made of it (the runner
     converts inside the time limit); ``who`` names the backend in a shape error.  Returns a clean
     :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises :class:`BackendFault`
     (a ValueError) naming the offending array."""
     arrays = result_arrays(res)  # numpy arrays already: np.asarray returns them as they are
-    t = _array(arrays, "t", n).astype(np.float64)
+    t = _array(arrays, "t", n)
+    _check_precision(t, "t", dtype)
+    t = t.astype(np.float64)
     status = _array(arrays, "status", n)
     if status.dtype.kind == "f":
         if not np.all(np.isfinite(status)) or np.any(status != np.round(status)):
@@ -188,13 +201,20 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
     counts = {}
     for name in ("iterations", "evals"):
         a = _array(arrays, name, n)
-        if not np.all(np.isfinite(a)) or np.any(a < 0):
-            raise BackendFault(f"result {name} must be finite counts ≥ 0; got min {np.min(a)}, max {np.max(a)}")
-        counts[name] = a.astype(np.int64) if a.dtype.kind != "f" else a.astype(np.float64)
+        # whole numbers within int32, the counters' type (RayResult): a fraction of an evaluation is
+        # no count (0.001 evals a ray won "which to pick"), and 1e300 overflowed the results file,
+        # losing every backend's rows
+        fraction = a.dtype.kind == "f" and bool(np.any(np.isfinite(a) & (a != np.round(a))))
+        if not np.all(np.isfinite(a)) or np.any(a < 0) or np.any(a > COUNT_MAX) or fraction:
+            raise BackendFault(f"result {name} must be whole counts in [0, {COUNT_MAX}] (int32); got min {np.min(a)}, "
+                               f"max {np.max(a)}" + (", not whole numbers" if fraction else ""))
+        counts[name] = a.astype(np.int64)
     conv = status == Status.CONVERGED
     nbad = int(np.sum(conv & ~np.isfinite(t)))
     if nbad:
         raise BackendFault(f"silent NaN: {nbad} rays have non-finite t with status CONVERGED")
+    if t_range is not None:
+        _check_range(t, status, t_range, dtype)
     clean = arrays.outputs
     for name in outputs:
         if name not in clean:
@@ -209,10 +229,38 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
                                f"{_shape_text(want)} ({n} rays; impls.protocol.RayResult gives each output's shape)")
         if a.dtype.kind not in "biufc":
             raise BackendFault(f"output {name} has dtype {a.dtype}, expected numbers")
+        _check_precision(a, f"output {name}", dtype)
         nbad = int(np.sum(conv & ~finite_rows(a)))
         if nbad:
             raise BackendFault(f"silent NaN: {nbad} rays have non-finite {name} with status CONVERGED")
     return RayResult(t=t, status=status, iterations=counts["iterations"], evals=counts["evals"], outputs=clean)
+
+
+def _check_precision(a: np.ndarray, what: str, dtype: str | None) -> None:
+    """A float64 configuration's real arrays hold float64 (or wider): a float32 answer under a
+    float64 label would be compared, ranked and baselined as float64's accuracy."""
+    if dtype == "float64" and a.dtype.kind in "fc" and np.finfo(a.dtype).bits < 64:
+        raise BackendFault(f"result {what} has dtype {a.dtype} in a float64 configuration: compute in float64, "
+                           "or declare only the dtypes the backend computes in (capabilities.dtypes)")
+
+
+def _check_range(t: np.ndarray, status: np.ndarray, t_range: tuple, dtype: str | None) -> None:
+    """A root finder's CONVERGED depth lies in [t_min, t_max] (to 4 spacings of the run's dtype at
+    t: an engine's float32 hit at t_max may round past it), and a MISS has t = +inf."""
+    t_min, t_max = (float(v) for v in t_range)
+    eps = float(np.finfo(np.float32 if dtype == "float32" else np.float64).eps)
+    slack = 4.0 * eps * np.maximum(1.0, np.abs(t))
+    conv = status == Status.CONVERGED
+    out = conv & ((t < t_min - slack) | (t > t_max + slack))
+    if out.any():
+        i = int(np.flatnonzero(out)[0])
+        raise BackendFault(f"{int(out.sum())} rays CONVERGED at a depth outside [t_min, t_max] = [{t_min:g}, {t_max:g}] "
+                           f"(ray {i}: t = {t[i]!r}); a root finder's hit lies in the searched interval")
+    miss = (status == Status.MISS) & (t != np.inf)
+    if miss.any():
+        i = int(np.flatnonzero(miss)[0])
+        raise BackendFault(f"{int(miss.sum())} rays are MISS with t ≠ inf (ray {i}: t = {t[i]!r}); a MISS has t = inf "
+                           "(impls.protocol.Status, docs/backends.md)")
 
 
 def status_counts(status: np.ndarray) -> dict[str, int]:

@@ -13,10 +13,12 @@ from impls import METHODS
 from reference import Case, catalog
 from reference.cases import LARGE
 
+from . import interrupts
 from .metrics import family_skip_reason
 from .references import load_numerical_hits
 from .results import knob_string
 from .suites import Suite
+from .timing import Timeout, time_limit
 
 #: columns that identify a configuration (a row is a configuration × quantity)
 CONFIG_KEY = ["case_id", "backend", "dtype", "method", "knob"]
@@ -64,17 +66,68 @@ def check_dtypes(dtypes: list[str] | None) -> None:
             raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
 
 
-def applies(spec, case) -> str | None:
-    """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
-    reference answers), or None."""
+#: user cases whose reference answers could not be computed within the limit, in this process:
+#: (case id, case version) → the reason (so that every configuration of the case is skipped with
+#: it at once, not after the limit again)
+_GAVE_UP: dict[tuple[str, str], str] = {}
+
+
+def _user_key(case) -> tuple[bool, tuple[str, str]]:
+    return "user" in getattr(case, "tags", ()), (case.id, getattr(case, "version", ""))
+
+
+def _preload(case, disk, limit_s: float | None) -> None:
+    """:func:`bench.run.references.load_numerical_hits`, bounded by ``limit_s`` for a user's case
+    (as :func:`applies`); a failure is raised again where the answer is read, a timeout is
+    remembered as the case's reason."""
+    user, key = _user_key(case)
     try:
-        return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
-    except Exception as exc:  # a reference that cannot answer is a reason, not a crash
+        with time_limit(limit_s if user else None, "--reference-timeout"):
+            load_numerical_hits(case, disk)
+    except Timeout as exc:
+        if not user:  # (an outer limit's)
+            raise
+        _GAVE_UP[key] = _gave_up(case, exc)
+    except BaseException as exc:  # the user's field: said where its answer is read
+        if not interrupts.is_fault(exc):
+            raise
+
+
+def _gave_up(case, exc) -> str:
+    return (f"planning: the reference answers of {case.id} (its field's numerical first hits) {exc}; "
+            "raise --reference-timeout if the field is slow, not stuck")
+
+
+def applies(spec, case, limit_s: float | None = None) -> str | None:
+    """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
+    reference answers), or None.  A user's case (tag ``user``) runs the user's field to get its
+    reference answers (the numerical first hits): that is bounded by ``limit_s``
+    (``--reference-timeout``; None or 0: none), and a field that raises, calls ``sys.exit`` or
+    hangs past it is a reason for that case's rows, not the end of the run.  (Unbounded, a user
+    field sleeping in ``fn`` held a run in planning past its --timeout and --reference-timeout;
+    ``sys.exit(3)`` in one ended the run with exit code 3 and no rows.)  The catalog's own
+    references are trusted code and not limited: on a loaded machine a cold mesh reference may
+    take longer than any such limit sized to an idle one."""
+    user, key = _user_key(case)
+    if user and key in _GAVE_UP:
+        return _GAVE_UP[key]
+    try:
+        with time_limit(limit_s if user else None, "--reference-timeout"):
+            return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
+    except Timeout as exc:
+        if not user:  # (an outer limit's)
+            raise
+        _GAVE_UP[key] = reason = _gave_up(case, exc)
+        return reason
+    except BaseException as exc:  # a reference that cannot answer is a reason, not a crash
+        if not interrupts.is_fault(exc):
+            raise
         return f"planning: {type(exc).__name__}: {exc}"
 
 
 def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
-         dtypes: list[str] | None, reference_disk: Path | None = None) -> list[Config]:
+         dtypes: list[str] | None, reference_disk: Path | None = None,
+         reference_timeout_s: float | None = None) -> list[Config]:
     """Configurations in measuring order.
 
     Per method: the cases it applies to (at most ``suite.max_cases``, all when ``--case`` is
@@ -88,13 +141,14 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     (so a time budget cuts sweep points, not coverage), then the sweep points; within each,
     case by case, knobs outer and backends inner, rotated by one at every knob, so backends
     interleave in time and none is always first.  ``reference_disk``: where numerical first hits
-    are kept between runs (:func:`bench.run.references.load_numerical_hits`)."""
+    are kept between runs (:func:`bench.run.references.load_numerical_hits`); ``reference_timeout_s``:
+    the limit on a user case's reference answers (:func:`applies`)."""
     methods = method_names(methods)
     names = [m for m in (suite.methods or tuple(METHODS)) if not methods or m in methods]
     check_dtypes(dtypes)
     cases = select_cases(suite, case_pattern)
     for case in cases:  # numerical first hits from the cache directory, where it has them
-        load_numerical_hits(case, reference_disk)
+        _preload(case, reference_disk, reference_timeout_s)
     explicit = bool(case_pattern)
     # the suite's cost exclusions hold for the match-all sweep, not for cases named on purpose
     names_cases = explicit and any(g.strip() not in ("", "*") for g in str(case_pattern).split(","))
@@ -112,7 +166,7 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
         for case in cases:
             if any(fnmatch.fnmatchcase(case.id, g) for g in excluded):
                 continue
-            if applies(spec, case) is not None:
+            if applies(spec, case, reference_timeout_s) is not None:
                 work.append((0, order[case.id], case, method, 0, sweep[0], 0))
             else:
                 usable.append(case)

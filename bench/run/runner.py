@@ -26,7 +26,7 @@ import numpy as np
 
 from impls import Unavailable
 
-from . import environment
+from . import environment, interrupts
 from .configuration import failed_rows
 from .executor import InProcessExecutor, Interrupted
 from .plan import CONFIG_KEY, Config, new_run_id, plan
@@ -254,8 +254,14 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     those kept from a resumed session included in ``done``).  ``elapsed_s`` in environment.json
     is the sum over the run's sessions (``elapsed_sessions_s``), kept up to date at every write so
     a killed session's time is not lost.  Each row records ``machine_key`` and ``task_s`` (the
-    configuration's wall seconds on its process).
+    configuration's wall seconds on its process).  A Ctrl-C stops it; a KeyboardInterrupt that a
+    plug-in or a user's field raises by itself is a failed row (:mod:`bench.run.interrupts`).
     """
+    with interrupts.watching():
+        return _run(suite, backends, out_dir, options, progress, option_values)
+
+
+def _run(suite, backends, out_dir, options, progress, option_values):
     opts = options if options is not None else RunOptions(**option_values)
     opts.check()
     if opts.policy.accuracy_only:  # nothing timed: each backend's compile-light driver settings, if it has any
@@ -264,7 +270,7 @@ def run(suite: Suite, backends: dict[str, Any], out_dir: Path, options: RunOptio
     env, previous = _environment(suite, backends, out_dir, opts)
     run_id = env["run_id"]
     cfgs = plan(suite, list(backends), opts.case_pattern, opts.methods, opts.dtypes,
-                reference_disk=opts.reference_cache_dir)
+                reference_disk=opts.reference_cache_dir, reference_timeout_s=opts.reference_timeout_s)
     if previous is not None:  # before the first write: a refused resume leaves the run as it was
         previous = check_case_versions(previous, cfgs, opts.rerun_cases)
     write_json(out_dir / "environment.json", env)
