@@ -54,7 +54,7 @@ class Case:
             view = np.asarray(getattr(self, name)).view()
             view.flags.writeable = False
             object.__setattr__(self, name, view)
-        _freeze_arrays(self.scene, set())
+        freeze_arrays(self.scene, set())
 
     @property
     def n_rays(self) -> int:
@@ -268,7 +268,7 @@ class Case:
         return SineColor(frequency=self.color_frequency)
 
 
-def _freeze_arrays(value, seen: set) -> None:
+def freeze_arrays(value, seen: set) -> None:
     """Make every numpy array a scene holds read-only (its nodes' attributes, and the dicts,
     lists and tuples among them, its children included): the scene is the truth every row is
     measured against, and a backend that wrote into it (its weights, a mesh's vertices, a grid's
@@ -280,15 +280,15 @@ def _freeze_arrays(value, seen: set) -> None:
         value.flags.writeable = False
     elif isinstance(value, dict):
         for v in value.values():
-            _freeze_arrays(v, seen)
+            freeze_arrays(v, seen)
     elif isinstance(value, (list, tuple)):
         for v in value:
-            _freeze_arrays(v, seen)
+            freeze_arrays(v, seen)
     elif isinstance(value, Field):
         for v in getattr(value, "__dict__", {}).values():  # (a user's node may have __slots__ only)
-            _freeze_arrays(v, seen)
+            freeze_arrays(v, seen)
         for child in getattr(value, "children", ()) or ():
-            _freeze_arrays(child, seen)
+            freeze_arrays(child, seen)
 
 
 _FACTORIES: dict[str, Callable[[], Case]] = {}

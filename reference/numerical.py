@@ -17,7 +17,9 @@ one:
    bound, since no certification that used L can stand there.
 5. A bound stated on a domain only (``SceneInfo.domain``: the algebraic sphere's on |x| ≤ R,
    a neural SDF's on a box) is used, and checked, only inside the scene's ray bounds, which such
-   a scene keeps inside its domain (outside them φ > 0, so nothing is missed there).
+   a scene keeps inside its domain (outside them φ > 0, so nothing is missed there).  Where those
+   bounds are a user's assertion, the stretches they leave out are sampled: φ ≤ 0 there refutes
+   them, and no ray has an answer (:func:`_bounds_refuted`).
 
 Certification allows for rounding: an interval counts as root-free only when
 |φ(a)| + |φ(b)| − δφ(a) − δφ(b) > L (b − a), δφ the float64 φ's evaluation error
@@ -47,7 +49,7 @@ import numpy as np
 from . import depthbound as _depthbound
 from .code_digest import function_digest
 from .rays import unit_directions, unit_tolerance
-from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label
+from .scene import Field, FieldError, SceneInfo, _points, check_field_output, field_label, user_defined
 
 
 #: uncertified intervals one ray may have pending in the scan before it is flagged (module doc)
@@ -104,8 +106,14 @@ def _scan(scene, o, d, t0, t1, n_samples, lipschitz, min_width, all_crossings):
     live = t0 <= t1
     ts = np.linspace(np.where(live, t0, 0.0), np.where(live, t1, 0.0), n_samples, axis=1)  # (n, n_samples)
     f = np.asarray(scene.value(o[:, None, :] + ts[:, :, None] * d[:, None, :]), np.float64)
-    if not np.all(np.isfinite(f[live])):
-        raise ValueError("the field returned non-finite values on the rays; check the scene and [t_min, t_max]")
+    bad = ~np.isfinite(f) & live[:, None]
+    if bad.any():
+        i, j = (int(v[0]) for v in np.nonzero(bad))
+        x = o[i] + ts[i, j] * d[i]
+        raise ValueError(f"{field_label(scene)} returned {f[i, j]} at x = {np.array2string(x, precision=6)} (ray {i}, "
+                         f"t = {ts[i, j]:.6g}; {int(bad.any(axis=1).sum())} rays meet such points in [t_min, t_max]): "
+                         "φ must be finite wherever a ray samples it; check the field there, or narrow [t_min, t_max] "
+                         "to where it is defined")
     change = ((f[:, 1:] > 0) != (f[:, :-1] > 0)) & live[:, None]
     brackets = [[] for _ in range(n)]  # (a, b, f(a)) per ray
     for i, j in zip(*np.nonzero(change)):
@@ -174,6 +182,39 @@ def _search_range(scene, o, d, t_min, t_max, L):
     return np.where(whole, t0, np.maximum(t0, lo)), np.where(whole, t1, np.minimum(t1, hi))
 
 
+#: samples a ray over the stretches a scene's ray bounds leave out (:func:`_bounds_refuted`)
+BOUNDS_SAMPLES = 256
+
+
+def _bounds_refuted(scene, o, d, t_min, t_max, t0, t1, n_samples) -> bool:
+    """Whether φ ≤ 0 at a sample of [t_min, t_max] outside a ray's search range [t0, t1] (the
+    scene's ray bounds, :func:`_search_range`), which the scene asserts holds every point where
+    φ ≤ 0.  The search relies on that assertion (a user's ``CallableField(bounds=…)`` with a
+    ``domain``): a ball that leaves out the surface made every ray a certified MISS, judged right,
+    for the reference and the root finders alike (the 2026-11-30 probe).  It is checked here by
+    ``n_samples`` samples a ray over what it leaves out (a sampled check: it refutes, it does not
+    prove); where it is refuted, no ray has an answer (as for a refuted L).  Only where a node
+    states its bounds on trust (a user's field: ``declares_lipschitz``, or a ``Field`` subclass
+    defined outside ``reference``); the library's own nodes prove theirs (a neural SDF's box by
+    interval bounds), and sampling the neural camera's stretches outside its box took 17 s per
+    16,384 rays."""
+    nodes = list(scene.walk()) if hasattr(scene, "walk") else [scene]
+    if not any(getattr(n, "declares_lipschitz", False) or user_defined(n) for n in nodes):
+        return False
+    if np.all((t0 <= t_min) & (t1 >= t_max)):
+        return False
+    u = (np.arange(n_samples) + 0.5) / n_samples
+    for lo, hi in ((np.full_like(t0, t_min), np.minimum(t0, t_max)), (np.maximum(t1, t_min), np.full_like(t1, t_max))):
+        live = hi > lo
+        if not live.any():
+            continue
+        ts = lo[live, None] + (hi - lo)[live, None] * u[None, :]
+        f = np.asarray(scene.value(o[live, None, :] + ts[:, :, None] * d[live, None, :]), np.float64)
+        if np.any(f <= 0):
+            return True
+    return False
+
+
 def _rounding_gain(scene) -> float:
     """The largest ``rounding_gain`` of the scene's nodes (≥ 1), as the root finders take it
     (:func:`impls.core.methods_root.rounding_gain`)."""
@@ -219,16 +260,21 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
                       n_samples: int = 1024, min_width: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """First sign change of φ along each ray in (t_min, t_max]: ``(t, err_bound)``, ``inf`` for
     a miss (bound 0: certified when a Lipschitz bound is used), NaN bound where a possible
-    tangency could not be resolved, and t = NaN with an infinite bound on a ray where the
-    Lipschitz bound was seen to be false (no certified answer).  ``lipschitz="scene"`` takes
-    ``scene.info.lipschitz``.  Rays are taken :data:`CHUNK_RAYS` at a time (memory)."""
+    tangency could not be resolved, and t = NaN with an infinite bound on *every* ray once the
+    Lipschitz bound was seen to be false on one (no certified answer: :func:`_void_if_refuted`).
+    ``lipschitz="scene"`` takes ``scene.info.lipschitz``.  Rays are taken :data:`CHUNK_RAYS` at a
+    time (memory)."""
     o, d = _check(scene, o, d, t_min, t_max, n_samples)
     if o.shape[0] > CHUNK_RAYS:
-        return _by_chunks(lambda oc, dc: first_hit_numeric(scene, oc, dc, t_min, t_max, lipschitz=lipschitz,
-                                                           n_samples=n_samples, min_width=min_width), o, d)
+        return _void_if_refuted(*_by_chunks(
+            lambda oc, dc: first_hit_numeric(scene, oc, dc, t_min, t_max, lipschitz=lipschitz, n_samples=n_samples,
+                                             min_width=min_width), o, d))
     L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
     min_width = 1e-12 * max(1.0, abs(t_max)) if min_width is None else float(min_width)
     t0, t1 = _search_range(scene, o, d, t_min, t_max, L)
+    if _bounds_refuted(scene, o, d, t_min, t_max, t0, t1, BOUNDS_SAMPLES):
+        n = o.shape[0]
+        return np.full(n, np.nan), np.full(n, np.inf)
     brackets, unresolved, violated = _scan(scene, o, d, t0, t1, int(n_samples), L, min_width, False)
     n = o.shape[0]
     t = np.full(n, np.inf)
@@ -247,6 +293,18 @@ def first_hit_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
         err[rows] = np.where(crossing, np.maximum(mid - (lo - w_lo), (hi + w_hi) - mid), np.nan)
     err[unresolved] = np.nan
     t[violated], err[violated] = np.nan, np.inf
+    return _void_if_refuted(t, err)
+
+
+def _void_if_refuted(t: np.ndarray, err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every ray without an answer (t NaN, bound inf) where the Lipschitz bound was refuted on one
+    ray (t NaN with an infinite bound).  L is one claim about the whole field: the other rays'
+    scans stepped by it too, so a surface a false L let them step over is as possible there.
+    (Before, only the refuting rays were voided: a thin steep wall declared with L = 1 in front of
+    a sphere left 60 of 256 rays judged against the sphere behind the wall, and the root finders
+    that stepped over the wall the same way scored 0 false hits there.)"""
+    if np.any(np.isnan(t) & (err == np.inf)):
+        return np.full_like(t, np.nan), np.full_like(err, np.inf)
     return t, err
 
 
@@ -256,8 +314,9 @@ def crossings_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
     width; the same certification as :func:`first_hit_numeric` (and its passes of :data:`CHUNK_RAYS` rays)."""
     o, d = _check(scene, o, d, t_min, t_max, n_samples)
     if o.shape[0] > CHUNK_RAYS:
-        return _by_chunks(lambda oc, dc: crossings_numeric(scene, oc, dc, t_min, t_max, lipschitz=lipschitz,
-                                                           n_samples=n_samples), o, d)
+        out, err = _by_chunks(lambda oc, dc: crossings_numeric(scene, oc, dc, t_min, t_max, lipschitz=lipschitz,
+                                                               n_samples=n_samples), o, d)
+        return out, (np.full_like(err, np.inf) if np.any(err == np.inf) else err)  # (one chunk refuted L)
     L = scene.info.lipschitz if lipschitz == "scene" else lipschitz
     t0, t1 = _search_range(scene, o, d, t_min, t_max, L)
     brackets, _, violated = _scan(scene, o, d, t0, t1, int(n_samples), L, 1e-12 * max(1.0, abs(t_max)), True)
@@ -275,6 +334,8 @@ def crossings_numeric(scene: Field, o, d, t_min: float, t_max: float, *, lipschi
             if sel.any():
                 err[k] = np.max(hi[sel] - lo[sel])
     err[violated] = np.inf  # the bound is false on these rays: crossings between samples may be missing
+    if np.any(violated):  # and on every ray (_void_if_refuted)
+        err[:] = np.inf
     return out, err
 
 
@@ -287,7 +348,9 @@ class CallableField(Field):
     (its code, file, defaults and closure), so an edited function is another scene to every kept
     reference answer, ``--resume`` and ``bench compare``.  ``bounds = (centre, radius)``
     is an optional ball the user asserts contains every point where φ ≤ 0
-    (:meth:`Field.bounding_sphere`); a wrong ball makes the root finders miss surface outside it.
+    (:meth:`Field.bounding_sphere`); a wrong ball makes the root finders miss surface outside it,
+    and, with a ``domain``, the reference, which samples what the ball leaves out and gives no
+    answer on any ray where it finds φ ≤ 0 there (:func:`_bounds_refuted`).
 
     ``fn`` must return one real floating value per point: an array of ``x``'s library (the
     namespace ``xp``), shape ``x.shape[:-1]``, dtype ``x.dtype`` (another floating precision is

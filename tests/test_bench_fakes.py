@@ -352,6 +352,23 @@ class ExitsBackend(_WrapsNumpy):
         return Prepared(run=run, result=p.result)
 
 
+class SceneRebindingBackend(_WrapsNumpy):
+    """``prepare`` moves the scene it is given: a sphere's radius 1 → 1.5 (a plug-in that tunes
+    the field it was handed instead of its own copy)."""
+
+    def prepare(self, method, scene, origins, directions, **kw):
+        object.__setattr__(scene, "radius", 1.5)
+        return super().prepare(method, scene, origins, directions, **kw)
+
+
+class LazyResultBackend(_WrapsNumpy):
+    """``run`` does nothing and ``result`` does the work (untimed by the protocol)."""
+
+    def prepare(self, *a, **kw):
+        p = super().prepare(*a, **kw)
+        return Prepared(run=lambda: None, result=lambda _: p.result(p.run()))
+
+
 class KeyboardInterruptBackend(_WrapsNumpy):
     """``run`` raises KeyboardInterrupt itself, with no Ctrl-C behind it."""
 

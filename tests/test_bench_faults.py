@@ -127,6 +127,37 @@ def test_a_backend_writing_into_the_scene_fails_its_own_rows_only(tmp_path):
     _assert_same_numpy_rows(mixed, alone)
 
 
+def test_a_backend_changing_its_scene_changes_only_its_own_rows(tmp_path):
+    """A plug-in that sets the sphere's radius to 1.5 in ``prepare``: it was handed the case's own
+    scene, and every later row of every backend ran on the larger sphere (the 2026-11-30 probe:
+    68 false hits on each numpy row, blamed on numpy).  A plug-in now gets its own copy."""
+    from reference.cases import get_case
+
+    case = get_case(CASE)
+    mixed = runner.run(SUITE, {"bad": fakes.SceneRebindingBackend(), "numpy": registry.resolve("numpy")},
+                       tmp_path / "mixed", policy=FAST)
+    alone = runner.run(SUITE, {"numpy": registry.resolve("numpy")}, tmp_path / "alone", policy=FAST)
+    assert case.scene.radius == 1.0
+    _assert_same_numpy_rows(mixed, alone)
+    bad = mixed[mixed["backend"] == "bad"]
+    assert (bad["n_false_hit"] > 0).all(), bad[["method", "n_false_hit"]]  # its own rows: the larger sphere
+
+
+def test_work_moved_into_result_is_no_comparable_time(tmp_path):
+    """A plug-in whose run() returns at once and whose result() does the work was timed at 0.3 µs
+    and picked in "which to pick" at ×0.005 (the 2026-11-30 probe).  Its time is now not
+    comparable (time_ratio_cf NaN, which no pick takes) and its timing_note says why; numpy's
+    rows carry no such note."""
+    timed = dataclasses.replace(FAST, accuracy_only=False, min_repeats=3)
+    df = runner.run(SUITE, {"lazy": fakes.LazyResultBackend(), "numpy": registry.resolve("numpy")}, tmp_path,
+                    policy=timed)
+    lazy, ours = df[df["backend"] == "lazy"], df[df["backend"] == "numpy"]
+    assert len(lazy) and lazy["time_ratio_cf"].isna().all()
+    assert lazy["timing_note"].str.contains("Prepared.result() took", regex=False).all()
+    assert ours["time_ratio_cf"].notna().all()
+    assert not ours["timing_note"].fillna("").str.contains("result()", regex=False).any()
+
+
 def test_a_backend_changing_library_settings_changes_only_its_own_rows(tmp_path):
     """A plug-in that sets ``np.seterr(all="raise")`` (and torch's default dtype to float32) in
     ``prepare``, run before numpy on the torus camera, whose marches underflow harmlessly: numpy's

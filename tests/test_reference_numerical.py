@@ -155,25 +155,30 @@ def test_callable_field_states_what_it_is_told():
         case.exact_dt_dtheta
 
 
-def test_rays_taken_in_passes_give_the_answers_of_one_pass(monkeypatch):
+@pytest.mark.parametrize("steep", [1.0, 4.0])
+def test_rays_taken_in_passes_give_the_answers_of_one_pass(monkeypatch, steep):
     """The numerical reference takes rays CHUNK_RAYS at a time (its dense samples made a user's
-    256² camera take 4.7 GB in one pass, 1024² ~80 GB); every ray's answer depends on that ray
-    alone, so passes give bit for bit what one pass gives: hits, misses, flagged rays (a bound
-    understated on part of the field), the error bounds and every crossing."""
+    256² camera take 4.7 GB in one pass, 1024² ~80 GB); passes give bit for bit what one pass
+    gives: hits, misses, the error bounds and every crossing, and, where the bound is understated
+    on part of the field (``steep`` 4), every ray voided, the refutation seen in one pass voiding
+    the rays of the others (:func:`reference.numerical._void_if_refuted`)."""
     from reference import numerical as N
     from reference import rays
 
-    def field(x, xp):  # a ball, and beyond x = 0.6 a slab 4× steeper than the declared L = 1
+    def field(x, xp):  # a ball and a slab `steep` × the declared L = 1
         r = xp.sqrt(xp.sum(x * x, axis=-1)) - 0.5
-        return xp.where(x[..., 0] > 0.6, 4.0 * (xp.abs(x[..., 1]) - 0.05), r)
+        return xp.minimum(r, steep * (xp.abs(x[..., 1] - 0.4) - 0.05))
 
-    scene = CallableField(field, lipschitz=1.0, name="tests.ball_and_steep_slab")
+    scene = CallableField(field, lipschitz=1.0, name=f"tests.ball_and_slab_{steep:g}")
     o, d = rays.pinhole(eye=(0.3, 0.2, 3.0), look_at=(0.3, 0.0, 0.0), fov_deg=50.0, width=24, height=24)
     one = N.first_hit_numeric(scene, o, d, 0.0, 6.0), N.crossings_numeric(scene, o, d, 0.0, 6.0)
     monkeypatch.setattr(N, "CHUNK_RAYS", 100)
     many = N.first_hit_numeric(scene, o, d, 0.0, 6.0), N.crossings_numeric(scene, o, d, 0.0, 6.0)
     t, err = one[0]
-    assert np.isfinite(t).any() and np.isinf(t).any() and np.isnan(t).any()  # hits, misses, flagged rays
+    if steep > 1.0:
+        assert np.all(np.isnan(t)) and np.all(err == np.inf) and np.all(one[1][1] == np.inf)
+    else:
+        assert np.isfinite(t).any() and np.isinf(t).any() and not np.isnan(t).any()  # hits and misses
     for a, b in zip(one[0], many[0]):
         np.testing.assert_array_equal(a, b)
     assert len(one[1][0]) == len(many[1][0]) == len(o)
@@ -208,3 +213,58 @@ def test_directions_that_are_not_unit_are_refused_and_float32_ones_are_normalise
     t64, _ = first_hit_numeric(scene, o, d32_64 / np.linalg.norm(d32_64, axis=1, keepdims=True), 0.0, 6.0)
     assert np.isfinite(t64).sum() > 20
     np.testing.assert_array_equal(t32, t64)
+
+
+def test_a_bound_refuted_on_one_ray_voids_every_rays_answer():
+    """A thin steep wall (slope 1000) in front of the unit sphere, declared L = 1: the scan sees the
+    false bound only on the rays whose samples straddle the wall's slope.  Before, only those were
+    voided, and 60 of 256 rays kept the sphere behind the wall as their "first hit" (judged, so a
+    root finder stepping over the wall the same way scored 0 false hits); L is one claim about the
+    field, so every ray is now without an answer (t NaN, bound inf), as the backends void theirs."""
+    from reference.rays import pinhole
+
+    def wall(x, xp):
+        r = xp.sqrt(xp.sum(x * x, axis=-1))
+        return xp.minimum(r - 1.0, 1000.0 * (xp.abs(r - 2.3) - 5e-4))
+
+    o, d = pinhole((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov_deg=40, width=16, height=16)
+    field = CallableField(wall, lipschitz=1.0, name="tests.wall")
+    t, err = first_hit_numeric(field, o, d, 0.0, 6.0)
+    assert np.all(np.isnan(t)) and np.all(err == np.inf), (int(np.isfinite(t).sum()), int(np.isnan(t).sum()))
+    per_ray = [first_hit_numeric(field, o[k:k + 1], d[k:k + 1], 0.0, 6.0)[0][0] for k in range(0, 256, 17)]
+    assert any(np.isfinite(per_ray)), "some rays alone do not see the refutation (what made this a finding)"
+    _, width = crossings_numeric(field, o, d, 0.0, 6.0)
+    assert np.all(width == np.inf)
+
+
+def test_a_field_that_is_nan_somewhere_is_named_with_a_point():
+    """Before: "the field returned non-finite values on the rays", naming neither the field nor
+    where (the 2026-11-30 probe).  Now the field, the value, a point, its ray and depth."""
+    from reference.rays import pinhole
+
+    f = CallableField(lambda x, xp: xp.where(x[..., 0] > 0.3, xp.nan, xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0),
+                      lipschitz=1.0, name="tests.nan_beyond")
+    o, d = pinhole((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=8, height=8)
+    with pytest.raises(ValueError, match=r"'tests.nan_beyond' \(CallableField\) returned nan at x = \[0\.3.*\(ray \d+, "
+                                         r"t = .*rays meet such points"):
+        first_hit_numeric(f, o, d, 0.0, 6.0)
+
+
+def test_a_users_bounding_ball_that_leaves_out_the_surface_is_refuted():
+    """``CallableField(bounds=…, domain=…)``: the search keeps to the ray bounds of the ball the
+    user asserts holds every point where φ ≤ 0.  A ball that leaves out the unit sphere made every
+    ray a certified MISS, judged right (the 2026-11-30 probe); now the stretches it leaves out are
+    sampled, φ ≤ 0 there refutes it, and no ray has an answer.  A true ball changes nothing."""
+    from reference.rays import pinhole
+
+    def sphere(x, xp):
+        return xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0
+
+    o, d = pinhole((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov_deg=40, width=16, height=16)
+    wrong = CallableField(sphere, lipschitz=1.0, name="tests.wrong_ball", bounds=((5.0, 5.0, 5.0), 0.5), domain="ball")
+    t, err = first_hit_numeric(wrong, o, d, 0.0, 6.0)
+    assert np.all(np.isnan(t)) and np.all(err == np.inf)
+    right = CallableField(sphere, lipschitz=1.0, name="tests.right_ball", bounds=((0.0, 0.0, 0.0), 1.01),
+                          domain="ball")
+    t, err = first_hit_numeric(right, o, d, 0.0, 6.0)
+    assert np.isfinite(t).sum() > 100 and np.isinf(t).sum() > 0 and not np.isnan(t).any()

@@ -74,10 +74,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-stability", action="store_true", help="do not run the suite's stability stage (every root "
                    "finder × dtype on one case per adversarial ray family, accuracy only, into stability/)")
     p.add_argument("--reference-timeout", type=seconds, default=30.0, help="seconds for one costly reference answer (a "
-                   "rendering integral for one case and density); past it that quantity is skipped with the reason, "
-                   "and that density is not retried in this run (default 30, 0: none)")
+                   "rendering integral for one case and density; a user case's numerical first hits, which run its "
+                   "field); past it that quantity (that case) is skipped with the reason, and not retried in this "
+                   "run (default 30, 0: none)")
     p.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
-                   "rendering integral) instead of reusing those kept in the cache directory")
+                   "rendering integral, numerical first hits) instead of reusing those kept in the cache directory "
+                   "(after changing what a user field reads at call time, e.g. an environment variable or a file)")
     p.add_argument("--cache-dir", help="where compiled kernels (jax, numba) and costly reference answers are kept "
                    "between runs (default: $XDG_CACHE_HOME/isobench, else ~/.cache/isobench; recorded as cache_dir)")
     p.add_argument("--no-cache", action="store_true", help="a cold start: no persistent cache is read or written, "

@@ -5,10 +5,12 @@ budget (:func:`run_budgeted`), and the extra timing rounds of ``--rounds`` (:fun
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import inspect
 import json
 import math
+import time
 import traceback
 from typing import Any, Callable
 
@@ -17,6 +19,7 @@ import numpy as np
 from impls import METHODS, Unavailable, get_method
 from impls.protocol import Declined, declined_reason
 from reference import Case
+from reference.cases import freeze_arrays
 from reference.quadric import ray_sphere_roots
 
 from . import environment, interrupts, references
@@ -129,6 +132,23 @@ def warmup_policy(backend: Any, policy: TimingPolicy, compile_s: float | None = 
     return policy
 
 
+def own_copy(backend: Any, obj: Any) -> Any:
+    """``obj`` (a case's scene or colour field) as ``backend`` gets it: a plug-in's own deep copy,
+    so that one that changes what it is given (rebinds a user field's ``fn``, sets a node's
+    ``lipschitz``) changes its own configuration, not the scene every later row of every backend
+    runs on and is measured against (the 2026-11-30 probe: a plug-in that swapped ``fn`` in its
+    ``prepare`` gave every numpy row 68 false hits, blamed on numpy).  The package's own backends
+    (``impls.*``) get the object itself: their compiled kernels are kept per scene, and a copy
+    costs up to 5 ms (the neural scenes)."""
+    if type(backend).__module__.partition(".")[0] == "impls":
+        return obj
+    mine = copy.deepcopy(obj)
+    # read-only as the case's own arrays are: a write into them is the plug-in's error to see, not
+    # a silent change of its copy
+    freeze_arrays(mine, set())
+    return mine
+
+
 def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     """Bind the method to the case (methods that evaluate at given hits get ``t_hit`` = the exact
     depths, isolating their error from root finding) and time it: (prepared, timing, output).
@@ -140,9 +160,10 @@ def _prepare_and_time(cfg: Config, backend: Any, policy: TimingPolicy):
     extra = {"t_hit": np.array(case.exact_t)} if spec.needs_t_hit else {}
     if getattr(spec, "needs_color", False):
         # the renderer shades with the very colour field the reference integrates
-        extra["color"] = references.color_field(case)
+        extra["color"] = own_copy(backend, references.color_field(case))
+    scene = own_copy(backend, case.scene)
     prep = backend_call(backend, f"backend.prepare({cfg.method!r}, …)", lambda: backend.prepare(
-        cfg.method, case.scene, np.array(case.origins), np.array(case.directions), dtype=cfg.dtype,
+        cfg.method, scene, np.array(case.origins), np.array(case.directions), dtype=cfg.dtype,
         t_min=case.t_min, t_max=case.t_max, **extra, **cfg.knobs))
     for name in ("run", "result"):
         if not callable(getattr(prep, name, None)):
@@ -192,11 +213,13 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
     try:
         with time_limit(seconds, what):
             prep, timing, out = _prepare_and_time(cfg, backend, policy)
+            started = time.perf_counter()
             raw = backend_call(backend, "Prepared.result(out)", lambda: prep.result(out))
             # converting the returned arrays runs the backend's code too (an __array__, a lazy
             # device array's queued work): inside the limit, so that it cannot hang the run; the
             # timing samples above are untouched (each timed call synchronised already)
             raw = result_arrays(raw)
+            result_s = time.perf_counter() - started
             compile_s = compile_seconds(prep)
             compile_cache = getattr(prep, "compile_cache", None)
         res = check_result(raw, case.n_rays, tuple(spec.outputs), scene=case.scene, who=cfg.backend_id,
@@ -227,6 +250,14 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
     if policy.accuracy_only:  # one untimed-quality call: no timing claims, no timing comparison
         timed.update({"compile_s": compile_s, "time_median_s": float("nan"), "time_iqr_s": float("nan"),
                       "time_samples_s": "", "time_ratio_cf": float("nan"), "n_samples": 0})
+    elif untimed_work(result_s, timing.median_s):
+        # work moved out of run() into result() is not timed: the row's time is no measure of the
+        # method (a plug-in doing everything in result() was timed at 0.3 µs and picked at ×0.005)
+        timed.update({"time_ratio_cf": float("nan"),
+                      "timing_note": f"Prepared.result() took {result_s:.3g} s, {result_s / timing.median_s:.3g}× a "
+                                     f"timed run() ({timing.median_s:.3g} s): work done there is not timed "
+                                     "(result() should only convert; docs/backends.md), so this time is not "
+                                     "comparable; "})
     rows = []
     for q in quantities:
         if "skip" in q:
@@ -234,6 +265,19 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
         else:
             rows.append({**row, **timed, **q, "outcome": "ok", "reason": ""})
     return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
+
+
+#: result() slower than this many timed run() calls, and than RESULT_FLOOR_S, does untimed work
+RESULT_RATIO = 10.0
+RESULT_FLOOR_S = 1e-3
+
+
+def untimed_work(result_s: float, run_s: float) -> bool:
+    """Whether ``Prepared.result()`` (untimed: it converts what ``run()`` returned) took more than
+    :data:`RESULT_RATIO` timed ``run()`` calls and :data:`RESULT_FLOOR_S`: then part of the method's
+    work happens there, outside the samples.  (Measured: the built-in backends' result() takes at
+    most a few conversions of the outputs, well under one run.)"""
+    return result_s > RESULT_FLOOR_S and result_s > RESULT_RATIO * run_s
 
 
 def over_budget_message(budget_s: float | None) -> str:
