@@ -21,7 +21,9 @@ too, in float64 numpy only, because they are the reference and nothing else need
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -114,6 +116,21 @@ class Field:
     #: bound) rather than one its construction proves; a node class defined outside ``reference``
     #: counts as declaring whatever this says (:func:`impls.core.methods_root.checks_inside`)
     declares_lipschitz: bool = False
+
+    def __deepcopy__(self, memo):
+        """A deep copy without the node's derived caches (``functools.cached_property`` values: a
+        mesh's AABB tree, a network's stacked weights), which the copy builds again on demand: they
+        follow from the node's fields, and some (libigl's AABB) cannot be copied.  The runner
+        gives a plug-in backend such a copy (``bench.run.configuration.own_copy``)."""
+        cls = type(self)
+        new = cls.__new__(cls)
+        memo[id(self)] = new
+        cached = {name for klass in cls.__mro__ for name, v in vars(klass).items()
+                  if isinstance(v, functools.cached_property)}
+        for k, v in vars(self).items():
+            if k not in cached:
+                object.__setattr__(new, k, copy.deepcopy(v, memo))
+        return new
 
     # -- structure -------------------------------------------------------------------------
     def own_params(self) -> dict[str, np.ndarray]:

@@ -353,3 +353,20 @@ def test_stored_files_are_reproducible():
         m = stored_mesh(name)
         np.testing.assert_array_equal(V, m.vertices)
         np.testing.assert_array_equal(F, m.faces)
+
+
+def test_a_deep_copy_of_a_queried_mesh_evaluates_the_same():
+    """A plug-in backend gets a deep copy of the scene (bench.run.configuration.own_copy); a mesh
+    that had answered a query held libigl's AABB tree, which cannot be copied ("cannot pickle
+    'AABB' object": every plug-in row on a mesh case failed).  The copy leaves derived caches out
+    and builds them again."""
+    import copy
+
+    from reference.cases import get_case
+
+    case = get_case("mesh.torus.camera.16x16")
+    x = case.origins[:64] + 2.0 * case.directions[:64]
+    phi = np.asarray(case.scene.value(x))
+    twin = copy.deepcopy(case.scene)
+    assert np.array_equal(np.asarray(twin.value(x)), phi)
+    assert repr(twin.spec()) == repr(case.scene.spec())
