@@ -183,3 +183,75 @@ def test_markdown_and_terminal_summaries(tmp_path):
     assert "ZeroDivisionError" in md
     lines = terminal_summary(df).splitlines()
     assert len(lines) == 3 and "error" in lines[2]
+
+
+def _misbehaving_ledger() -> Ledger:
+    led = Ledger()
+
+    @led.claim("exits", statement="calls sys.exit", equation="planted", how_checked="-")
+    def _exits(ctx):
+        raise SystemExit(3)
+
+    class Own(BaseException):
+        pass
+
+    @led.claim("own", statement="raises its own BaseException", equation="planted", how_checked="-")
+    def _own(ctx):
+        raise Own("planted")
+
+    @led.claim("hangs", statement="never returns", equation="planted", how_checked="-")
+    def _hangs(ctx):
+        import time
+
+        time.sleep(600)
+
+    @led.claim("false_badfig", statement="x + 1 < x", equation="planted", how_checked="evaluate")
+    def _false_badfig(ctx):
+        return Evidence([Trial("x=0", False, {"x": 0.0})], {"huge": 10 ** 400}, figure="not a figure")
+
+    @led.claim("stringly", statement="holds given as a string", equation="planted", how_checked="-")
+    def _stringly(ctx):
+        return Evidence([Trial("x=0", "False")])
+
+    @led.claim("after", statement="x = x", equation="planted", how_checked="-")
+    def _after(ctx):
+        return Evidence([Trial("x=1", True)])
+
+    return led
+
+
+def test_a_check_that_exits_raises_or_hangs_is_an_error_row_and_the_next_claims_run(tmp_path):
+    """Before (the 2026-11-30 claims probe): a check calling sys.exit ended ``bench claims`` with
+    exit code 3, no row and no later claim checked; one that hung held the run forever; a figure
+    that failed to save turned a decided "fails" into "error", its counterexample lost; and
+    ``Trial(holds="False")`` counted as a hold."""
+    from bench.claims import run_one
+    from bench.claims.ledger import CheckContext
+
+    led = _misbehaving_ledger()
+    rows = {c.id: run_one(c, tmp_path, CheckContext(), timeout_s=1.0 if c.id == "hangs" else None)
+            for c in led.select(None)}
+    v = {k: r["verdict"] for k, r in rows.items()}
+    assert v == {"exits": "error", "own": "error", "hangs": "error", "false_badfig": "fails", "stringly": "error",
+                 "after": "holds"}, v
+    assert "SystemExit" in rows["exits"]["message"] and "Own: planted" in rows["own"]["message"]
+    assert "ran past the time limit of 1 s" in rows["hangs"]["message"]
+    bad = rows["false_badfig"]
+    assert bad["counterexample"].startswith("x=0") and "figure could not be drawn" in bad["message"]
+    assert "key numbers could not be written" in bad["message"]
+    assert "holds must be True or False" in rows["stringly"]["message"]
+
+
+def test_a_claim_id_registered_twice_is_an_error_not_the_first_comer():
+    """Two modules registering one id: the first won silently, and ``--only 9`` ran a planted
+    module's check under the lecture's claim 9, which read "holds".  Now the id is an error row
+    naming both, and ``--only`` takes each id once."""
+    from bench.claims.ledger import DuplicateClaimId
+
+    led = _planted_ledger()
+    with pytest.raises(DuplicateClaimId, match=r"duplicate claim id 'true': registered by .*_true and by .*impostor"):
+        @led.claim("true", statement="impostor", equation="-", how_checked="-")
+        def impostor(ctx):
+            return Evidence([Trial("x", True)])
+    led.void("true", "duplicate claim id 'true': neither is checked")
+    assert [c.id for c in led.select(["false", "false"])] == ["false"]

@@ -17,8 +17,11 @@ import time
 import traceback
 from pathlib import Path
 
+from ..run import interrupts
 from ..run.results import write_atomic
-from .ledger import LEDGER, CheckContext, Claim, Evidence, Ledger, Trial, Verdict, decide, format_numbers, numbers_json
+from ..run.timing import Timeout, time_limit
+from .ledger import (LEDGER, CheckContext, Claim, DuplicateClaimId, Evidence, Ledger, Trial, Verdict, decide,
+                     format_numbers, numbers_json)
 
 __all__ = ["run_claims", "claim_ids", "Claim", "Evidence", "Trial", "Verdict", "Ledger", "LEDGER", "CheckContext", "decide",
            "COLUMNS"]
@@ -54,17 +57,31 @@ def _load(ledger: Ledger) -> None:
     for name in CLAIM_MODULES:
         try:
             importlib.import_module(f"{__name__}.{name}")
+        except DuplicateClaimId as exc:  # neither claim stands for the id: it is an error row, saying why
+            ledger.void(exc.id, f"{exc}: neither is checked")
+            _broken_module(ledger, name, f"import of bench.claims.{name} stopped: {exc}")
         except Exception as exc:  # never kill the ledger because one module is broken
-            msg = f"import of bench.claims.{name} failed: {type(exc).__name__}: {exc}"
-
-            def broken(ctx, _msg=msg):
-                raise RuntimeError(_msg)
-
-            ledger.add(Claim(id=name, statement=f"(module {name})", equation="", how_checked="", check=broken))
+            _broken_module(ledger, name, f"import of bench.claims.{name} failed: {type(exc).__name__}: {exc}")
 
 
-def run_one(claim: Claim, out_dir: Path, ctx: CheckContext) -> dict:
-    """Run one claim's check; any exception becomes a row with verdict ``error`` and its message."""
+def _broken_module(ledger: Ledger, name: str, msg: str) -> None:
+    def broken(ctx, _msg=msg):
+        raise RuntimeError(_msg)
+
+    ledger.add(Claim(id=name, statement=f"(module {name})", equation="", how_checked="", check=broken))
+
+
+#: a claim check's time limit (a guard against a hang: the quick checks take ≤ 10 s each on a
+#: 2-core machine, the full ones minutes), by mode
+CLAIM_TIMEOUT_S = {True: 600.0, False: 3600.0}
+
+
+def run_one(claim: Claim, out_dir: Path, ctx: CheckContext, timeout_s: float | None = None) -> dict:
+    """Run one claim's check; whatever it raises (``SystemExit`` and its own ``BaseException``
+    included, and a run past ``timeout_s``, default :data:`CLAIM_TIMEOUT_S`) becomes a row with
+    verdict ``error`` and its message.  Once the verdict is decided, a failure to write its key
+    numbers or figure is noted in the message and leaves the verdict as decided."""
+    timeout_s = CLAIM_TIMEOUT_S[bool(ctx.quick)] if timeout_s is None else timeout_s
     from .figures import message_png, save_png
 
     plot = f"claim_{claim.id}.png"
@@ -72,28 +89,50 @@ def run_one(claim: Claim, out_dir: Path, ctx: CheckContext) -> dict:
            "how_checked": claim.how_checked, "plot": plot, "out_of_scope": ""}
     t0 = time.perf_counter()
     try:
-        ev = claim.check(ctx)
-        if not isinstance(ev, Evidence):
-            raise TypeError(f"check of claim {claim.id} returned {type(ev).__name__}, expected Evidence")
-        d = decide(ev.trials)
-        row.update(verdict=d.verdict.value, conditions=d.conditions, counterexample=d.counterexample,
-                   out_of_scope=d.out_of_scope,
-                   key_numbers=numbers_json(ev.key_numbers), n_trials=d.n_trials, n_hold=d.n_hold,
-                   message=ev.note if d.verdict is not Verdict.ERROR else d.counterexample)
+        with time_limit(timeout_s, "the claim's time limit"):
+            ev = claim.check(ctx)
+            if not isinstance(ev, Evidence):
+                raise TypeError(f"check of claim {claim.id} returned {type(ev).__name__}, expected Evidence")
+            d = decide(ev.trials)
+    except BaseException as exc:  # the check could not run: error (a Ctrl-C still stops)
+        if not (isinstance(exc, Timeout) or interrupts.is_fault(exc)):
+            raise
+        tb = traceback.format_exc(limit=6)
+        row.update(verdict=Verdict.ERROR.value, conditions="", counterexample="", key_numbers="{}", n_trials=0,
+                   n_hold=0, message=f"{type(exc).__name__}: {exc}")
+        _quietly(lambda: message_png(out_dir / plot, f"claim {claim.id}: error", tb))
+        row["seconds"] = round(time.perf_counter() - t0, 3)
+        return row
+    # the verdict is decided: what follows (key numbers, the figure) reports it and cannot undo it
+    # (a figure that failed to save turned a decided "fails" into "error", its counterexample lost)
+    row.update(verdict=d.verdict.value, conditions=d.conditions, counterexample=d.counterexample,
+               out_of_scope=d.out_of_scope, n_trials=d.n_trials, n_hold=d.n_hold,
+               message=ev.note if d.verdict is not Verdict.ERROR else d.counterexample)
+    problems = []
+    try:
+        row["key_numbers"] = numbers_json(ev.key_numbers)
+    except Exception as exc:  # noqa: BLE001 - the check's numbers: reported, not fatal
+        row["key_numbers"] = "{}"
+        problems.append(f"key numbers could not be written ({type(exc).__name__}: {exc})")
+    try:
         if ev.figure is not None:
             save_png(ev.figure, out_dir / plot)
         else:
             message_png(out_dir / plot, f"claim {claim.id}", "no figure: " + (ev.note or d.verdict.value))
-    except Exception as exc:
-        tb = traceback.format_exc(limit=6)
-        row.update(verdict=Verdict.ERROR.value, conditions="", counterexample="", key_numbers="{}", n_trials=0,
-                   n_hold=0, message=f"{type(exc).__name__}: {exc}")
-        try:
-            message_png(out_dir / plot, f"claim {claim.id}: error", tb)
-        except Exception:  # pragma: no cover - plotting itself broken
-            pass
+    except Exception as exc:  # noqa: BLE001 - the check's figure: reported, not fatal
+        problems.append(f"the figure could not be drawn ({type(exc).__name__}: {exc})")
+        _quietly(lambda: message_png(out_dir / plot, f"claim {claim.id}", problems[-1]))
+    if problems:
+        row["message"] = "; ".join(filter(None, [row["message"], *problems]))
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
+
+
+def _quietly(fn) -> None:
+    try:
+        fn()
+    except Exception:  # noqa: BLE001 - pragma: no cover - plotting itself broken
+        pass
 
 
 def claim_ids() -> list[str]:

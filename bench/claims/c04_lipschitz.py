@@ -162,7 +162,8 @@ def check_trace(ctx):
         r = sphere_trace_signed(net.value, o, d, lipschitz=lip, tol=1e-9, max_steps=20_000, t_max=8.0,
                                 abs_step=True)
         with np.errstate(invalid="ignore"):
-            passed = hit & (r.t_furthest > t_ref + 1e-9 * (1 + t_ref))
+            # (written so that a NaN iterate counts as passing through: it is not shown to stay before)
+            passed = hit & ~(r.t_furthest <= t_ref + 1e-9 * (1 + t_ref))
             wrong = r.converged & ~(np.abs(r.t - t_ref) <= 1e-6)  # stopped where there is no first hit
         missed = hit & ~r.converged
         nums = {"rays_hit": int(hit.sum()), "passed_through": int(passed.sum()), "wrong_root": int(wrong.sum()),

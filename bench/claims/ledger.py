@@ -38,6 +38,8 @@ import math
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 
 class Verdict(str, enum.Enum):
     HOLDS = "holds"
@@ -58,6 +60,15 @@ class Trial:
     in_scope: bool = True
     classes: tuple[str, ...] = ()
     vacuous: bool = False
+
+    def __post_init__(self):
+        # a check is code: a verdict is counted only from flags that are truth values ("False" as
+        # a string counted as a hold, and "no" as inside the scope)
+        for name in ("holds", "in_scope", "vacuous"):
+            v = getattr(self, name)
+            if not isinstance(v, (bool, np.bool_)):
+                raise TypeError(f"Trial({self.condition!r}).{name} must be True or False, got {type(v).__name__} {v!r}")
+            object.__setattr__(self, name, bool(v))
 
     @property
     def informative_hold(self) -> bool:
@@ -152,6 +163,20 @@ def decide(trials: list[Trial]) -> Decision:
     return Decision(Verdict.FAILS, "", bad[0].describe(), len(inside), len(good), note)
 
 
+class DuplicateClaimId(ValueError):
+    """Two claims registered under one id: neither may stand for it (the first registered won
+    before, silently, and a false claim 9 read "holds" under another module's check)."""
+
+    def __init__(self, claim_id: str, first: str, second: str):
+        super().__init__(f"duplicate claim id {claim_id!r}: registered by {first} and by {second}; rename one")
+        self.id, self.first, self.second = claim_id, first, second
+
+
+def _where(claim: Claim) -> str:
+    fn = claim.check
+    return f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', '?')}"
+
+
 class Ledger:
     """An ordered registry of claims (the default one is :data:`LEDGER`)."""
 
@@ -160,9 +185,18 @@ class Ledger:
 
     def add(self, claim: Claim) -> Claim:
         if claim.id in self._claims:
-            raise ValueError(f"duplicate claim id {claim.id!r}")
+            raise DuplicateClaimId(claim.id, _where(self._claims[claim.id]), _where(claim))
         self._claims[claim.id] = claim
         return claim
+
+    def void(self, claim_id: str, message: str) -> None:
+        """Replace claim ``claim_id`` by one whose check fails with ``message`` (an ``error`` row)."""
+        old = self._claims[claim_id]
+
+        def broken(ctx, _msg=message):
+            raise RuntimeError(_msg)
+
+        self._claims[claim_id] = dataclasses.replace(old, check=broken)
 
     def claim(self, id: str, *, statement: str, equation: str, how_checked: str, scope: str = ""):
         """Decorator registering ``check(ctx) -> Evidence`` as claim ``id``, judged in ``scope``."""
@@ -199,7 +233,7 @@ class Ledger:
         unknown = [i for i in only if i not in self._claims]
         if unknown:
             raise ValueError(f"only: unknown claim id(s) {unknown}; known ids are {self.ids()}")
-        return [self._claims[i] for i in only]
+        return [self._claims[i] for i in dict.fromkeys(only)]  # each once, in the order given
 
     def __len__(self) -> int:
         return len(self._claims)

@@ -60,5 +60,9 @@ def run(args) -> int:
         build_from_dir(out)
         console.print(terminal_summary(claims), markup=False)
         console.print(f"Report: {out / 'report.html'}")
+        errors = [str(i) for i, v in zip(claims["id"], claims["verdict"]) if v == "error"]
+        if errors:  # a check that could not run is no verdict: a CI job must see it ("fails" is a verdict)
+            console.print(f"claims whose check could not run (verdict error): {', '.join(errors)}", markup=False)
+            return 1
     return 1 if note else 0
 
