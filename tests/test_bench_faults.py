@@ -319,7 +319,14 @@ def test_a_ctrl_c_is_told_apart_from_a_plugins_own_keyboard_interrupt():
                 os.kill(os.getpid(), signal.SIGINT)
                 time.sleep(5)
             assert not interrupts.is_fault(info.value)
-        # not watching: every KeyboardInterrupt stops the run (it cannot be told apart)
+        # not watching: every KeyboardInterrupt stops the run (it cannot be told apart) ...
         assert not interrupts.is_fault(KeyboardInterrupt("planted"))
+        # ... unless SIGINT is ignored (a background job of a script): then none is a Ctrl-C.  (The
+        # README's test command started so crashed its xdist worker on the planted
+        # KeyboardInterruptBackend: watching() found SIG_IGN and took every KeyboardInterrupt
+        # for a Ctrl-C.)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with interrupts.watching():
+            assert interrupts.is_fault(KeyboardInterrupt("planted"))
     finally:
         signal.signal(signal.SIGINT, old)

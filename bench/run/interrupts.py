@@ -43,9 +43,14 @@ def watching():
 
 
 def signalled() -> bool:
-    """Whether a KeyboardInterrupt now is a Ctrl-C: a SIGINT arrived, or SIGINT is not watched
-    (then it cannot be told apart, and stopping is the safe reading)."""
-    return _count > 0 or signal.getsignal(signal.SIGINT) is not _on_sigint
+    """Whether a KeyboardInterrupt now is a Ctrl-C: a SIGINT arrived while watched; never where
+    SIGINT is ignored (a background job of a script, ``nohup``: no Ctrl-C can raise one, so it
+    is code's own); under any other handler it cannot be told apart, and stopping is the safe
+    reading."""
+    handler = signal.getsignal(signal.SIGINT)
+    if handler is _on_sigint:
+        return _count > 0
+    return handler != signal.SIG_IGN
 
 
 def is_fault(exc: BaseException) -> bool:
