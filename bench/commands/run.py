@@ -75,7 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "finder × dtype on one case per adversarial ray family, accuracy only, into stability/)")
     p.add_argument("--reference-timeout", type=seconds, default=30.0, help="seconds for one costly reference answer (a "
                    "rendering integral for one case and density; a user case's numerical first hits, which run its "
-                   "field); past it that quantity (that case) is skipped with the reason, and not retried in this "
+                   "field: per pass of 4,096 rays); past it that quantity (that case) is skipped with the reason, and not retried in this "
                    "run (default 30, 0: none)")
     p.add_argument("--no-reference-cache", action="store_true", help="recompute costly reference answers (the "
                    "rendering integral, numerical first hits) instead of reusing those kept in the cache directory "

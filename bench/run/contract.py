@@ -173,14 +173,15 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
                  who: str = "the backend", dtype: str | None = None, t_range: tuple | None = None) -> RayResult:
     """The per-ray contract, checked on what a backend's ``Prepared.result`` returned, which is
     user code: ``t``, ``status``, ``iterations``, ``evals`` arrays of shape (n,) and real dtype;
-    ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` finite
-    and ≥ 0; ``outputs`` a dict holding every declared output with its whole shape
+    ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` whole
+    counts in [0, :data:`COUNT_MAX`]; ``outputs`` a dict holding every declared output with its whole shape
     (:data:`OUTPUT_SHAPES`, e.g. ``normal`` (n, 3); dt/dθ's columns those of ``scene``'s
     parameters) and a numeric dtype; no silent NaN (a non-finite ``t`` or output row on a ray whose
     status is CONVERGED).  With ``dtype`` "float64": ``t`` and real outputs at least float64 (a
     float32 answer is no float64 row).  With ``t_range`` (t_min, t_max; root finders): a CONVERGED
-    ``t`` within it (to 4 spacings of the dtype at t) and a MISS's ``t`` = inf (the status table).  ``res`` may be what :func:`result_arrays` made of it (the runner
-    converts inside the time limit); ``who`` names the backend in a shape error.  Returns a clean
+    ``t`` within it (to 4 spacings of the dtype at t) and a MISS's ``t`` = inf (the status
+    table).  ``res`` may be what :func:`result_arrays` made of it (the runner converts inside the
+    time limit); ``who`` names the backend in a shape error.  Returns a clean
     :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises :class:`BackendFault`
     (a ValueError) naming the offending array."""
     arrays = result_arrays(res)  # numpy arrays already: np.asarray returns them as they are

@@ -76,13 +76,25 @@ def _user_key(case) -> tuple[bool, tuple[str, str]]:
     return "user" in getattr(case, "tags", ()), (case.id, getattr(case, "version", ""))
 
 
+def _user_limit(case, limit_s: float | None) -> float | None:
+    """The limit on a user case's reference answers: ``limit_s`` per pass of the numerical
+    reference (:data:`reference.numerical.CHUNK_RAYS` rays), so that it bounds a hang, not the
+    size of the case (a 1024² user camera, 256 passes, takes minutes where 64 rays take
+    milliseconds)."""
+    from reference.numerical import CHUNK_RAYS
+
+    if not limit_s:
+        return None
+    return float(limit_s) * max(1, -(-int(getattr(case, "n_rays", 1)) // CHUNK_RAYS))
+
+
 def _preload(case, disk, limit_s: float | None) -> None:
     """:func:`bench.run.references.load_numerical_hits`, bounded by ``limit_s`` for a user's case
     (as :func:`applies`); a failure is raised again where the answer is read, a timeout is
     remembered as the case's reason."""
     user, key = _user_key(case)
     try:
-        with time_limit(limit_s if user else None, "--reference-timeout"):
+        with time_limit(_user_limit(case, limit_s) if user else None, "--reference-timeout"):
             load_numerical_hits(case, disk)
     except Timeout as exc:
         if not user:  # (an outer limit's)
@@ -102,8 +114,9 @@ def applies(spec, case, limit_s: float | None = None) -> str | None:
     """Why ``spec`` cannot run on ``case`` whatever the backend (scene requirements, missing
     reference answers), or None.  A user's case (tag ``user``) runs the user's field to get its
     reference answers (the numerical first hits): that is bounded by ``limit_s``
-    (``--reference-timeout``; None or 0: none), and a field that raises, calls ``sys.exit`` or
-    hangs past it is a reason for that case's rows, not the end of the run.  (Unbounded, a user
+    (``--reference-timeout``; None or 0: none) per pass of the reference (:func:`_user_limit`),
+    and a field that raises, calls ``sys.exit`` or hangs past it is a reason for that case's
+    rows, not the end of the run.  (Unbounded, a user
     field sleeping in ``fn`` held a run in planning past its --timeout and --reference-timeout;
     ``sys.exit(3)`` in one ended the run with exit code 3 and no rows.)  The catalog's own
     references are trusted code and not limited: on a loaded machine a cold mesh reference may
@@ -112,7 +125,7 @@ def applies(spec, case, limit_s: float | None = None) -> str | None:
     if user and key in _GAVE_UP:
         return _GAVE_UP[key]
     try:
-        with time_limit(limit_s if user else None, "--reference-timeout"):
+        with time_limit(_user_limit(case, limit_s) if user else None, "--reference-timeout"):
             return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
     except Timeout as exc:
         if not user:  # (an outer limit's)
