@@ -138,8 +138,9 @@ def own_copy(backend: Any, obj: Any) -> Any:
     ``lipschitz``) changes its own configuration, not the scene every later row of every backend
     runs on and is measured against (the 2026-11-30 probe: a plug-in that swapped ``fn`` in its
     ``prepare`` gave every numpy row 68 false hits, blamed on numpy).  The package's own backends
-    (``impls.*``) get the object itself: their compiled kernels are kept per scene, and a copy
-    costs up to 5 ms (the neural scenes)."""
+    (``impls.*``) get the object itself: their compiled kernels are kept per scene.  A copy of a
+    catalog scene costs at most 0.3 ms (the neural ones; derived caches such as a mesh's AABB tree
+    are left out and built again: :meth:`reference.scene.Field.__deepcopy__`)."""
     if type(backend).__module__.partition(".")[0] == "impls":
         return obj
     mine = copy.deepcopy(obj)
