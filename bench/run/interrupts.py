@@ -46,7 +46,11 @@ def signalled() -> bool:
     """Whether a KeyboardInterrupt now is a Ctrl-C: a SIGINT arrived while watched; never where
     SIGINT is ignored (a background job of a script, ``nohup``: no Ctrl-C can raise one, so it
     is code's own); under any other handler it cannot be told apart, and stopping is the safe
-    reading."""
+    reading.  Never off the main thread either: Python runs signal handlers, and raises a Ctrl-C's
+    KeyboardInterrupt, in the main thread only, so one in a worker's thread (a ``--cluster``
+    configuration) is code's own (it killed the dask worker four times over, a KilledWorker row)."""
+    if threading.current_thread() is not threading.main_thread():
+        return False
     handler = signal.getsignal(signal.SIGINT)
     if handler is _on_sigint:
         return _count > 0
