@@ -446,16 +446,18 @@ def test_a_root_finders_depth_outside_its_interval_or_a_finite_miss_is_a_fault()
 
 # --- a plug-in's id ----------------------------------------------------------------------------------
 
-class BadId(PluginBackend):
-    def __init__(self, device: str = "cpu"):
-        super().__init__(device)
-        self.id = "x<img src=x onerror=alert(1)>/y|z"
+def _named(backend_id):
+    """A subclass of the test plug-in whose instances carry ``backend_id`` as their id."""
+    class Named(PluginBackend):
+        def __init__(self, device: str = "cpu"):
+            super().__init__(device)
+            self.id = backend_id
+
+    return Named
 
 
-class NoStrId(PluginBackend):
-    def __init__(self, device: str = "cpu"):
-        super().__init__(device)
-        self.id = 42
+BadId = _named("x<img src=x onerror=alert(1)>/y|z")
+NoStrId = _named(42)
 
 
 @pytest.mark.parametrize("cls, words", [("BadId", ["\\u003c", "\\u007c", "letters, digits and _.:+-"]),
@@ -477,16 +479,7 @@ def test_a_plugin_whose_id_is_no_backend_id_is_unavailable_naming_it(cls, words)
     assert msg == "" and list(backends) == [spec, "numpy"]
 
 
-class AsTorch(PluginBackend):
-    def __init__(self, device: str = "cpu"):
-        super().__init__(device)
-        self.id = "torch:cpu"
-
-
-class AsNumba(PluginBackend):
-    def __init__(self, device: str = "cpu"):
-        super().__init__(device)
-        self.id = "numba"
+AsTorch, AsNumba = _named("torch:cpu"), _named("numba")
 
 
 @pytest.mark.parametrize("cls, lib", [("AsTorch", "torch"), ("AsNumba", "numba")])

@@ -27,8 +27,7 @@ def _on_sigint(signum, frame):
 @contextlib.contextmanager
 def watching():
     """Record SIGINTs while the block runs (in the main thread, where Python's default handler is
-    installed; elsewhere, or under another handler, nothing changes and every KeyboardInterrupt
-    counts as a Ctrl-C)."""
+    installed; elsewhere nothing changes, and :func:`signalled` reads the handler as it finds it)."""
     global _count
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) is not signal.default_int_handler:

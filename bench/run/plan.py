@@ -88,26 +88,26 @@ def _user_limit(case, limit_s: float | None) -> float | None:
     return float(limit_s) * max(1, -(-int(getattr(case, "n_rays", 1)) // CHUNK_RAYS))
 
 
-def _preload(case, disk, limit_s: float | None) -> None:
-    """:func:`bench.run.references.load_numerical_hits`, bounded by ``limit_s`` for a user's case
-    (as :func:`applies`); a failure is raised again where the answer is read, a timeout is
-    remembered as the case's reason."""
+def _bounded(case, limit_s: float | None, fn):
+    """``(fn(), None)``, or ``(None, reason)`` where ``fn`` (work that runs a user case's field)
+    raised, exited or, for a user's case, ran past :func:`_user_limit`; a timeout is remembered as
+    the case's reason for the rest of the process."""
     user, key = _user_key(case)
+    if user and key in _GAVE_UP:
+        return None, _GAVE_UP[key]
     try:
         with time_limit(_user_limit(case, limit_s) if user else None, "--reference-timeout"):
-            load_numerical_hits(case, disk)
+            return fn(), None
     except Timeout as exc:
         if not user:  # (an outer limit's)
             raise
-        _GAVE_UP[key] = _gave_up(case, exc)
-    except BaseException as exc:  # the user's field: said where its answer is read
+        _GAVE_UP[key] = reason = (f"planning: the reference answers of {case.id} (its field's numerical first hits) "
+                                  f"{exc}; raise --reference-timeout if the field is slow, not stuck")
+        return None, reason
+    except BaseException as exc:  # a reference that cannot answer is a reason, not a crash
         if not interrupts.is_fault(exc):
             raise
-
-
-def _gave_up(case, exc) -> str:
-    return (f"planning: the reference answers of {case.id} (its field's numerical first hits) {exc}; "
-            "raise --reference-timeout if the field is slow, not stuck")
+        return None, f"planning: {type(exc).__name__}: {exc}"
 
 
 def applies(spec, case, limit_s: float | None = None) -> str | None:
@@ -121,21 +121,8 @@ def applies(spec, case, limit_s: float | None = None) -> str | None:
     ``sys.exit(3)`` in one ended the run with exit code 3 and no rows.)  The catalog's own
     references are trusted code and not limited: on a loaded machine a cold mesh reference may
     take longer than any such limit sized to an idle one."""
-    user, key = _user_key(case)
-    if user and key in _GAVE_UP:
-        return _GAVE_UP[key]
-    try:
-        with time_limit(_user_limit(case, limit_s) if user else None, "--reference-timeout"):
-            return spec.skip_reason(case.scene) or family_skip_reason(spec, case)
-    except Timeout as exc:
-        if not user:  # (an outer limit's)
-            raise
-        _GAVE_UP[key] = reason = _gave_up(case, exc)
-        return reason
-    except BaseException as exc:  # a reference that cannot answer is a reason, not a crash
-        if not interrupts.is_fault(exc):
-            raise
-        return f"planning: {type(exc).__name__}: {exc}"
+    reason, failed = _bounded(case, limit_s, lambda: spec.skip_reason(case.scene) or family_skip_reason(spec, case))
+    return failed or reason
 
 
 def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods: list[str] | None,
@@ -161,7 +148,8 @@ def plan(suite: Suite, backend_ids: list[str], case_pattern: str | None, methods
     check_dtypes(dtypes)
     cases = select_cases(suite, case_pattern)
     for case in cases:  # numerical first hits from the cache directory, where it has them
-        _preload(case, reference_disk, reference_timeout_s)
+        # (a failure here is said where the answer is read: applies)
+        _bounded(case, reference_timeout_s, lambda: load_numerical_hits(case, reference_disk))
     explicit = bool(case_pattern)
     # the suite's cost exclusions hold for the match-all sweep, not for cases named on purpose
     names_cases = explicit and any(g.strip() not in ("", "*") for g in str(case_pattern).split(","))
