@@ -78,7 +78,8 @@ def _first_screen_lines(df, env: dict, out: Path, fs=None) -> list[str]:
 def closing_summary(df, env: dict, out: Path, lines: ProgressLines, fs=None) -> tuple[int, list[str]]:
     """The closing lines (counts, failures, incompleteness, report path; ``fs``: the report's first
     screen, :func:`bench.report.build.build`'s) and the exit code:
-    0, or 1 when the run is incomplete (its --budget ran out) or no configuration ran."""
+    0, or 1 when the run is incomplete (its --budget ran out), no configuration ran, or a stage
+    beside the configurations failed (:func:`stage_errors`)."""
     from ..report.tables import config_outcomes
 
     configs = config_outcomes(df)
@@ -109,5 +110,29 @@ def closing_summary(df, env: dict, out: Path, lines: ProgressLines, fs=None) -> 
     if n["ok"] == 0:
         errors.append(f"no configuration ran ({n['failed']} failed, {n['skipped']} skipped): nothing was measured; "
                       "see the reasons above and in the report")
+    errors += stage_errors(env, out)
     return (1 if errors else 0), errors
+
+
+def stage_errors(env: dict, out: Path) -> list[str]:
+    """What the run was asked for and could not do beside its configurations: a stability stage or
+    claims ledger that failed (its note in environment.json, anything but "ran"), and claims whose
+    check could not run (verdict ``error``, which ``bench claims`` exits 1 on too; "fails" is a
+    verdict).  Each makes ``bench run`` exit 1 after writing the report, so that a CI job sees it;
+    before, the run exited 0 with the section missing from its report."""
+    from ..report.tables import read_claims
+
+    errors = [f"{stage}: {env[stage]}" for stage in ("stability", "claims")
+              if env.get(stage) not in (None, "", "ran")]
+    if env.get("claims") == "ran":
+        try:
+            claims = read_claims(out)
+            bad = ([str(i) for i, v in zip(claims["id"], claims["verdict"]) if v == "error"]
+                   if claims is not None and len(claims) else [])
+        except Exception as exc:  # noqa: BLE001 - an unreadable ledger is the error itself
+            bad, errors = [], errors + [f"claims: the ledger {out / 'claims.csv'} cannot be read: {exc}"]
+        if bad:
+            errors.append(f"claims whose check could not run (verdict error): {', '.join(bad)}; see the report's "
+                          "claims section (python -m bench claims --only ID reruns one)")
+    return errors
 
