@@ -39,24 +39,54 @@ def _global_names(code: types.CodeType) -> set[str]:
     return out
 
 
+def _installed_roots() -> tuple[str, ...]:
+    """Where the interpreter's own and installed packages live (the standard library, site-packages)."""
+    import sys
+    import sysconfig
+
+    roots = {sys.prefix, sys.base_prefix, *(sysconfig.get_paths().get(k, "") for k in ("stdlib", "purelib", "platlib"))}
+    return tuple(str(Path(r).resolve()) for r in roots if r)
+
+
+def _users_module(mod: types.ModuleType) -> bool:
+    """Whether ``mod`` is a user's module (a file outside the standard library and site-packages;
+    a module made at run time counts too): code that may change between runs, unlike numpy's."""
+    path = getattr(mod, "__file__", None)
+    if path is None:
+        return getattr(mod, "__spec__", None) is None or getattr(mod.__spec__, "origin", None) is None
+    try:
+        resolved = str(Path(path).resolve())
+    except OSError:
+        return True
+    return not resolved.startswith(_installed_roots())
+
+
 def _value_digest(v: Any, depth: int = 0) -> bytes:
     """Bytes that change when a value a function closes over or defaults to changes."""
     if isinstance(v, np.ndarray):
         return repr((v.dtype.str, v.shape)).encode() + np.ascontiguousarray(v).tobytes()
+    if isinstance(v, tuple) and len(v) == 3 and isinstance(v[0], str) and isinstance(v[1], str):  # (module, name, value)
+        return f"{v[0]}.{v[1]}=".encode() + _value_digest(v[2], depth)
     if callable(v) and depth < 4:
         return function_digest(v, depth + 1).encode()
     try:
         return pickle.dumps(v, protocol=5)
-    except Exception:  # noqa: BLE001 - unpicklable: its repr (an address in it makes the hash change every run: safe)
-        return repr(v).encode()
+    except Exception:  # noqa: BLE001 - unpicklable (its class not importable by name, say)
+        state = getattr(v, "__dict__", None)
+        if isinstance(state, dict) and depth < 4:  # an instance: its class and its attributes' values
+            parts = [f"{type(v).__module__}.{type(v).__qualname__}".encode()]
+            parts += [k.encode() + _value_digest(x, depth + 1) for k, x in sorted(state.items())]
+            return b"|".join(parts)
+        return repr(v).encode()  # (an address in it makes the hash change every run: safe)
 
 
 def function_digest(fn: Callable, depth: int = 0) -> str:
     """A digest of what a user's function ``fn`` computes, for a :class:`CallableField`'s content
     hash (``spec``): the bytes of the source file that defines it (a helper it calls may change
     there), its code (bytecode, names, constants), its defaults, what it closes over and the
-    globals it reads by name (helper functions recursively, modules aside); for a
-    callable object, its class's file and its pickled state.  Two functions of the same ``name``
+    globals it reads by name (helper functions recursively; of a user's module, the attributes the
+    code names; for a bound method, the instance); for a callable object, its class's file and its
+    pickled state.  Two functions of the same ``name``
     that compute differently get different hashes, so a run's kept references (first hits,
     rendering integrals), ``--resume`` and ``bench compare`` never take one for the other.  A
     change of what it reads otherwise (a module's attribute, a file's contents) is not seen: give
@@ -79,9 +109,21 @@ def function_digest(fn: Callable, depth: int = 0) -> str:
                 cells.append(c.cell_contents)
             except ValueError:  # an empty cell
                 cells.append(None)
-        # the globals it reads by name (a module-level constant, a helper function), modules aside
+        # the globals it reads by name (a module-level constant, a helper function), and of a user's
+        # module it reads (``helpers.radius()``) the attributes its code names: a helper edited in
+        # another file changes the digest (it kept the same one, and the kept reference answers of
+        # the old field judged the new one)
         glb = getattr(func, "__globals__", {})
-        reads = [glb[n] for n in sorted(_global_names(code)) if n in glb and not isinstance(glb[n], types.ModuleType)]
+        names = _global_names(code)
+        reads = [glb[n] for n in sorted(names) if n in glb and not isinstance(glb[n], types.ModuleType)]
+        for n in sorted(names):
+            mod = glb.get(n)
+            if isinstance(mod, types.ModuleType) and _users_module(mod):
+                reads += [(n, a, getattr(mod, a)) for a in sorted(names) if a in vars(mod)]
+        # a bound method: the instance it is bound to (``Ball(r).phi`` reads its r through self)
+        bound = getattr(fn, "__self__", None)
+        if bound is not None and not isinstance(bound, types.ModuleType):
+            reads.append(bound)
         for v in (*(getattr(func, "__defaults__", None) or ()), *cells,
                   *sorted((getattr(func, "__kwdefaults__", None) or {}).items()), *reads):
             h.update(_value_digest(v, depth))

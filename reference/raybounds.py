@@ -51,7 +51,13 @@ def scene_rays(xp: Any, o: Any):
     of the changes of frame below them (the module's docstring).  A context variable, not an
     argument, so that every node's ``ray_bounds`` (a user's too) keeps its signature."""
     narrow = float(xp.finfo(o.dtype).eps) > 1e-10
-    token = _SCENE_FRAME.set(xp.max(sum_last(xp, xp.abs(o))) if narrow else None)
+    frame = None
+    if narrow:
+        # over the rays with finite origins: one NaN origin (a BAD_INPUT ray) made every ray's
+        # padding NaN, and every ray of a float32 call a certified MISS (probe of 2026-11-30)
+        m = sum_last(xp, xp.abs(o))
+        frame = xp.max(xp.where(xp.isfinite(m), m, xp.zeros_like(m)))
+    token = _SCENE_FRAME.set(frame)
     try:
         yield
     finally:

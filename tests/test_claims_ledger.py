@@ -255,3 +255,17 @@ def test_a_claim_id_registered_twice_is_an_error_not_the_first_comer():
             return Evidence([Trial("x", True)])
     led.void("true", "duplicate claim id 'true': neither is checked")
     assert [c.id for c in led.select(["false", "false"])] == ["false"]
+
+
+def test_a_claims_number_stands_for_its_parts():
+    """``--only 2 7`` (the README's example) was refused once claim 2 became 2a, 2b and 2c: a
+    number that is no id itself but has lettered parts selects them, in order; ids stay as given."""
+    from bench.claims import claim_ids
+    from bench.claims.ledger import LEDGER
+
+    claim_ids()  # (loads the ledger)
+    assert LEDGER.expand(["2", "7"]) == ["2a", "2b", "2c", "7"]
+    assert [c.id for c in LEDGER.select(["2", "2b"])] == ["2a", "2b", "2c"]
+    assert LEDGER.expand(["7", "nosuch"]) == ["7", "nosuch"]
+    with pytest.raises(ValueError, match="unknown claim id"):
+        LEDGER.select(["99"])

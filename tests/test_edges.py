@@ -90,7 +90,8 @@ def test_bench_edges_writes_table_plot_and_report_section(tmp_path):
 
 @pytest.mark.parametrize("args, names", [
     (["--mesh", "nosuch"], "--mesh"), (["--offsets", "1e-3,2"], "--offsets"), (["--offsets", "x"], "--offsets"),
-    (["--family", "corner"], "--family"), (["--mesh", ""], "--mesh"), (["--engines", "nosuchbackend"], "--backend"),
+    (["--family", "corner"], "--family"), (["--mesh", ""], "--mesh"), (["--engines", "nosuchbackend"], "--engines"),
+    (["--engines", "embree", "--backend", "nosuchbackend"], "--backend"),
 ])
 def test_bench_edges_refuses_bad_options(tmp_path, args, names):
     p = bench_cli("edges", *args, "--rays", "2", "--out", tmp_path / "o")

@@ -45,6 +45,22 @@ def test_the_lock_is_exclusive_records_its_holder_and_is_freed(tmp_path):
         pass
 
 
+def test_a_new_run_into_a_directory_in_use_names_its_holder(tmp_path):
+    """A second ``bench run`` into a run directory another process is writing (no --resume) was
+    refused as "not empty" (the files the holder writes), where the README promises the holder
+    named; with --resume it was.  Now both name it."""
+    first = RunLock(tmp_path).acquire()
+    (tmp_path / "results.csv").write_text("x\n")
+    try:
+        for resume in (False, True):
+            with pytest.raises(LockHeld, match=rf"being written by pid {os.getpid()} on "):
+                claim_out(tmp_path, resume=resume)
+    finally:
+        first.release()
+    with pytest.raises(OutError, match="is not empty"):  # (no holder: what it holds is named)
+        claim_out(tmp_path)
+
+
 def test_a_holder_that_has_not_recorded_itself_yet_is_named_as_still_starting(tmp_path):
     """Between a holder's flock and its record the lock file is empty: a second process is refused
     all the same, told the holder is still starting (two runs started together meet this window

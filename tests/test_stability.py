@@ -98,6 +98,19 @@ def test_tolerance_scales_with_the_case_depth():
     assert S.depth_tolerance("float32", 1.0) > 1e3 * S.depth_tolerance("float64", 1.0)
 
 
+def test_tolerance_is_capped_at_a_quarter_of_the_scene():
+    """On sphere.far.1e6 in float32 the two terms allow 357 for a sphere of diameter 2: a CONVERGED
+    answer on its far side counted as survived (probe of 2026-11-30).  Capped at S/4."""
+    assert S.catalog_size("sphere.far.1e6") == pytest.approx(2.0)
+    far = dict(scale_of=S.catalog_scale, origin_of=S.catalog_origin_norm, size_of=S.catalog_size)
+    for dt in ("float32", "float64"):
+        wrong = S.judge_cell([row(case="sphere.far.1e6", err=2.0, dtype=dt)], dt, **far)
+        assert wrong["verdict"] == "failed" and wrong["tolerance"] == pytest.approx(min(0.5, wrong["tolerance"]))
+    assert S.judge_cell([row(case="sphere.far.1e6", err=0.1, dtype="float32")], "float32", **far)["verdict"] == "survived"
+    assert S.depth_tolerance("float32", 1e6, 1e6, 2.0) == 0.5
+    assert S.depth_tolerance("float64", 3.0, 3.0, 2.0) == S.depth_tolerance("float64", 3.0, 3.0)  # (far below the cap)
+
+
 def test_converged_nonfinite_fails():
     assert one([row(nonfinite=1)])["verdict"] == "failed"
     r = row(err=float("nan"))  # an old row: inf max error explained by no false hit or miss

@@ -319,6 +319,51 @@ def test_an_edited_user_field_is_another_scene_to_the_kept_references(tmp_path):
     assert out.stdout.strip() == hashes[0.5]
 
 
+def test_a_helper_in_another_module_and_a_bound_methods_instance_are_in_the_hash(tmp_path):
+    """A field that calls a helper of another module of the user's, or is a bound method whose
+    instance holds its parameter, hashes what those compute: an edit of the helper's file (radius
+    1.0 → 1.3) kept the case version, so the kept reference answers of the old field judged the new
+    one (64 false hits on a correct numpy hybrid_secant, probe of 2026-11-30) and ``--resume``
+    mixed rows of two surfaces under one version; ``Ball(0.3).phi`` and ``Ball(1.3).phi`` had one
+    version too."""
+    from reference import CallableField
+
+    field = textwrap.dedent('''
+        import {helper}
+
+        def ball(x, xp):
+            return xp.sqrt(xp.sum(x * x, axis=-1)) - {helper}.radius()
+    ''')
+    got = []
+    for i, r in enumerate((1.0, 1.3, 1.0)):
+        folder = tmp_path / f"h{i}"
+        folder.mkdir()
+        (folder / "user_radius.py").write_text(f"def radius():\n    return {r}\n")
+        sys.path.insert(0, str(folder))
+        try:
+            sys.modules.pop("user_radius", None)
+            user_field = _import_fresh(folder, "user_field", field.format(helper="user_radius"))
+            got.append(CallableField(user_field.ball, lipschitz=1.0, name="user_field.ball").content_hash())
+        finally:
+            sys.path.remove(str(folder))
+            sys.modules.pop("user_radius", None)
+    assert got[0] == got[2] != got[1]
+
+    balls = _import_fresh(tmp_path / "b", "user_balls", textwrap.dedent('''
+        class Ball:
+            def __init__(self, r):
+                self.r = r
+
+            def phi(self, x, xp):
+                return xp.sqrt(xp.sum(x * x, axis=-1)) - self.r
+    '''))
+    hashes = [CallableField(balls.Ball(r).phi, lipschitz=1.0, name="ball").content_hash() for r in (0.3, 1.3, 0.3)]
+    assert hashes[0] == hashes[2] != hashes[1]
+    # numpy's functions read through a module global are the library's, not hashed member by member
+    np_field = _import_fresh(tmp_path / "n", "user_np", "import numpy as np\n\ndef f(x, xp):\n    return np.sqrt(3.0) + x[..., 0]\n")
+    assert CallableField(np_field.f, lipschitz=1.0, name="f").content_hash()
+
+
 def test_an_edited_user_field_class_is_another_scene(tmp_path):
     """The same for a user's own ``Field`` subclass: its content hash holds its class's code (the
     file that defines it), which the package's source digests do not cover; the library's nodes

@@ -230,10 +230,21 @@ class Ledger:
             return list(self._claims.values())
         if isinstance(only, str):
             raise ValueError(f"only must be a list of claim ids, not the string {only!r}; e.g. only=[{only!r}]")
+        only = self.expand(only)
         unknown = [i for i in only if i not in self._claims]
         if unknown:
             raise ValueError(f"only: unknown claim id(s) {unknown}; known ids are {self.ids()}")
         return [self._claims[i] for i in dict.fromkeys(only)]  # each once, in the order given
+
+    def expand(self, only: list[str]) -> list[str]:
+        """``only`` with a lecture claim's number standing for its parts where it has parts and is
+        no id itself: "2" → 2a, 2b, 2c (the README's ``--only 2 7`` was refused once claim 2 was
+        split); other ids as given."""
+        out = []
+        for i in only:
+            parts = [k for k in self._claims if str(i).isdigit() and k[:-1] == str(i) and k[-1:].isalpha()]
+            out += parts if str(i) not in self._claims and parts else [i]
+        return out
 
     def __len__(self) -> int:
         return len(self._claims)

@@ -14,7 +14,7 @@ HELP = ("check the lecture's claims; writes claims.csv, plots and a report")
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="output directory (default: reports/claims-<run-id>/)")
     p.add_argument("--full", action="store_true", help="the full (slower) checks instead of the quick ones")
-    p.add_argument("--only", nargs="+", metavar="ID", help="claim ids to check (default: all), e.g. --only 2 7")
+    p.add_argument("--only", nargs="+", metavar="ID", help="claim ids to check (default: all), e.g. --only 2 7 (a number stands for all its parts: 2 is 2a, 2b, 2c)")
 
 
 def run(args) -> int:
@@ -27,11 +27,14 @@ def run(args) -> int:
 
     if args.only:
         from ..claims import claim_ids
+        from ..claims.ledger import LEDGER
 
         known = claim_ids()
+        args.only = LEDGER.expand(args.only)  # "2": its parts 2a, 2b, 2c
         unknown = [i for i in args.only if i not in known]
         if unknown:
-            return error(f"--only: unknown claim id(s) {', '.join(unknown)}; known ids are {', '.join(known)}")
+            return error(f"--only: unknown claim id(s) {', '.join(unknown)}; known ids are {', '.join(known)} "
+                         "(a claim's number stands for all its parts: 2 is 2a, 2b and 2c)")
     from ..run.rundir import RunLock, make_dir
 
     out = Path(args.out) if args.out else DEFAULT_REPORTS / ("claims-" + new_run_id())

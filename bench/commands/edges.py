@@ -52,11 +52,11 @@ def run(args) -> int:
         edges.check_arguments(meshes, offsets, families, args.rays)
     except ValueError as exc:
         return error(str(exc))
-    named = (split(args.backend) or []) + (split(args.engines) or [])
-    unknown = [b for b in named if b not in (edges.TRIMESH, edges.TRIMESH_EMBREE)
-               and getattr(registry.resolve(b), "unknown", False)]
-    if unknown:
-        return error(f"--backend: {', '.join(unknown)} name no backend; `python -m bench backends` lists them")
+    for option, given in (("--engines", split(args.engines) or []), ("--backend", split(args.backend) or [])):
+        unknown = [b for b in given if b not in (edges.TRIMESH, edges.TRIMESH_EMBREE)
+                   and getattr(registry.resolve(b), "unknown", False)]
+        if unknown:  # (named by the option that gave them)
+            return error(f"{option}: {', '.join(unknown)} name no backend; `python -m bench backends` lists them")
     ids = list(dict.fromkeys((split(args.engines) or list(edges.DEFAULT_ENGINES)) + (split(args.backend) or [])))
     lock = None
     if args.out:

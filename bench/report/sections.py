@@ -31,8 +31,9 @@ from .tables import (CLAIM_COLUMNS, claims_in_reading_order, compile_table, conf
                      spread_section, summary_table, support_matrix)
 
 STABILITY_RULE = (
-    "✓ survived: no false hit, no hitting ray reported MISS, every CONVERGED depth within √ε(dtype)·max(1, T) "
-    "(T the case's largest depth); ⚑ flagged: no wrong answer, but some rays declined with a failure status "
+    "✓ survived: no false hit, no hitting ray reported MISS, every CONVERGED depth within "
+    "min(√ε(dtype)·max(1, T) + 100ε(dtype)·R, S/4) (T the case's largest depth, R its hitting rays' largest origin "
+    "norm, S its scene's diameter); ⚑ flagged: no wrong answer, but some rays declined with a failure status "
     "(MAX_ITER, NON_FINITE, LIPSCHITZ_VIOLATED, UNCERTIFIED…) — counts as survived; ✗ failed: a silent wrong "
     "answer or a failed configuration; — not run; ? not judged: the reference flags every ray of the cell's cases "
     "(e.g. exact tangents float64 cannot call a touch or a miss; rays it flags elsewhere are left out). Cells: "

@@ -63,7 +63,8 @@ def check_dtypes(dtypes: list[str] | None) -> None:
     """A ValueError naming the first of ``--dtype``'s that is no dtype a backend may run."""
     for dt in dtypes or ():
         if dt not in ("float64", "float32", "float16", "bfloat16"):
-            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32")
+            raise ValueError(f"--dtype: unknown dtype {dt!r}; use float64 and/or float32 (float16 and bfloat16 run on "
+                             "a plug-in backend that lists them in its capabilities.dtypes; the built-in ones skip them)")
 
 
 #: user cases whose reference answers could not be computed within the limit, in this process:

@@ -186,6 +186,12 @@ def claim_out(out: Path, *, resume: bool = False) -> RunLock:
                        "start a new run")
     created = _missing_dirs(out)
     out = make_dir(out)
+    if not resume and (out / LOCK_FILE).exists():
+        # a run directory in use: its holder named (LockHeld), not "not empty" (the files it is writing)
+        try:
+            RunLock(out).acquire().release()
+        except OSError:
+            pass  # (a lock file that cannot be opened: the refusals below say what is there)
     if not resume:
         require_empty(out)  # before the lock file is made: a foreign directory is left untouched
     try:

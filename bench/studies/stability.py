@@ -9,7 +9,7 @@ status histogram, and one verdict:
 
 * **survived** (✓) — no wrong answer and no flagged ray: no false hit, no hitting ray reported
   MISS, no CONVERGED ray with a non-finite t, and every CONVERGED ray within the depth tolerance
-  ``tol = √ε(dtype) · max(1, T) + 100 ε(dtype) · R`` (T the largest exact depth of the case: the
+  ``tol = min(√ε(dtype) · max(1, T) + 100 ε(dtype) · R, S/4)`` (T the largest exact depth of the case: the
   error scales with the depth's magnitude; R the largest norm of a hitting ray's origin).  √ε is
   the accuracy a certified answer reaches at a double root (the tangent family): |φ| at rounding
   level ε moves a double root by O(√ε).  float64: 1.5e-8 · T, float32: 3.5e-4 · T.  The second
@@ -18,7 +18,9 @@ status histogram, and one verdict:
   + r) (docs/methods.md, "Precision").  In the catalog it is negligible (R ≈ T), but a scene far
   from the origin of its frame, seen from close by, has small depths and large coordinates: a
   unit sphere at (1e4, 0, 0) seen from 3 units has T ≈ 2.7 while float32 places its points only
-  to 1e-3 (R = 1e4: 0.12 allowed).
+  to 1e-3 (R = 1e4: 0.12 allowed).  The tolerance is capped at a quarter of the scene's size S
+  (the diameter of its bounding ball): far from the origin in float32 the two terms grow past the
+  scene itself (357 for the unit sphere 1e6 away), and an answer on its far side would count.
 * **flagged** (⚑) — no wrong answer, but some rays carry a failure status (anything other than
   CONVERGED and MISS: MAX_ITER, NON_FINITE, BAD_INPUT, ILL_CONDITIONED, LIPSCHITZ_VIOLATED,
   UNCERTIFIED).  A flagged ray says "I could not answer", which is not a silent wrong answer: a
@@ -109,11 +111,32 @@ def catalog_origin_norm(case_id: str) -> float:
 ORIGIN_ROUNDINGS = 100.0
 
 
-def depth_tolerance(dtype: str, scale: float, origin_norm: float = 0.0) -> float:
-    """``√ε(dtype) · max(1, scale) + 100 ε(dtype) · origin_norm``: the largest depth error of a
-    CONVERGED ray that still counts as right (module docstring)."""
+@functools.cache
+def catalog_size(case_id: str) -> float:
+    """S: the diameter of a catalog case's scene's bounding ball (inf for an unknown id or a scene
+    without one)."""
+    from reference.cases import get_case
+
+    try:
+        _, r = get_case(case_id).scene.bounding_sphere()
+        return 2.0 * float(r) if math.isfinite(float(r)) and float(r) > 0 else math.inf
+    except Exception:  # noqa: BLE001 - no ball: no cap
+        return math.inf
+
+
+#: the largest depth error counted right, as a share of the scene's size (:func:`depth_tolerance`)
+SIZE_SHARE = 0.25
+
+
+def depth_tolerance(dtype: str, scale: float, origin_norm: float = 0.0, size: float = math.inf) -> float:
+    """``min(√ε(dtype) · max(1, scale) + 100 ε(dtype) · origin_norm, size / 4)``: the largest depth
+    error of a CONVERGED ray that still counts as right (module docstring).  The cap: on
+    ``sphere.far.1e6`` in float32 the two terms allow 357 for a sphere of diameter 2, so an answer
+    on its far side counted as right (probe of 2026-11-30); an error of a quarter of the scene is
+    wrong whatever the dtype resolves there."""
     eps = float(np.finfo(np.dtype(dtype)).eps)
-    return math.sqrt(eps) * max(1.0, abs(float(scale))) + ORIGIN_ROUNDINGS * eps * abs(float(origin_norm))
+    tol = math.sqrt(eps) * max(1.0, abs(float(scale))) + ORIGIN_ROUNDINGS * eps * abs(float(origin_norm))
+    return min(tol, SIZE_SHARE * float(size))
 
 
 def _num(v, default=0.0) -> float:
@@ -136,7 +159,7 @@ def status_histogram(v) -> dict[str, int]:
         return {}
 
 
-def judge_cell(rows, dtype: str, scale_of=catalog_scale, origin_of=catalog_origin_norm) -> dict:
+def judge_cell(rows, dtype: str, scale_of=catalog_scale, origin_of=catalog_origin_norm, size_of=catalog_size) -> dict:
     """The verdict and numbers of one cell from its result rows (any number of cases): a frame,
     or its rows as dicts (``DataFrame.to_dict("records")``, which :func:`stability_cells` makes
     once for all cells: per cell it costs more than the judging)."""
@@ -164,7 +187,8 @@ def judge_cell(rows, dtype: str, scale_of=catalog_scale, origin_of=catalog_origi
             out["reasons"].append(f"{r['case_id']}: not judged: the reference flags all {n_nj} rays")
             continue
         judged_rows += 1
-        tol = depth_tolerance(dtype, scale_of(str(r["case_id"])), origin_of(str(r["case_id"])))
+        cid = str(r["case_id"])
+        tol = depth_tolerance(dtype, scale_of(cid), origin_of(cid), size_of(cid))
         out["tolerance"] = tol if math.isnan(out["tolerance"]) else max(out["tolerance"], tol)
         st = status_histogram(r.get("status_counts"))
         for k, n in st.items():

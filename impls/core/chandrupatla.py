@@ -24,7 +24,10 @@ Contract (φ along the ray t ↦ φ(o + t d), bracket [a, b] with φ(a)φ(b) < 0
   Behind a certifying march (``hybrid_chandrupatla``) that closed bracket is the refiner's, of
   φ's signs as computed: the answer then stands once the certified bracket taken from scipy's
   returned ends is within the closing width, else it is verified first, as ``hybrid_secant``'s
-  (:meth:`impls.core.rootfind.MarchRefine._verify`).
+  (:meth:`impls.core.rootfind.MarchRefine._verify`).  So behind ``march_chandrupatla`` where φ's
+  rounding is modelled (:attr:`impls.core.rootfind.MarchRefine.verifies`): its rows in
+  verification take the marchers' verification step in the refinement stage (a sample each), and a
+  row whose sample shows the crossing beyond scipy's bracket is refined by scipy again.
 * Otherwise: NON_FINITE (t NaN) where scipy reports a non-finite value (status −3) or returns a
   non-finite x; MAX_ITER (t scipy's last x, or the bracket's midpoint where that is NaN) where
   the budget ran out (scipy −2, or more iterations than the ray's ``max_steps`` left: scipy's
@@ -111,8 +114,17 @@ class MarchChandrupatla(MarchRefine):
         if xp is not np:
             raise TypeError("march_chandrupatla refines with scipy.optimize.elementwise.find_root on numpy arrays; "
                             f"the array namespace here is {getattr(xp, '__name__', xp)!r} (numpy backend only)")
+        if self.verifies and not self.rule.certifies and np.any(s["vm"]):
+            return self._refine_and_verify(s, o, d, ev)
         budget = self.max_steps - s["iterations"]
-        t, status, nit, evals, (xl, xr, fl, fr) = refine(s["a"], s["b"], s["fa"], s["f"], o, d, ev, xtol=self.xtol,
+        fb = s["f"]
+        if self.verifies and not self.rule.certifies:
+            # φ at b: the march's last sample, or, for a row whose verification resumed refinement
+            # beyond its answer ([c, b], MarchRefine._verify), φ(c) is the start side's and φ(b) was
+            # not kept: a value of b's side, which scipy takes only for its first interpolation (its
+            # bracket moves by the signs it evaluates); no evaluation is counted for it
+            fb = np.where((fb > 0) == (s["fa"] > 0), -s["fa"], fb)
+        t, status, nit, evals, (xl, xr, fl, fr) = refine(s["a"], s["b"], s["fa"], fb, o, d, ev, xtol=self.xtol,
                                                          budget=budget)
         new = dict(t=t, status=status, iterations=s["iterations"] + nit, evals=s["evals"] + evals)
         if self.rule.certifies:
@@ -142,9 +154,49 @@ class MarchChandrupatla(MarchRefine):
             on = later | verify
             new.update(status=np.where(on, IN, status), cm=later, vm=verify, zl=t, zr=t,
                        phase=np.where(on, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
+        elif self.verifies:
+            # a constant-step march where φ's rounding is modelled (MarchRefine.verifies): scipy's
+            # root is an answer once the certified bracket from its returned ends is within the
+            # closing width, else it is verified first (the rows in verification mode sample in this
+            # stage: _refine_and_verify); either way a root the march's frontier leaves more than a
+            # step behind is UNCERTIFIED (ConstantStep.late)
+            with np.errstate(invalid="ignore"):
+                lft = self._bracket_sample(np, s, xl, fl, (fl > 0) == (s["fa"] > 0))
+                got = self._bracket_sample(np, dict(s, **lft), xr, fr, (fr > 0) == (s["fa"] > 0))
+            fin = np.isfinite(xl) & np.isfinite(xr) & np.isfinite(fl) & np.isfinite(fr) & (xl <= xr)
+            new.update(A=np.where(fin, got["A"], s["A"]), B=np.where(fin, got["B"], s["B"]))
+            closed = status == CONV
+            ok = closed & (new["B"] - new["A"] <= self.closing_width(np, t, s["mag"]))
+            new.update(a=s["a"], b=s["b"])
+            self._settle(np, new, ok)
+            t = new["t"]
+            verify = closed & ~ok
+            status = np.where(ok & self.rule.late(np, s["g"], new["a"]), UNC, np.where(verify, IN, status))
+            new.update(status=status, vm=verify, zl=t, zr=t)
         else:
             # the march's frontier (ConstantStep.late): a root it leaves more than a step behind is
             # not certified the first crossing (scipy's bracket is not returned: its root bounds it)
             new.update(status=np.where((status == CONV) & self.rule.late(np, s["g"], t), UNC, status))
         return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}
+
+    def _refine_and_verify(self, s, o, d, ev):
+        """:meth:`step_refine` on a batch holding rows in verification mode: those take
+        :meth:`impls.core.rootfind.MarchRefine._refine_verified`'s step (one sample each; a row
+        whose sample shows the crossing beyond its bracket leaves verification and is refined by
+        scipy again at its next step), the others scipy's refinement; each part on its own rows,
+        so that no row evaluates φ for the other's step."""
+        vm = s["vm"]
+        parts = []
+        for rows, step in ((np.flatnonzero(vm), lambda *a: MarchRefine._refine_verified(self, np, *a)),
+                           (np.flatnonzero(~vm), lambda *a: self.step_refine(np, *a))):
+            if rows.size:
+                sub = {k: v[rows] for k, v in s.items()}
+                parts.append((rows, step(sub, o[rows], d[rows], ev)))
+        # (what both steps write: the stage's state and the status; the refiner's p, fp are neither's)
+        keys = set.intersection(*(set(got) for _, got in parts))
+        out = {k: np.empty(vm.shape[:1] + parts[0][1][k].shape[1:], parts[0][1][k].dtype) for k in keys}
+        for rows, got in parts:
+            for k in keys:
+                out[k][rows] = got[k]
+        return out
 

@@ -228,6 +228,13 @@ def _eps(a) -> float:
     return _finfo(a)[0]
 
 
+#: the gain on :func:`resolution` of a field that is not a distance bound: 6ε(|t| + mag), more than the
+#: rounding of the point o + t·d from the float64 ray, ε(2|o|₁ + 5.2|t|) (the ray cast to the dtype,
+#: then t·d and the sum rounded), which moves any φ by at most L times it
+#: (:attr:`_Search.rg`)
+POINT_GAIN = 0.75
+
+
 def resolution(xp, t, mag, gain: float = 1.0):
     """φ's rounding at depth ``t``, in depth units: 8·``gain``·ε·(|t| + ``mag``) (``mag`` =
     :func:`_magnitude`).  The point o + t·d is rounded by up to 2ε(|o|₁ + |t|), which moves a
@@ -292,10 +299,14 @@ class _Search:
     def rg(self) -> float:
         """The gain on :func:`resolution` for this search's field: its rounding ``gain`` where φ is
         a distance bound (``resolve``: near the surface |∇φ| ≈ L, so the point's rounding moves φ
-        by up to L times it), else 0: for a field flat at its roots (|x|³, an MLP whose bound L
-        far exceeds its slope) |φ|/L says nothing of the distance, and only φ = 0 exactly is
-        unresolved."""
-        return self.gain if self.resolve else 0.0
+        by up to L times it, and φ's own operations add a few ε of the scene's extent), else
+        :data:`POINT_GAIN`: for any field with a Lipschitz bound the rounding of the point
+        o + t·d itself (:data:`POINT_GAIN`) moves φ by at most L times it, whatever φ is (φ's own
+        arithmetic is not modelled there).  That was 0 (only φ = 0 exactly unresolved): a float32
+        scene 1.5e3 from the origin with one node that is not a distance bound (an
+        ``AlgebraicSphere`` beside a 1e-6 plate) had 2,455 of 2,601 hits certified MISS and 15
+        misses CONVERGED (probe of 2026-11-30)."""
+        return self.gain if self.resolve else POINT_GAIN
 
     def start(self, xp, o, d):
         """``(t, hi, status)`` of every ray before any evaluation (:func:`_start`)."""
@@ -1026,6 +1037,15 @@ class MarchRefine(_Search):
     def deriv(self) -> bool:
         return self.refiner.deriv
 
+    @property
+    def verifies(self) -> bool:
+        """Whether a closed bracket's answer is checked against the *certified* bracket [A, B]
+        (:meth:`_bracket_sample`, :meth:`_verify`): always for a certifying rule; for a constant
+        step where φ's rounding is modelled (a bound L to put it in depth units, a distance bound's
+        gain ``rg`` > 0), since there the refiner's signs may be rounding's.  Without a model
+        only φ = 0 is unresolved, and a bracket of computed signs is the certificate."""
+        return self.rule.certifies or (self.rule.check_inv_lip is not None and self.rg > 0.0)
+
     def reads(self, stage: str) -> frozenset[str]:
         """The state entries the step of ``stage`` reads, all that a compacting driver carries
         for it (:mod:`impls.core.driver`): the iterate, its counters and, for marching, the ray's
@@ -1034,7 +1054,9 @@ class MarchRefine(_Search):
         keys = frozenset({"t", "f", "iterations", "evals", "mag"}) | self.refiner.holds(
             "step_refine" if stage == "step_certify" else stage)
         if stage in ("step_refine", "step_certify"):
-            return keys | {"a", "b", "fa"} | (CERTIFY_STATE if self.rule.certifies else self.rule.holds(stage))
+            if self.rule.certifies:
+                return keys | {"a", "b", "fa"} | CERTIFY_STATE
+            return keys | {"a", "b", "fa"} | self.rule.holds(stage) | (VERIFY_STATE if self.verifies else frozenset())
         return keys | {"hi"} | self.rule.holds(stage)
 
     def init(self, xp, o, d, ev, start=None):
@@ -1056,6 +1078,9 @@ class MarchRefine(_Search):
             # the certification of a bracket's crossing as the first (step_refine): set on a crossing
             s.update(u=t, cp=t, fcp=f, kap=xp.ones_like(t), cm=xp.zeros_like(f, dtype=xp.bool))
             # the certified bracket [A, B] and its verification (_verify): set on a crossing
+            s.update(A=t, B=t, vm=xp.zeros_like(f, dtype=xp.bool), zl=t, zr=t)
+        elif self.verifies:
+            # the certified bracket [A, B] of a constant-step march's crossing and its verification
             s.update(A=t, B=t, vm=xp.zeros_like(f, dtype=xp.bool), zl=t, zr=t)
         # a certifying rule starts only from a resolved point (a start on the surface to rounding
         # is UNCERTIFIED); a constant-step march from φ = 0 exactly shows no side either: the first
@@ -1150,6 +1175,10 @@ class MarchRefine(_Search):
                 if rule.cover:
                     loose = ~cross & ~rule.covered(xp, rc0, rc1, t_n - t)
                     g = xp.where(loose & (g == math.inf), t + rc0, g)
+                if self.verifies:
+                    # a crossing's ends are resolved (else it is UNCERTIFIED): the crossing of φ itself
+                    # lies between them, and under a bound the library proves, between their spheres
+                    new.update(self._march_bracket(xp, t, rc0, t_n, rc1))
             status, unc_miss, back = self._march_verdict(xp, g, cross, conv, miss, nonf, lipv, iters, un0, un1, t)
             t_n = xp.where(unc_miss, math.inf, xp.where(back, t, t_n))
             new["g"] = g
@@ -1291,12 +1320,16 @@ class MarchRefine(_Search):
                 fl = xp.argmax(xp.astype(loose, xp.int8), axis=1)[:, None]
                 g_l = xp.take_along_axis(Tp, fl, axis=1)[:, 0] + xp.take_along_axis(Rp, fl, axis=1)[:, 0]
                 g = xp.where(xp.any(loose, axis=1) & (g == math.inf), g_l, g)
-                un0, un1 = at(Rp) == 0, at(R) == 0  # (as in step_march, on the event pair's ends)
+                rc0, rc1 = at(Rp), at(R)
+                un0, un1 = rc0 == 0, rc1 == 0  # (as in step_march, on the event pair's ends)
             elif inv is None:
                 un0, un1 = Fpe == 0, Fe == 0
             else:
-                un0 = certified_radius(xp, Fpe, Tpe, inv, mag, self.rg) == 0
-                un1 = certified_radius(xp, Fe, Te, inv, mag, self.rg) == 0
+                rc0 = certified_radius(xp, Fpe, Tpe, inv, mag, self.rg)
+                rc1 = certified_radius(xp, Fe, Te, inv, mag, self.rg)
+                un0, un1 = rc0 == 0, rc1 == 0
+            if self.verifies:
+                new.update(self._march_bracket(xp, Tpe, rc0, Te, rc1))
             status, unc_miss, back = self._march_verdict(xp, g, cross_e, conv, miss, nonf, lipv, iters, un0, un1, Tpe)
             t_new = xp.where(unc_miss, math.inf, xp.where(onto & ~back, Te, Tpe))
             new["g"] = g
@@ -1343,7 +1376,7 @@ class MarchRefine(_Search):
         t_out = self.refiner.report(xp, c, f_c, t, f, na, nb, closed)
         new = dict(t=t_out, f=f_c, p=t, fp=f, a=na, b=nb, iterations=s["iterations"] + 1, evals=s["evals"] + cost)
         new.update(self.refiner.after(xp, s, i2, a, b, df_c))
-        if self.rule.certifies:
+        if self.verifies:
             new.update(self._bracket_sample(xp, s, c, f_c, same_a))
         return new, c, f_c, same_a, closed
 
@@ -1355,12 +1388,22 @@ class MarchRefine(_Search):
         [A, B] only from signs that are proved, so a crossing of φ itself lies in it.  (Where φ's
         rounding is not modelled, ``rg`` = 0, only φ = 0 is unresolved, and inside a bracket of
         resolved signs it is taken as the root, [c, c], as sphere tracing takes it.)"""
-        r_c, unres = radius_and_unresolved(xp, f_c, c, self.rule.inv_lip, s["mag"], self.rg)
+        rule = self.rule
+        r_c, unres = radius_and_unresolved(xp, f_c, c, rule.inv_lip if rule.certifies else rule.check_inv_lip,
+                                           s["mag"], self.rg)
         A = xp.where(~unres & same_a, xp.maximum(s["A"], c + r_c), s["A"])
         B = xp.where(~unres & ~same_a, xp.minimum(s["B"], c - r_c), s["B"])
         if self.rg == 0.0:
             A, B = xp.where(f_c == 0, c, A), xp.where(f_c == 0, c, B)
         return dict(A=A, B=B)
+
+    def _march_bracket(self, xp, t0, rc0, t1, rc1) -> dict:
+        """A constant-step march's certified bracket of the crossing step [t0, t1], its ends moved
+        by their certified radii ``rc0``, ``rc1`` (under the bound the steps check, as the hybrid's
+        are: a bound found false voids the call's certificates, :func:`void_if_refuted`), and its
+        verification state reset."""
+        A = t0 + rc0
+        return dict(A=A, B=t1 - rc1, vm=xp.zeros_like(rc0, dtype=xp.bool), zl=A, zr=A)
 
     def closing_width(self, xp, t, mag):
         """The widest certified bracket [A, B] a CONVERGED depth t may stand in, in depth units:
@@ -1388,7 +1431,12 @@ class MarchRefine(_Search):
         is CONVERGED when the march's frontier ``u`` reaches its start to within ``min_step``
         (:meth:`_certify`); otherwise the ray goes on to the certification stage with its answer.
         For a constant step a closed bracket the march's frontier leaves more than a step behind
-        is UNCERTIFIED, with its depth (:meth:`ConstantStep.late`)."""
+        is UNCERTIFIED, with its depth (:meth:`ConstantStep.late`); where it verifies its answers
+        (:attr:`verifies`) a closed bracket whose certified bracket is wider than the closing width
+        is verified in this stage (a row in verification mode evaluates :meth:`_verify_sample`
+        instead of the refiner's iterate, :meth:`_verify`)."""
+        if self.verifies and not self.rule.certifies:
+            return self._refine_verified(xp, s, o, d, ev)
         new, c, f_c, same_a, closed = self._refine_step(xp, s, o, d, ev)
         conv = closed
         unc = None
@@ -1412,6 +1460,28 @@ class MarchRefine(_Search):
             # behind is not certified the first crossing
             # (φ(c) = 0 exactly closes the bracket at [c, c]: its start is then c itself)
             unc = closed & self.rule.late(xp, s["g"], new["a"])
+        new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
+        return _typed(xp, dict(s, **new), s)
+
+    def _refine_verified(self, xp, s, o, d, ev):
+        """:meth:`step_refine` of a constant-step march that verifies its answers (:attr:`verifies`):
+        a closed bracket is CONVERGED once its certified bracket [A, B] is within the closing width
+        (the depth moved into it), else verified (:meth:`_verify`); either way UNCERTIFIED, with
+        its depth, where the march's frontier is more than a step behind its start."""
+        mag, vm = s["mag"], s["vm"]
+        width = self.closing_width(xp, s["t"], mag)
+        probe, left = self._verify_sample(xp, s, width)
+        new, c, f_c, same_a, closed = self._refine_step(xp, s, o, d, ev, c=lambda prop: xp.where(vm, probe, prop))
+        ok = closed & ~vm & (new["B"] - new["A"] <= self.closing_width(xp, new["t"], mag))
+        self._settle(xp, new, ok)
+        verify = closed & ~vm & ~ok
+        new.update(vm=vm, zl=s["zl"], zr=s["zr"])  # (_verify updates the rows in verification mode)
+        conv_v, unc_v = self._verify(xp, s, new, c, f_c, same_a, left, width, mag)
+        conv = xp.where(vm, conv_v, ok)
+        # (φ(c) = 0 exactly closes the bracket at [c, c]: its start is then c itself)
+        unc = xp.where(vm, unc_v, ok & self.rule.late(xp, s["g"], new["a"]))
+        new["vm"] = xp.where(vm, new["vm"], verify)
+        new["zl"], new["zr"] = xp.where(verify, new["t"], new["zl"]), xp.where(verify, new["t"], new["zr"])
         new["status"] = _verdict(xp, ~xp.isfinite(f_c), conv, new["iterations"] >= self.max_steps, unc=unc)
         return _typed(xp, dict(s, **new), s)
 
@@ -1499,7 +1569,7 @@ class MarchRefine(_Search):
         rule = self.rule
         vm, t = s["vm"], s["t"]
         A, B = new["A"], new["B"]
-        unres = unresolved(xp, f_c, c, rule.inv_lip, mag, self.rg)
+        unres = unresolved(xp, f_c, c, rule.inv_lip if rule.certifies else rule.check_inv_lip, mag, self.rg)
         ours = ~unres & (same_a == left)
         theirs = ~unres & (same_a != left)
         zl = xp.where(unres & left, xp.minimum(s["zl"], c), s["zl"])
@@ -1510,10 +1580,14 @@ class MarchRefine(_Search):
         mid = 0.5 * (lo + hi)
         give_up = vm & ~done & ~theirs & ((zr - zl >= width) | (mid <= lo) | (mid >= hi))
         t_c = xp.minimum(xp.maximum(t, A), B)
-        later = done & (s["u"] + rule.min_step < xp.minimum(A, t_c))
-        # (a frontier stopped behind the last certified sample: UNCERTIFIED, as in step_refine)
-        give_up = give_up | (later & (s["u"] < s["cp"]))
-        later = later & ~give_up
+        if rule.certifies:
+            later = done & (s["u"] + rule.min_step < xp.minimum(A, t_c))
+            # (a frontier stopped behind the last certified sample: UNCERTIFIED, as in step_refine)
+            give_up = give_up | (later & (s["u"] < s["cp"]))
+            later = later & ~give_up
+        else:  # a constant step's frontier more than a step behind the answer: UNCERTIFIED
+            give_up = give_up | (done & rule.late(xp, s["g"], xp.minimum(A, t_c)))
+            later = xp.zeros_like(done)
         # the rows that go on sampling, or stop: their answer and bracket stay
         stay = vm & ~theirs
         for k in ("t", "f", "p", "fp", "a", "b", "wq", "df"):
@@ -1532,7 +1606,8 @@ class MarchRefine(_Search):
         for k, v in self.refiner.on_bracket(xp, new["b"] - new["a"]).items():
             new[k] = xp.where(resume, v, new[k])
         new["vm"] = xp.where(vm, ~done & ~give_up & ~theirs, new["vm"])
-        new["cm"] = xp.where(vm, later, new["cm"])
+        if rule.certifies:
+            new["cm"] = xp.where(vm, later, new["cm"])
         new["zl"], new["zr"] = xp.where(vm, zl, new["zl"]), xp.where(vm, zr, new["zr"])
         return done & ~later & ~give_up, give_up
 
@@ -1615,6 +1690,8 @@ def _verify_stretch(xp, A, B, zl, zr):
 #: (:meth:`MarchRefine._bracket_sample`), the verification mode ``vm`` and the stretch found
 #: unresolved ``zl``, ``zr`` (:meth:`MarchRefine._verify`)
 CERTIFY_STATE = frozenset({"u", "cp", "fcp", "kap", "cm", "A", "B", "vm", "zl", "zr"})
+#: what a constant-step march's refinement carries where it verifies its answers (:attr:`MarchRefine.verifies`)
+VERIFY_STATE = frozenset({"A", "B", "vm", "zl", "zr"})
 
 #: certification gives up (UNCERTIFIED) when a sample's sphere is under 1/this of the stretch left
 #: to cover: at slope σ each sample covers about a factor (1 + σ)/(1 − σ), so this stops the rays

@@ -51,6 +51,7 @@ import numpy as np
 from ..base import HostArrayBackend
 from ..core.driver import _whole_at_least
 from ..core.table import METHOD_TABLE
+from ..engine import from_the_start
 from ..protocol import Capabilities, Declined, Status
 from . import scenes
 
@@ -147,6 +148,8 @@ class MitsubaBackend(HostArrayBackend):
                 raise Declined(reason)
             if dtype != "float32":
                 raise ValueError(f"raycast: dtype={dtype!r}; Mitsuba computes in float32: use dtype='float32'")
+            # the rays' start o + t_min·d in float64, before they are rounded to float32
+            return from_the_start(super().prepare, method, scene, origins, directions, dtype=dtype, **kw)
         return super().prepare(method, scene, origins, directions, dtype=dtype, **kw)
 
     def compile(self, fn, o, d, th):

@@ -324,6 +324,13 @@ def _make_kernels(phi, bounds, parallel=True):
         return _max(abs(f) * inv_lip - rcoef * (abs(t) + mag), 0.0)
 
     @jit
+    def cwidth(t, mag, rcoef, xtol):
+        """impls.core.rootfind.MarchRefine.closing_width: max(4·rounding, 2ε|t|, xtol) + 4ε|t| (float64)."""
+        at = abs(t)
+        return _max(_max(4.0 * (rcoef * (at + mag)), (2.0 * 2.220446049250313e-16) * at), xtol) + (
+            4.0 * 2.220446049250313e-16) * at
+
+    @jit
     def covered(f0, t0, f1, t1, h, inv_lip, mag, rcoef):
         """impls.core.rootfind.ConstantStep.covered of the certified radii at a step's two ends."""
         return (rcert(f0, t0, inv_lip, mag, rcoef) + rcert(f1, t1, inv_lip, mag, rcoef) >= h) or not math.isfinite(h)
@@ -384,7 +391,7 @@ def _make_kernels(phi, bounds, parallel=True):
     from . import template
 
     # the generated kernels' globals: what the cached module (kernels_source) defines at its top level
-    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "covered": covered, "rcert": rcert, "verdict": verdict, "final_t": final_t,
+    ns = {"start": start, "ev": ev, "ev_d": ev_d, "lipv": lipv, "covered": covered, "rcert": rcert, "cwidth": cwidth, "verdict": verdict, "final_t": final_t,
           "_max": _max, "_min": _min, "math": math, "np": np, "njit": njit, "prange": prange, "inf": inf, "IN": IN,
           "NONF": NONF, "CONV": CONV, "UNC": UNC, "CHUNK": template.CHUNK,
           **{k: v for k, v in globals().items() if k[:2] in ("F_", "I_")}}

@@ -3,7 +3,9 @@
 The algorithm is :class:`impls.core.rootfind.MarchRefine` with a ``ConstantStep`` rule: ``init``
 (φ at the start), ``step_march`` (one step Δ, clamped to the ray's bound ``hi``), ``step_ladder``
 (``ladder`` steps evaluated together, judged pair by pair) and ``step_refine`` (the refiner's
-proposal c in the bracket [a, b], φ(c), the bracket update and the reported depth), with the
+proposal c in the bracket [a, b], φ(c), the bracket update and the reported depth; where φ's
+rounding is modelled, ``vfy``, the certified bracket [A, B] and the verification of a closed
+bracket, ``VERIFY``, whose rows evaluate the verification's sample instead), with the
 refiners ``Bisect`` (c = (a + b)/2), ``Secant`` (c = t − φ(t)(t − p)/(φ(t) − φ(p))) and ``Newton``
 (c = t − φ(t)/φ'(t)), the last two safeguarded as ``_OneSided.propose`` (a step shorter than
 max(xtol/2, two float spacings of t) lengthened, after Brent, *Algorithms for Minimization without Derivatives*, 1973, ch. 4;
@@ -52,6 +54,7 @@ max_steps, use_bounds = ic[I_MAXSTEPS], ic[I_BOUNDS] != 0
 step, check = fc[F_STEP], fc[F_CHECK]
 ladder, ladder_after = ic[I_LADDER], ic[I_LADDER_AFTER]
 cover, rcoef = ic[I_COVER] != 0, fc[F_RES]
+vfy = has_check and rcoef > 0.0
 hh = 0.5 * xtol
 sp2 = 2.0 * 2.220446049250313e-16  # two float64 spacings per unit of |t| (the kernels run float64)
 """
@@ -63,6 +66,8 @@ t_K = f_K = df_K = tp_K = fp_K = a_K = fa_K = b_K = hi_K = wq_K = mag_K = 0.0
 te_K = fe_K = dfe_K = mid_K = 0.0
 i2_K = False
 g_K = 0.0
+A_K = B_K = zl_K = zr_K = wd_K = 0.0
+vm_K = lft_K = False
 """
 
 #: impls.core.rootfind._start: the ray's range (t, hi) and status before any evaluation; φ at t
@@ -80,6 +85,21 @@ if ph_K == -1:
     te_K = t_K
 elif ph_K == 0:
     te_K = _min(t_K + step, hi_K)
+elif vm_K:
+    wd_K = cwidth(t_K, mag_K, rcoef, xtol)
+    lft_K = zl_K - A_K >= B_K - zr_K
+    lo_K = A_K if lft_K else zr_K
+    hi2_K = zl_K if lft_K else B_K
+    mid_K = 0.5 * (lo_K + hi2_K)
+    i2_K = it_K % 3 == 0
+    if lft_K:
+        te_K = zl_K - 0.5 * wd_K
+        if not (te_K > mid_K):
+            te_K = mid_K
+    else:
+        te_K = zr_K + 0.5 * wd_K
+        if not (te_K < mid_K):
+            te_K = mid_K
 else:
     mid_K = 0.5 * (a_K + b_K)
     i2_K = it_K % 3 == 0
@@ -130,6 +150,9 @@ elif ph_K == 0:
         un0_K, un1_K = f_K == 0, zero_K
     un_K = cross_K and (un0_K or un1_K)
     lt_K = conv_K and (g_K + step < t_K)
+    if vfy and cross_K:
+        A_K, B_K = t_K + rcert(f_K, t_K, check, mag_K, rcoef), te_K - rcert(fe_K, te_K, check, mag_K, rcoef)
+        zl_K, zr_K, vm_K = A_K, A_K, False
     it_K += 1
     st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K or un_K)
     ph_K = 2 if cross_K else (1 if (use_ladder and it_K >= ladder_after) else 0)
@@ -143,25 +166,91 @@ elif ph_K == 0:
         t_K = tp_K
 else:
     same_K = (fe_K > 0) == (fa_K > 0)
-    na_K = te_K if same_K else a_K
-    nb_K = b_K if same_K else te_K
+    ex_K = fe_K == 0
+    na_K = te_K if (same_K or ex_K) else a_K
+    nb_K = b_K if (same_K and not ex_K) else te_K
     nmid_K = 0.5 * (na_K + nb_K)
-    conv_K = (fe_K == 0) or (nb_K - na_K <= xtol) or (nmid_K <= na_K) or (nmid_K >= nb_K)
+    conv_K = ex_K or (nb_K - na_K <= xtol) or (nmid_K <= na_K) or (nmid_K >= nb_K)
     if refiner == 0:
         to_K = te_K
     else:
         z_K = te_K - fe_K * (te_K - t_K) / (fe_K - f_K)
         z_K = _min(_max(z_K, na_K), nb_K)
         to_K = z_K if (conv_K and (fe_K != 0) and (z_K == z_K)) else te_K
-    lt_K = conv_K and (g_K + step < (te_K if fe_K == 0 else na_K))
     it_K += 1
-    st_K = verdict(not math.isfinite(fe_K), conv_K, it_K >= max_steps, False, False, lt_K)
+    nonf_K = not math.isfinite(fe_K)
+    if not vfy:
+        lt_K = conv_K and (g_K + step < na_K)
+        st_K = verdict(nonf_K, conv_K, it_K >= max_steps, False, False, lt_K)
+        if refiner != 0 and i2_K:
+            wq_K = b_K - a_K
+        tp_K, fp_K = t_K, f_K
+        a_K, b_K = na_K, nb_K
+        t_K, f_K, df_K = to_K, fe_K, dfe_K
+    else:
+@VERIFY
+"""
+
+#: phase 2 where the march verifies its answers (impls.core.rootfind.MarchRefine.verifies: a bound
+#: and φ's rounding modelled), inside STEP's refinement: the certified bracket [A, B] after the sample
+#: (MarchRefine._bracket_sample), then for a row in verification mode MarchRefine._verify, for the
+#: others the closed bracket's check against the closing width (MarchRefine._refine_verified)
+VERIFY = """
+q_K = abs(fe_K) * check
+res_K = rcoef * (abs(te_K) + mag_K)
+rc_K = _max(q_K - res_K, 0.0)
+ur_K = q_K <= res_K
+nA_K = _max(A_K, te_K + rc_K) if ((not ur_K) and same_K) else A_K
+nB_K = _min(B_K, te_K - rc_K) if ((not ur_K) and not same_K) else B_K
+A_K, B_K = nA_K, nB_K
+if vm_K:
+    th_K = (not ur_K) and (same_K != lft_K)
+    if ur_K and lft_K:
+        zl_K = _min(zl_K, te_K)
+    if ur_K and not lft_K:
+        zr_K = _max(zr_K, te_K)
+    dn_K = (not ur_K) and (same_K == lft_K) and (B_K - A_K <= wd_K)
+    lf2_K = zl_K - A_K >= B_K - zr_K
+    lo_K = A_K if lf2_K else zr_K
+    hi2_K = zl_K if lf2_K else B_K
+    mid_K = 0.5 * (lo_K + hi2_K)
+    gu_K = (not dn_K) and (not th_K) and ((zr_K - zl_K >= wd_K) or (mid_K <= lo_K) or (mid_K >= hi2_K))
+    tc_K = _min(_max(t_K, A_K), B_K)
+    gu_K = gu_K or (dn_K and (g_K + step < _min(A_K, tc_K)))
+    st_K = verdict(nonf_K, dn_K and not gu_K, it_K >= max_steps, False, False, gu_K)
+    if th_K:
+        if refiner != 0 and i2_K:
+            wq_K = b_K - a_K
+        tp_K, fp_K = t_K, f_K
+        a_K = _min(a_K, A_K) if lft_K else na_K
+        b_K = nb_K if lft_K else _max(b_K, B_K)
+        if refiner != 0:
+            wq_K = 4.0 * (b_K - a_K)
+        t_K, f_K, df_K = te_K, fe_K, dfe_K
+        vm_K = False
+    else:
+        if dn_K:
+            t_K = tc_K
+            a_K = _min(A_K, tc_K)
+            b_K = _max(B_K, tc_K)
+        vm_K = not dn_K and not gu_K
+else:
+    okc_K = conv_K and (B_K - A_K <= cwidth(to_K, mag_K, rcoef, xtol))
     if refiner != 0 and i2_K:
         wq_K = b_K - a_K
     tp_K, fp_K = t_K, f_K
-    a_K, b_K = na_K, nb_K
     t_K, f_K, df_K = to_K, fe_K, dfe_K
+    a_K, b_K = na_K, nb_K
+    if okc_K:
+        tc_K = _min(_max(t_K, A_K), B_K)
+        t_K = tc_K
+        a_K = _min(A_K, tc_K)
+        b_K = _max(B_K, tc_K)
+    vm_K = conv_K and not okc_K
+    zl_K, zr_K = t_K, t_K
+    st_K = verdict(nonf_K, okc_K, it_K >= max_steps, False, False, okc_K and (g_K + step < a_K))
 """
+STEP = STEP.replace("@VERIFY", textwrap.indent(textwrap.dedent(VERIFY).strip("\n"), " " * 8))
 
 #: phase 1 (step_ladder): samples t + jΔ, j = 1 … ladder (clamped to hi), evaluated together, the
 #: pairs judged in order as march steps, each one step against max_steps (the pairs past the budget
@@ -213,6 +302,9 @@ else:
     un0_K, un1_K = fpe_K == 0, fe_K == 0
 un_K = cross_e_K and (un0_K or un1_K)
 lt_K = conv_K and (g_K + step < tpe_K)
+if vfy and cross_e_K:
+    A_K, B_K = tpe_K + rcert(fpe_K, tpe_K, check, mag_K, rcoef), te_K - rcert(fe_K, te_K, check, mag_K, rcoef)
+    zl_K, zr_K, vm_K = A_K, A_K, False
 it_K += e_K + 1
 ne_K += cost * ladder
 st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K or un_K)

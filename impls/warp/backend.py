@@ -41,6 +41,7 @@ import numpy as np
 from ..base import HostArrayBackend
 from ..core.driver import CompactingSettings
 from ..core.table import METHOD_TABLE
+from ..engine import from_the_start
 from ..protocol import Capabilities, Declined
 
 #: root methods run with φ as a Warp kernel, and the engine's ray query
@@ -129,6 +130,8 @@ class WarpBackend(HostArrayBackend):
                                  "vec3f points): use dtype='float32'")
             if method in ROOT_OFFERED and dtype == "float32":
                 raise Declined("warp runs the root finders in float64 only (the scene kernels are written in float64)")
+            if method == "raycast":  # the rays' start o + t_min·d in float64, before the float32 query
+                return from_the_start(super().prepare, method, scene, origins, directions, dtype=dtype, **kw)
         return super().prepare(method, scene, origins, directions, dtype=dtype, **kw)
 
     def compile(self, fn, o, d, th):
