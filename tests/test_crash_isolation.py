@@ -7,6 +7,7 @@ runs it and resumes the run past the configuration that killed it (bench/run/sup
 from __future__ import annotations
 
 import json
+import textwrap
 import os
 
 import pandas as pd
@@ -165,3 +166,39 @@ def test_a_hung_configuration_on_a_cluster_worker_is_a_timeout_row(tmp_path):
     assert len(failed) == 1 and "tol=1e-08" in failed.iloc[0].knob, failed
     assert failed.iloc[0].reason.startswith("Timeout:") and "killed after" in failed.iloc[0].reason
     assert (g[g.backend == "numpy"].outcome == "ok").sum() == (g[g.backend == "crashy"].outcome == "ok").sum() + 1
+
+
+def test_a_user_field_that_ends_the_process_at_planning_costs_its_own_case(tmp_path):
+    """A user field calling ``os._exit(0)`` or ``os.abort()`` while planning computed its reference
+    answers ended ``bench run`` with the field's own exit status (0, or 134), no rows, the healthy
+    case beside it lost and nothing to resume (probe of 2026-11-30).  Now the planning note names
+    the case, the supervisor resumes the run, and that case's rows are skipped with the reason."""
+    (tmp_path / "ending_fields.py").write_text(textwrap.dedent('''
+        import os
+        from reference import Case, CallableField, rays
+
+        o, d = rays.pinhole(eye=(0, 0, 3), look_at=(0, 0, 0), fov_deg=40, width=8, height=8)
+
+        def good(x, xp):
+            return xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0
+
+        def exits(x, xp):
+            os._exit(0)
+
+        def aborts(x, xp):
+            os.abort()
+
+        CASES = [Case(id=f"user.{f.__name__}.cam", scene=CallableField(f, lipschitz=1.0, name=f"ending.{f.__name__}"),
+                      origins=o, directions=d, t_min=0.0, t_max=6.0) for f in (good, exits, aborts)]
+    '''))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    out = tmp_path / "run"
+    p = bench_cli("run", "--cases", "ending_fields:CASES", "--case", "user.*", "--backend", "numpy", "--method",
+                  "hybrid_secant", "--accuracy-only", "--no-reference-cache", *QUIET, "--out", out, env=env)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "while running planning user." in p.stderr
+    rows = pd.read_csv(out / "results.csv").drop_duplicates("case_id").set_index("case_id")
+    assert rows.loc["user.good.cam", "outcome"] == "ok"
+    for cid, how in (("user.exits.cam", "exit status 0"), ("user.aborts.cam", "SIGABRT")):
+        assert rows.loc[cid, "outcome"] == "skipped" and how in rows.loc[cid, "reason"], rows.loc[cid, "reason"]
+    assert not (out / INFLIGHT).exists()

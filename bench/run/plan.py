@@ -73,6 +73,60 @@ def check_dtypes(dtypes: list[str] | None) -> None:
 _GAVE_UP: dict[tuple[str, str], str] = {}
 
 
+#: the run directory's in-flight note (:data:`bench.run.supervise.INFLIGHT`) while :func:`plan` runs
+#: in a run (:func:`planning_in`), else None: a user case's field that ends the process while its
+#: reference answers are computed (``os._exit``, an abort in native code) leaves it naming the
+#: case, so that the supervisor resumes the run and the resumed plan skips that case
+#: (:func:`planning_deaths`).  Before, such a field ended ``bench run`` with its own exit status,
+#: no rows and nothing to resume.
+_PLANNING_NOTE: list[Path | None] = [None]
+
+
+class planning_in:
+    """``with planning_in(out_dir):`` around :func:`plan` in a run: user cases' reference work
+    leaves a note in ``out_dir`` while it runs."""
+
+    def __init__(self, out_dir: Path | None):
+        from .supervise import INFLIGHT
+
+        self.path = None if out_dir is None else Path(out_dir) / INFLIGHT
+
+    def __enter__(self):
+        _PLANNING_NOTE[0] = self.path
+        return self
+
+    def __exit__(self, *exc):
+        _PLANNING_NOTE[0] = None
+        return False
+
+
+def planning_deaths(out_dir: Path, env: dict) -> dict[str, str]:
+    """The user cases whose field ended an earlier session's process at planning: the run's record
+    (``env["planning_deaths"]``, JSON {"case id version": reason}) plus the one the in-flight note names (its
+    note removed, the record updated in ``env``); each one's key put among the cases planning gives
+    up on, so that its field is not run again."""
+    import json
+
+    from .supervise import INFLIGHT, read_note
+
+    died = json.loads(env.get("planning_deaths") or "{}")
+    note = read_note(Path(out_dir) / INFLIGHT)
+    if note and note.get("planning"):
+        died[f"{note['planning']} {note.get('version', '')}"] = (
+            f"planning: the field of {note['planning']} ended the process ({note.get('status', 'its exit')}) while its "
+            "reference answers (the numerical first hits) were computed: os._exit, an abort or a crash in its code; "
+            "its rows are skipped, the rest of the run went on. Call the field on a few points yourself to see it")
+        (Path(out_dir) / INFLIGHT).unlink(missing_ok=True)
+        env["planning_deaths"] = json.dumps(died, sort_keys=True)
+    _DIED.update(died)
+    return died
+
+
+#: "case id version" → reason, of the user cases whose field ended a process at planning
+#: (:func:`planning_deaths`; an edited field is another version, and runs)
+_DIED: dict[str, str] = {}
+
+
 def _user_key(case) -> tuple[bool, tuple[str, str]]:
     return "user" in getattr(case, "tags", ()), (case.id, getattr(case, "version", ""))
 
@@ -96,7 +150,19 @@ def _bounded(case, limit_s: float | None, fn):
     user, key = _user_key(case)
     if user and key in _GAVE_UP:
         return None, _GAVE_UP[key]
+    if user and f"{key[0]} {key[1]}" in _DIED:
+        return None, _DIED[f"{key[0]} {key[1]}"]
+    note = _PLANNING_NOTE[0] if user else None
     try:
+        if note is not None:  # (the supervisor resumes the run if the field ends the process here)
+            import os
+            import time
+
+            from .results import write_json
+
+            write_json(note, {"planning": case.id, "version": key[1], "key": ["planning", case.id], "pid": os.getpid(),
+                              "what": f"planning {case.id} (its field's reference answers)",
+                              "started": time.time(), "limit_s": 0.0})
         with time_limit(_user_limit(case, limit_s) if user else None, "--reference-timeout"):
             return fn(), None
     except Timeout as exc:
@@ -109,6 +175,9 @@ def _bounded(case, limit_s: float | None, fn):
         if not interrupts.is_fault(exc):
             raise
         return None, f"planning: {type(exc).__name__}: {exc}"
+    finally:
+        if note is not None:
+            note.unlink(missing_ok=True)
 
 
 def applies(spec, case, limit_s: float | None = None) -> str | None:

@@ -29,7 +29,7 @@ from impls import Unavailable
 from . import environment, interrupts
 from .configuration import failed_rows
 from .executor import InProcessExecutor, Interrupted
-from .plan import CONFIG_KEY, Config, new_run_id, plan
+from .plan import CONFIG_KEY, Config, new_run_id, plan, planning_deaths, planning_in
 from .references import ReferenceOptions
 from .results import OVER_BUDGET, knob_string, to_frame, write_json, write_results
 from .resume import check_case_versions, kept_rows, load_previous, outcome_counts, outcome_of, record_elapsed
@@ -269,8 +269,14 @@ def _run(suite, backends, out_dir, options, progress, option_values):
     out_dir, started = Path(out_dir), time.monotonic()
     env, previous = _environment(suite, backends, out_dir, opts)
     run_id = env["run_id"]
-    cfgs = plan(suite, list(backends), opts.case_pattern, opts.methods, opts.dtypes,
-                reference_disk=opts.reference_cache_dir, reference_timeout_s=opts.reference_timeout_s)
+    if opts.resume:  # a user field that ended an earlier session's process at planning is not run again
+        if planning_deaths(out_dir, env):  # (recorded before planning: another such field may end this one)
+            write_json(out_dir / "environment.json", env)
+    else:  # written before planning, so that a field ending the process there leaves a run to resume
+        write_json(out_dir / "environment.json", env)
+    with planning_in(out_dir):
+        cfgs = plan(suite, list(backends), opts.case_pattern, opts.methods, opts.dtypes,
+                    reference_disk=opts.reference_cache_dir, reference_timeout_s=opts.reference_timeout_s)
     if previous is not None:  # before the first write: a refused resume leaves the run as it was
         previous = check_case_versions(previous, cfgs, opts.rerun_cases)
     write_json(out_dir / "environment.json", env)

@@ -271,12 +271,18 @@ def supervise(argv: list[str]) -> int:
                 _wait_gone(int(side.get("pid") or 0))
                 (out / SIDE_DIR / INFLIGHT).unlink(missing_ok=True)
             what = left.get("what", "a configuration")
+            if left.get("planning"):  # a user field at planning: the resumed plan skips its case, with this
+                from .results import write_json
+
+                write_json(out / INFLIGHT, {**left, "status": _status(code)})
             if restart == MAX_RESTARTS:
                 print(f"the run's process died ({_status(code)}) while running {what}, after {MAX_RESTARTS} restarts; "
                       f"stopping: finish it with --resume --out {out}", file=sys.stderr, flush=True)
                 return 1
-            print(f"the run's process died ({_status(code)}) while running {what}: that configuration is recorded "
-                  f"as failed and the run goes on (--resume --out {out})", file=sys.stderr, flush=True)
+            print(f"the run's process died ({_status(code)}) while running {what}: "
+                  + ("that case's rows are skipped with the reason" if left.get("planning") else
+                     "that configuration is recorded as failed")
+                  + f" and the run goes on (--resume --out {out})", file=sys.stderr, flush=True)
             args = list(argv) + ([] if _has(argv, "--resume") else ["--resume"]) + \
                 ([] if _has(argv, "--out") else ["--out", str(out)])
         return 1  # pragma: no cover - the loop returns

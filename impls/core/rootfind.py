@@ -228,11 +228,6 @@ def _eps(a) -> float:
     return _finfo(a)[0]
 
 
-#: the gain on :func:`resolution` of a field that is not a distance bound: 6ε(|t| + mag), more than the
-#: rounding of the point o + t·d from the float64 ray, ε(2|o|₁ + 5.2|t|) (the ray cast to the dtype,
-#: then t·d and the sum rounded), which moves any φ by at most L times it
-#: (:attr:`_Search.rg`)
-POINT_GAIN = 0.75
 
 
 def resolution(xp, t, mag, gain: float = 1.0):
@@ -299,14 +294,12 @@ class _Search:
     def rg(self) -> float:
         """The gain on :func:`resolution` for this search's field: its rounding ``gain`` where φ is
         a distance bound (``resolve``: near the surface |∇φ| ≈ L, so the point's rounding moves φ
-        by up to L times it, and φ's own operations add a few ε of the scene's extent), else
-        :data:`POINT_GAIN`: for any field with a Lipschitz bound the rounding of the point
-        o + t·d itself (:data:`POINT_GAIN`) moves φ by at most L times it, whatever φ is (φ's own
-        arithmetic is not modelled there).  That was 0 (only φ = 0 exactly unresolved): a float32
-        scene 1.5e3 from the origin with one node that is not a distance bound (an
-        ``AlgebraicSphere`` beside a 1e-6 plate) had 2,455 of 2,601 hits certified MISS and 15
-        misses CONVERGED (probe of 2026-11-30)."""
-        return self.gain if self.resolve else POINT_GAIN
+        by up to L times it), else 0: for a field flat at its roots (|x|³, an MLP whose bound L
+        far exceeds its slope) |φ|/L says nothing of the distance, and only φ = 0 exactly is
+        unresolved.  (Modelling the point's rounding there, L times it, was tried on 2026-11-30:
+        sound, but with L up to 15,234 times the slope at the surface it left float32 almost no
+        certified hit on such fields and none at a triple root; docs/methods.md, "Known limits".)"""
+        return self.gain if self.resolve else 0.0
 
     def start(self, xp, o, d):
         """``(t, hi, status)`` of every ray before any evaluation (:func:`_start`)."""
@@ -1690,8 +1683,10 @@ def _verify_stretch(xp, A, B, zl, zr):
 #: (:meth:`MarchRefine._bracket_sample`), the verification mode ``vm`` and the stretch found
 #: unresolved ``zl``, ``zr`` (:meth:`MarchRefine._verify`)
 CERTIFY_STATE = frozenset({"u", "cp", "fcp", "kap", "cm", "A", "B", "vm", "zl", "zr"})
-#: what a constant-step march's refinement carries where it verifies its answers (:attr:`MarchRefine.verifies`)
-VERIFY_STATE = frozenset({"A", "B", "vm", "zl", "zr"})
+#: what a constant-step march's refinement carries where it verifies its answers (:attr:`MarchRefine.verifies`):
+#: the certified bracket, the verification's mode and stretch, and the last two iterates, which a row
+#: in verification keeps (:meth:`MarchRefine._verify`) whatever its refiner
+VERIFY_STATE = frozenset({"A", "B", "vm", "zl", "zr", "p", "fp"})
 
 #: certification gives up (UNCERTIFIED) when a sample's sphere is under 1/this of the stretch left
 #: to cover: at slope σ each sample covers about a factor (1 + σ)/(1 − σ), so this stops the rays

@@ -191,14 +191,17 @@ def depth_resolved(method, scene, o, d, exact, knobs, dtype="float64", margin=0.
     (:func:`sphere_trace_allowance`).  Along a ray meeting the surface at slope s = |∇φ·d|/L, φ's
     sign is rounding (:func:`impls.core.rootfind.resolution`, the rounding model the finder
     certifies with) over a stretch 2·rounding/s long, so no bracket of resolved signs is
-    narrower: a hit where that stretch exceeds ``margin``·δ may be UNCERTIFIED instead.  For the
-    other methods, every hit (their allowances are knobs: ``xtol``, ``step``)."""
+    narrower: a hit where that stretch exceeds ``margin``·δ may be UNCERTIFIED instead.  The same
+    for the constant-step marches where they verify their brackets (a bound to check, φ a distance
+    bound: :attr:`impls.core.rootfind.MarchRefine.verifies`).  For the other methods, every hit."""
     hit = np.isfinite(exact)
     from impls.core.methods_root import resolves, rounding_gain, rounding_scale, step_field
 
     scene = step_field(scene)  # (what the certified methods march on: impls.base)
-    if not (method == "sphere_trace" or method.startswith("hybrid_")) or not resolves(scene):
+    if not (method == "sphere_trace" or method.startswith(("hybrid_", "march_"))) or not resolves(scene):
         return hit  # (rounding not modelled: only φ = 0 is unresolved)
+    if method.startswith("march_") and not scene.info.lipschitz:
+        return hit  # (a march without a bound to check verifies nothing: MarchRefine.verifies)
     lip = float(scene.info.lipschitz)
     t = np.where(hit, exact, 0.0)
     rounding = 8.0 * float(np.finfo(dtype).eps) * (np.abs(t) + np.abs(o).sum(axis=1) + rounding_scale(scene))
