@@ -127,25 +127,15 @@ class MarchChandrupatla(MarchRefine):
         t, status, nit, evals, (xl, xr, fl, fr) = refine(s["a"], s["b"], s["fa"], fb, o, d, ev, xtol=self.xtol,
                                                          budget=budget)
         new = dict(t=t, status=status, iterations=s["iterations"] + nit, evals=s["evals"] + evals)
-        if self.rule.certifies:
-            # the certified bracket [A, B] from scipy's returned ends (MarchRefine._bracket_sample: its
-            # left end has the march's start side)
-            with np.errstate(invalid="ignore"):
-                lft = self._bracket_sample(np, s, xl, fl, (fl > 0) == (s["fa"] > 0))
-                got = self._bracket_sample(np, dict(s, **lft), xr, fr, (fr > 0) == (s["fa"] > 0))
-            fin = np.isfinite(xl) & np.isfinite(xr) & np.isfinite(fl) & np.isfinite(fr) & (xl <= xr)
-            new.update(A=np.where(fin, got["A"], s["A"]), B=np.where(fin, got["B"], s["B"]))
+        if self.verifies:
             # scipy's root lies in a closed bracket; it is an answer once the certified bracket is
-            # within the closing width (else it is verified first: MarchRefine._verify), and the ray's
-            # first crossing when the march's frontier reaches it (MarchRefine._certify), else the
-            # certification stage samples towards it from the last certified point, bisecting an
-            # earlier crossing it finds
-            closed = status == CONV
-            ok = closed & (new["B"] - new["A"] <= self.closing_width(np, t, s["mag"]))
-            new.update(a=s["a"], b=s["b"])
-            self._settle(np, new, ok)
+            # within the closing width (else it is verified first: MarchRefine._verify)
+            ok, verify = self._settled(s, new, status, xl, xr, fl, fr)
             t = new["t"]
-            verify = closed & ~ok
+        if self.rule.certifies:
+            # and the ray's first crossing when the march's frontier reaches it (MarchRefine._certify),
+            # else the certification stage samples towards it from the last certified point,
+            # bisecting an earlier crossing it finds
             later = ok & (s["u"] + self.rule.min_step < new["a"])
             # a frontier stopped behind the last certified sample (MarchRefine.step_refine): UNCERTIFIED
             unc = later & (s["u"] < s["cp"])
@@ -155,22 +145,9 @@ class MarchChandrupatla(MarchRefine):
             new.update(status=np.where(on, IN, status), cm=later, vm=verify, zl=t, zr=t,
                        phase=np.where(on, len(self.stages) - 1, len(self.stages) - 2).astype(np.int32))
         elif self.verifies:
-            # a constant-step march where φ's rounding is modelled (MarchRefine.verifies): scipy's
-            # root is an answer once the certified bracket from its returned ends is within the
-            # closing width, else it is verified first (the rows in verification mode sample in this
-            # stage: _refine_and_verify); either way a root the march's frontier leaves more than a
-            # step behind is UNCERTIFIED (ConstantStep.late)
-            with np.errstate(invalid="ignore"):
-                lft = self._bracket_sample(np, s, xl, fl, (fl > 0) == (s["fa"] > 0))
-                got = self._bracket_sample(np, dict(s, **lft), xr, fr, (fr > 0) == (s["fa"] > 0))
-            fin = np.isfinite(xl) & np.isfinite(xr) & np.isfinite(fl) & np.isfinite(fr) & (xl <= xr)
-            new.update(A=np.where(fin, got["A"], s["A"]), B=np.where(fin, got["B"], s["B"]))
-            closed = status == CONV
-            ok = closed & (new["B"] - new["A"] <= self.closing_width(np, t, s["mag"]))
-            new.update(a=s["a"], b=s["b"])
-            self._settle(np, new, ok)
-            t = new["t"]
-            verify = closed & ~ok
+            # a constant-step march where φ's rounding is modelled: the rows to verify sample in this
+            # stage (_refine_and_verify); a root the march's frontier leaves more than a step behind
+            # is UNCERTIFIED either way (ConstantStep.late)
             status = np.where(ok & self.rule.late(np, s["g"], new["a"]), UNC, np.where(verify, IN, status))
             new.update(status=status, vm=verify, zl=t, zr=t)
         else:
@@ -178,6 +155,22 @@ class MarchChandrupatla(MarchRefine):
             # not certified the first crossing (scipy's bracket is not returned: its root bounds it)
             new.update(status=np.where((status == CONV) & self.rule.late(np, s["g"], t), UNC, status))
         return {**s, **{k: v.astype(s[k].dtype) if k in s else v for k, v in new.items()}}
+
+    def _settled(self, s, new, status, xl, xr, fl, fr):
+        """The certified bracket [A, B] from scipy's returned ends (:meth:`MarchRefine._bracket_sample`:
+        its left end has the march's start side) into ``new``, the closed rows whose [A, B] is within
+        the closing width settled into it (:meth:`MarchRefine._settle`, ``new``'s bracket the march's
+        own before that); returns ``(ok, verify)``: those rows, and the closed rows to verify."""
+        with np.errstate(invalid="ignore"):
+            lft = self._bracket_sample(np, s, xl, fl, (fl > 0) == (s["fa"] > 0))
+            got = self._bracket_sample(np, dict(s, **lft), xr, fr, (fr > 0) == (s["fa"] > 0))
+        fin = np.isfinite(xl) & np.isfinite(xr) & np.isfinite(fl) & np.isfinite(fr) & (xl <= xr)
+        new.update(A=np.where(fin, got["A"], s["A"]), B=np.where(fin, got["B"], s["B"]))
+        closed = status == CONV
+        ok = closed & (new["B"] - new["A"] <= self.closing_width(np, new["t"], s["mag"]))
+        new.update(a=s["a"], b=s["b"])
+        self._settle(np, new, ok)
+        return ok, closed & ~ok
 
     def _refine_and_verify(self, s, o, d, ev):
         """:meth:`step_refine` on a batch holding rows in verification mode: those take
