@@ -228,8 +228,6 @@ def _eps(a) -> float:
     return _finfo(a)[0]
 
 
-
-
 def resolution(xp, t, mag, gain: float = 1.0):
     """φ's rounding at depth ``t``, in depth units: 8·``gain``·ε·(|t| + ``mag``) (``mag`` =
     :func:`_magnitude`).  The point o + t·d is rounded by up to 2ε(|o|₁ + |t|), which moves a
@@ -1170,7 +1168,7 @@ class MarchRefine(_Search):
                     g = xp.where(loose & (g == math.inf), t + rc0, g)
                 if self.verifies:
                     # a crossing's ends are resolved (else it is UNCERTIFIED): the crossing of φ itself
-                    # lies between them, and under a bound the library proves, between their spheres
+                    # lies between them, and under the bound the steps check, between their spheres
                     new.update(self._march_bracket(xp, t, rc0, t_n, rc1))
             status, unc_miss, back = self._march_verdict(xp, g, cross, conv, miss, nonf, lipv, iters, un0, un1, t)
             t_n = xp.where(unc_miss, math.inf, xp.where(back, t, t_n))
