@@ -12,12 +12,13 @@ depends on reference counts, so neither is a content digest.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import inspect
 import pickle
 import types
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -39,6 +40,7 @@ def _global_names(code: types.CodeType) -> set[str]:
     return out
 
 
+@functools.cache
 def _installed_roots() -> tuple[str, ...]:
     """Where the interpreter's own and installed packages live (the standard library, site-packages)."""
     import sys
@@ -61,12 +63,20 @@ def _users_module(mod: types.ModuleType) -> bool:
     return not resolved.startswith(_installed_roots())
 
 
+class _ModuleAttr(NamedTuple):
+    """An attribute a function reads from a user's module (``helpers.radius``), for its digest."""
+
+    module: str
+    name: str
+    value: Any
+
+
 def _value_digest(v: Any, depth: int = 0) -> bytes:
     """Bytes that change when a value a function closes over or defaults to changes."""
     if isinstance(v, np.ndarray):
         return repr((v.dtype.str, v.shape)).encode() + np.ascontiguousarray(v).tobytes()
-    if isinstance(v, tuple) and len(v) == 3 and isinstance(v[0], str) and isinstance(v[1], str):  # (module, name, value)
-        return f"{v[0]}.{v[1]}=".encode() + _value_digest(v[2], depth)
+    if isinstance(v, _ModuleAttr):
+        return f"{v.module}.{v.name}=".encode() + _value_digest(v.value, depth)
     if callable(v) and depth < 4:
         return function_digest(v, depth + 1).encode()
     try:
@@ -89,7 +99,7 @@ def function_digest(fn: Callable, depth: int = 0) -> str:
     pickled state.  Two functions of the same ``name``
     that compute differently get different hashes, so a run's kept references (first hits,
     rendering integrals), ``--resume`` and ``bench compare`` never take one for the other.  A
-    change of what it reads otherwise (a module's attribute, a file's contents) is not seen: give
+    change of what it reads otherwise (an installed module's attribute, a file's contents) is not seen: give
     the field another ``name`` then.  Never raises; what it cannot read it leaves out."""
     h = hashlib.sha256()
     target = fn if isinstance(fn, (types.FunctionType, types.MethodType, type)) else type(fn)
@@ -119,7 +129,7 @@ def function_digest(fn: Callable, depth: int = 0) -> str:
         for n in sorted(names):
             mod = glb.get(n)
             if isinstance(mod, types.ModuleType) and _users_module(mod):
-                reads += [(n, a, getattr(mod, a)) for a in sorted(names) if a in vars(mod)]
+                reads += [_ModuleAttr(n, a, getattr(mod, a)) for a in sorted(names) if a in vars(mod)]
         # a bound method: the instance it is bound to (``Ball(r).phi`` reads its r through self)
         bound = getattr(fn, "__self__", None)
         if bound is not None and not isinstance(bound, types.ModuleType):

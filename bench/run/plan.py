@@ -83,28 +83,32 @@ _PLANNING_NOTE: list[Path | None] = [None]
 
 
 class planning_in:
-    """``with planning_in(out_dir):`` around :func:`plan` in a run: user cases' reference work
-    leaves a note in ``out_dir`` while it runs."""
+    """``with planning_in(out_dir, died):`` around :func:`plan` in a run: user cases' reference work
+    leaves a note in ``out_dir`` while it runs, and the cases of ``died`` (:func:`planning_deaths`:
+    their field ended an earlier session's process) are skipped with their reason, from here to
+    the next run this process starts (its entry replaces them)."""
 
-    def __init__(self, out_dir: Path | None):
+    def __init__(self, out_dir: Path | None, died: dict[str, str] | None = None):
         from .supervise import INFLIGHT
 
         self.path = None if out_dir is None else Path(out_dir) / INFLIGHT
+        self.died = dict(died or {})
 
     def __enter__(self):
         _PLANNING_NOTE[0] = self.path
+        _DIED.clear()
+        _DIED.update(self.died)
         return self
 
     def __exit__(self, *exc):
-        _PLANNING_NOTE[0] = None
+        _PLANNING_NOTE[0] = None  # (the cases of ``died`` stay skipped for the run's configurations)
         return False
 
 
 def planning_deaths(out_dir: Path, env: dict) -> dict[str, str]:
     """The user cases whose field ended an earlier session's process at planning: the run's record
     (``env["planning_deaths"]``, JSON {"case id version": reason}) plus the one the in-flight note names (its
-    note removed, the record updated in ``env``); each one's key put among the cases planning gives
-    up on, so that its field is not run again."""
+    note removed, the record updated in ``env``), for :class:`planning_in` to skip."""
     import json
 
     from .supervise import INFLIGHT, read_note
@@ -118,12 +122,11 @@ def planning_deaths(out_dir: Path, env: dict) -> dict[str, str]:
             "its rows are skipped, the rest of the run went on. Call the field on a few points yourself to see it")
         (Path(out_dir) / INFLIGHT).unlink(missing_ok=True)
         env["planning_deaths"] = json.dumps(died, sort_keys=True)
-    _DIED.update(died)
     return died
 
 
-#: "case id version" → reason, of the user cases whose field ended a process at planning
-#: (:func:`planning_deaths`; an edited field is another version, and runs)
+#: "case id version" → reason, of the user cases whose field ended a process at planning, while
+#: :class:`planning_in` is in force (:func:`planning_deaths`; an edited field is another version, and runs)
 _DIED: dict[str, str] = {}
 
 

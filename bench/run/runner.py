@@ -269,12 +269,12 @@ def _run(suite, backends, out_dir, options, progress, option_values):
     out_dir, started = Path(out_dir), time.monotonic()
     env, previous = _environment(suite, backends, out_dir, opts)
     run_id = env["run_id"]
-    if opts.resume:  # a user field that ended an earlier session's process at planning is not run again
-        if planning_deaths(out_dir, env):  # (recorded before planning: another such field may end this one)
-            write_json(out_dir / "environment.json", env)
-    else:  # written before planning, so that a field ending the process there leaves a run to resume
+    died = planning_deaths(out_dir, env) if opts.resume else {}  # (their fields are not run again)
+    if died or not opts.resume:
+        # before planning: a field ending the process there leaves a run to resume, and the record
+        # of those that did (another such field may end this session too)
         write_json(out_dir / "environment.json", env)
-    with planning_in(out_dir):
+    with planning_in(out_dir, died):
         cfgs = plan(suite, list(backends), opts.case_pattern, opts.methods, opts.dtypes,
                     reference_disk=opts.reference_cache_dir, reference_timeout_s=opts.reference_timeout_s)
     if previous is not None:  # before the first write: a refused resume leaves the run as it was

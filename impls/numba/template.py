@@ -66,7 +66,7 @@ t_K = f_K = df_K = tp_K = fp_K = a_K = fa_K = b_K = hi_K = wq_K = mag_K = 0.0
 te_K = fe_K = dfe_K = mid_K = 0.0
 i2_K = False
 g_K = 0.0
-A_K = B_K = zl_K = zr_K = wd_K = 0.0
+A_K = B_K = zl_K = zr_K = wd_K = rc0_K = rc1_K = 0.0
 vm_K = lft_K = False
 """
 
@@ -91,7 +91,6 @@ elif vm_K:
     lo_K = A_K if lft_K else zr_K
     hi2_K = zl_K if lft_K else B_K
     mid_K = 0.5 * (lo_K + hi2_K)
-    i2_K = it_K % 3 == 0
     if lft_K:
         te_K = zl_K - 0.5 * wd_K
         if not (te_K > mid_K):
@@ -144,14 +143,14 @@ elif ph_K == 0:
             g_K = t_K + rcert(f_K, t_K, check, mag_K, rcoef)
     um_K = miss_K and g_K < inf
     if has_check:
-        un0_K = rcert(f_K, t_K, check, mag_K, rcoef) == 0.0
-        un1_K = rcert(fe_K, te_K, check, mag_K, rcoef) == 0.0
+        rc0_K, rc1_K = rcert(f_K, t_K, check, mag_K, rcoef), rcert(fe_K, te_K, check, mag_K, rcoef)
+        un0_K, un1_K = rc0_K == 0.0, rc1_K == 0.0
     else:
         un0_K, un1_K = f_K == 0, zero_K
     un_K = cross_K and (un0_K or un1_K)
     lt_K = conv_K and (g_K + step < t_K)
-    if vfy and cross_K:
-        A_K, B_K = t_K + rcert(f_K, t_K, check, mag_K, rcoef), te_K - rcert(fe_K, te_K, check, mag_K, rcoef)
+    if vfy and cross_K:  # (vfy: has_check) the certified bracket of the crossing step
+        A_K, B_K = t_K + rc0_K, te_K - rc1_K
         zl_K, zr_K, vm_K = A_K, A_K, False
     it_K += 1
     st_K = verdict(nonf_K, conv_K, it_K >= max_steps, miss_K and not um_K, lv_K, um_K or lt_K or un_K)
@@ -218,9 +217,7 @@ if vm_K:
     tc_K = _min(_max(t_K, A_K), B_K)
     gu_K = gu_K or (dn_K and (g_K + step < _min(A_K, tc_K)))
     st_K = verdict(nonf_K, dn_K and not gu_K, it_K >= max_steps, False, False, gu_K)
-    if th_K:
-        if refiner != 0 and i2_K:
-            wq_K = b_K - a_K
+    if th_K:  # refinement resumes beyond the sample (its width check afresh: on_bracket)
         tp_K, fp_K = t_K, f_K
         a_K = _min(a_K, A_K) if lft_K else na_K
         b_K = nb_K if lft_K else _max(b_K, B_K)
@@ -296,14 +293,14 @@ miss_K = ((not stopped_K) and (te_K >= hi_K)) or not math.isfinite(te_K)
 conv_K = cross_e_K and ((fe_K == 0) or (te_K - tpe_K <= xtol))
 um_K = miss_K and g_K < inf
 if has_check:
-    un0_K = rcert(fpe_K, tpe_K, check, mag_K, rcoef) == 0.0
-    un1_K = rcert(fe_K, te_K, check, mag_K, rcoef) == 0.0
+    rc0_K, rc1_K = rcert(fpe_K, tpe_K, check, mag_K, rcoef), rcert(fe_K, te_K, check, mag_K, rcoef)
+    un0_K, un1_K = rc0_K == 0.0, rc1_K == 0.0
 else:
     un0_K, un1_K = fpe_K == 0, fe_K == 0
 un_K = cross_e_K and (un0_K or un1_K)
 lt_K = conv_K and (g_K + step < tpe_K)
-if vfy and cross_e_K:
-    A_K, B_K = tpe_K + rcert(fpe_K, tpe_K, check, mag_K, rcoef), te_K - rcert(fe_K, te_K, check, mag_K, rcoef)
+if vfy and cross_e_K:  # (vfy: has_check) the certified bracket of the crossing pair
+    A_K, B_K = tpe_K + rc0_K, te_K - rc1_K
     zl_K, zr_K, vm_K = A_K, A_K, False
 it_K += e_K + 1
 ne_K += cost * ladder
