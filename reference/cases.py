@@ -381,6 +381,16 @@ def case_ids() -> list[str]:
     return sorted(_FACTORIES)
 
 
+def tags_of(case_id: str) -> tuple[str, ...]:
+    """A case's tags: those declared at registration (:func:`register_cases`), sorted, without
+    building the case (a mesh case's build loads its mesh), else the built case's in their order.
+    KeyError for an unknown id, as :func:`get_case`."""
+    if case_id not in _FACTORIES:
+        get_case(case_id)  # (raises its KeyError)
+    known = _DECLARED_TAGS.get(case_id)
+    return tuple(sorted(known)) if known is not None else get_case(case_id).tags
+
+
 #: the cameras at scale (256² and 1024² rays) carry this tag; the 1024² ones also :data:`FULL_ONLY`
 LARGE = "large"
 #: the tag of the cases meant for the ``full`` suite only (1024² cameras)

@@ -253,6 +253,12 @@ def test_declared_tags_select_without_building_and_are_checked(monkeypatch):
     assert [c.id for c in catalog("test.dt.big", {"large"})] == ["test.dt.big"]
     with pytest.raises(AssertionError, match=r"'test.dt.liar' with tags .* declared as"):
         catalog("test.dt.liar", {"camera"})
+    # tags_of reads a declaration without building (the report's stability matrix asks it of
+    # every case of its rows, a mesh case among them)
+    register_cases(("test.dt.late",), factory("test.dt.late", ok), {"test.dt.late": case_tags(Sphere(), ok)})
+    assert set(cases_mod.tags_of("test.dt.late")) == set(case_tags(Sphere(), ok)) and "test.dt.late" not in built
+    with pytest.raises(KeyError, match="unknown case"):
+        cases_mod.tags_of("test.dt.nosuch")
     get_case.cache_clear()
 
 

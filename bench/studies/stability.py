@@ -72,10 +72,10 @@ def families() -> tuple[str, ...]:
 @functools.cache
 def catalog_family(case_id: str) -> str | None:
     """The adversarial family of a catalog case, None for an unknown id or a case of none."""
-    from reference.cases import adversarial_family, get_case
+    from reference.cases import adversarial_family, tags_of
 
     try:
-        return adversarial_family(get_case(case_id).tags)
+        return adversarial_family(tags_of(case_id))
     except KeyError:
         return None
 

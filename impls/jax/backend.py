@@ -222,6 +222,7 @@ class JaxBackend(ArrayBackend):
         self.jax_device = jax.devices(device)[0]
         # kernels on disk by what they compute, found without tracing (None without a cache directory)
         self._store = executables.default_store()
+        self._cached_bytes = None  # (_compile_traced)
 
     def asarray(self, a, dtype):
         return jax.device_put(jnp.asarray(np.asarray(a), dtype=dtype), self.jax_device)
@@ -245,10 +246,14 @@ class JaxBackend(ArrayBackend):
 
     def _compile_traced(self, traced):
         """A traced kernel lowered and compiled (or loaded from jax's persistent cache); sets
-        ``last_compile_cache``."""
+        ``last_compile_cache``, and ``_cached_bytes`` to the serialized executable jax read from its
+        persistent cache where it loaded it from there (else None: compiled here)."""
         hits = _cache_hits[0]
-        compiled = traced.lower().compile()
-        self.last_compile_cache = None if not PERSISTENT_CACHE else ("reused" if _cache_hits[0] > hits else "compiled")
+        with executables.persistent_cache_reads() as reads:
+            compiled = traced.lower().compile()
+        hit = _cache_hits[0] > hits
+        self.last_compile_cache = None if not PERSISTENT_CACHE else ("reused" if hit else "compiled")
+        self._cached_bytes = reads[0] if hit and len(reads) == 1 else None
         return compiled
 
     def compile_configuration(self, call, knobs, o, d, th, *, method, scene, t_range, extra):
@@ -464,14 +469,17 @@ class JaxBackend(ArrayBackend):
                     # jax's persistent cache writes its own copy too: keyed by the program, it still
                     # answers after an edit of isobench changed every store key (docs/performance.md)
                     compiled = self._compile_traced(trace)
-                    # stored: a kernel XLA compiled here (one jax loaded from its persistent cache
-                    # serializes into bytes that do not run: impls.jax.executables), without a call
-                    # back into Python (a mesh's φ: its trace registers the call's target)
-                    # — at the kernel's first call, whose outputs are the ones the entry is checked
-                    # against (computing them here was one more run of every kernel a cold run compiled)
-                    if stored is not None and traced_calls() == host_calls and self.last_compile_cache != "reused":
+                    # stored: a kernel XLA compiled here, or one jax loaded from its persistent cache
+                    # whose bytes it read are at hand (its own serialization does not run:
+                    # impls.jax.executables), without a call back into Python (a mesh's φ: its
+                    # trace registers the call's target) — at the kernel's first call, whose outputs
+                    # are the ones the entry is checked against (computing them here was one more
+                    # run of every kernel a cold run compiled)
+                    cached = self._cached_bytes if self.last_compile_cache == "reused" else None
+                    if (stored is not None and traced_calls() == host_calls
+                            and (self.last_compile_cache != "reused" or cached is not None)):
                         compiled = _SavedAtFirstCall(compiled, functools.partial(
-                            self._store.save, stored, compiled, device=self.jax_device))
+                            self._store.save, stored, compiled, device=self.jax_device, executable_bytes=cached))
                 # the scene and colour objects are kept alive with the kernel: their ids are in the key
                 self._kernels[key] = kept = (compiled, scene, extra)
                 while len(self._kernels) > KEEP_KERNELS:

@@ -35,10 +35,13 @@ warm run makes anyway (docs/performance.md).  The entry is written at the kernel
 (:class:`impls.jax.backend._SavedAtFirstCall`), from that call's arguments and outputs: the
 outputs the check compares with are ones the run computed anyway.  Not stored:
 
-* a kernel jax loaded from its persistent cache: its serialization does not run (jax 0.10.2 on
-  the CPU, measured: ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``).  Such a kernel
-  (one whose program is unchanged since it was cached, e.g. after an edit of isobench elsewhere
-  changed the store's key) keeps costing its trace and lowering, as before this store;
+* a kernel jax loaded from its persistent cache, where the bytes jax read are not at hand: such an
+  executable serializes into bytes that do not run (jax 0.10.2 on the CPU, measured:
+  ``NOT_FOUND: Function is-finite_reduce_fusion.1 not found``).  Where they are
+  (:func:`persistent_cache_reads`), the entry is made of the bytes jax's cache held
+  (:func:`serialize`), checked as any other: a kernel whose program is unchanged since jax cached
+  it (after an edit of isobench elsewhere changed every key of this store) is stored at its first
+  warm run, not traced and lowered on every run after it;
 * a program that calls back into Python (jax's own cache does not keep one either): the meshes'
   φ is a custom call whose target is registered when it is traced
   (:mod:`reference.jax_host_call`), so skipping its trace would leave the target unregistered.
@@ -49,6 +52,7 @@ compiled, and stored again if XLA compiled it); entries are written atomically.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import io
@@ -57,6 +61,7 @@ import pickle
 import platform
 import secrets
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +82,73 @@ _TRUSTED = _OWN + ("numpy", "builtins", "copyreg", "_codecs", "collections")
 
 class _Untrusted(Exception):
     pass
+
+
+_reads = threading.local()
+
+
+@functools.lru_cache(maxsize=1)
+def _capture_installed() -> bool:
+    """Wrap jax's reading of a persistent cache entry (``jax._src.compilation_cache``, whose
+    ``get_executable_and_time`` calls ``extract_executable_and_time`` for the serialized executable)
+    so that :func:`persistent_cache_reads` sees the bytes.  Returns whether it could (a jax without
+    that function: such kernels are not stored, as before)."""
+    try:
+        from jax._src import compilation_cache
+    except ImportError:  # pragma: no cover - a jax without the module
+        return False
+    extract = getattr(compilation_cache, "extract_executable_and_time", None)
+    if extract is None:  # pragma: no cover - a jax without the function
+        return False
+
+    def capturing(executable_and_time):
+        serialized, compile_time = extract(executable_and_time)
+        reads = getattr(_reads, "bytes", None)
+        if reads is not None:
+            reads.append(serialized)
+        return serialized, compile_time
+
+    compilation_cache.extract_executable_and_time = capturing
+    return True
+
+
+@contextlib.contextmanager
+def persistent_cache_reads():
+    """A list of the serialized executables jax reads from its persistent cache in this thread
+    while the context is open (empty where it read none, or where the reads cannot be seen)."""
+    _capture_installed()
+    before, _reads.bytes = getattr(_reads, "bytes", None), []
+    try:
+        yield _reads.bytes
+    finally:
+        _reads.bytes = before
+
+
+def serialize(compiled, executable_bytes: bytes | None = None) -> tuple:
+    """``jax.experimental.serialize_executable.serialize(compiled)``: ``(bytes, in_tree,
+    out_tree)``; with ``executable_bytes``, the XLA executable in it is those bytes (what jax's
+    persistent cache held for it, :func:`persistent_cache_reads`) instead of its own serialization,
+    which does not run for an executable loaded from that cache.  The parts are jax's own
+    (``serialize``'s body, jax 0.10.2): only the executable's pickled form differs."""
+    import jax
+    from jax.experimental import serialize_executable
+
+    if executable_bytes is None:
+        return serialize_executable.serialize(compiled)
+
+    class Pickler(serialize_executable._JaxPjrtPickler):
+        def persistent_id(self, obj):
+            if isinstance(obj, (serialize_executable.xc.LoadedExecutable, serialize_executable._jax.Executable)):
+                return ("exec", executable_bytes)
+            return super().persistent_id(obj)
+
+    unloaded = getattr(compiled._executable, "_unloaded_executable", None)
+    if unloaded is None or compiled._params.const_args:
+        raise ValueError("this compilation does not serialize")
+    args_info_flat, in_tree = jax.tree_util.tree_flatten(compiled.args_info)
+    with io.BytesIO() as file:
+        Pickler(file).dump((unloaded, args_info_flat, compiled._no_kwargs))
+        return file.getvalue(), in_tree, compiled.out_tree
 
 
 class _CheckingPickler(pickle.Pickler):
@@ -212,7 +284,8 @@ class KernelStore:
             pass
         return loaded if same else None
 
-    def save(self, key: str, compiled, example_args: tuple, device, outputs=None) -> bool:
+    def save(self, key: str, compiled, example_args: tuple, device, outputs=None,
+             executable_bytes: bytes | None = None) -> bool:
         """Write ``compiled`` under ``key`` atomically (a temporary file renamed onto the entry),
         once its serialization is known to run as ``compiled`` does on ``example_args`` (bit for
         bit, NaN where NaN): with those arrays and ``compiled``'s outputs carried in the entry, to
@@ -220,8 +293,9 @@ class KernelStore:
         :data:`EXAMPLE_BYTES`; else checked here, the serialization loaded back and run.  A key
         whose check failed before (its marker) is not stored.  ``outputs``: what ``compiled``
         returned for ``example_args`` (given by a caller that ran it anyway; else it is run here).
-        Returns whether it was stored; a failure to serialize, check or write leaves no entry and
-        is not an error."""
+        ``executable_bytes``: the serialized executable jax's persistent cache held for
+        ``compiled`` (:func:`serialize`), for a kernel loaded from there.  Returns whether it was
+        stored; a failure to serialize, check or write leaves no entry and is not an error."""
         import jax
         import numpy as np
         from jax.experimental import serialize_executable
@@ -229,7 +303,7 @@ class KernelStore:
         if self.refuses(key):
             return False
         try:
-            parts = serialize_executable.serialize(compiled)
+            parts = serialize(compiled, executable_bytes)
             want = [np.asarray(a) for a in jax.tree.leaves(compiled(*example_args) if outputs is None else outputs)]
             args = jax.tree.map(lambda a: np.asarray(a) if isinstance(a, jax.Array) else a, example_args)
             size = sum(a.nbytes for a in want) + sum(np.asarray(a).nbytes for a in jax.tree.leaves(args))
