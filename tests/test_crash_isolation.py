@@ -25,10 +25,13 @@ CRASHY = "tests.crash_backend:CrashBackend"
 #: and the claims took 22 of a crash test's 28 s
 QUIET = ("--no-stability", "--no-claims", "--no-progress")
 #: the hang tests' ``--timeout`` and hang threshold (``supervise.HUNG_AFTER_ENV``: killed at 1 × the
-#: limit + 5 s = 15 s): the other configurations take ~0.2 s each here, so a limit of 10 s holds
-#: them on a machine 50× slower than an idle one (a limit of 2 s would time out a legitimate one
-#: under load), and the hang still costs only 15 s of waiting
-LIMIT, HUNG_AFTER = "10", "1,5"
+#: limit + 2 s = 7 s), sized to the work: their runs are accuracy-only (:data:`HANG_RUN`), one call
+#: per configuration, 60–90 ms each for the other configurations here (numpy's sphere tracing on
+#: the 32² torus camera, idle), so a limit of 5 s holds them on a machine 55× slower than an idle
+#: one, and the hang costs 7 s of waiting (at 10 s and 1 × the limit + 5 s with timed runs of
+#: ~0.2 s per configuration: 15 s of the command's wall time, twice, on a core doing nothing)
+LIMIT, HUNG_AFTER = "5", "1,2"
+HANG_RUN = ("--case", "torus.camera.32x32", "--method", "sphere_trace", "--accuracy-only", "--timeout", LIMIT)
 
 
 def _configs(path) -> pd.DataFrame:
@@ -100,8 +103,7 @@ def test_a_configuration_hung_in_native_code_is_killed_and_recorded_as_a_timeout
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
            supervise.HUNG_AFTER_ENV: HUNG_AFTER}
-    p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
-                  "--timeout", LIMIT, *QUIET, "--out", out, env=env)
+    p = bench_cli("run", "--backend", f"{CRASHY},numpy", *HANG_RUN, *QUIET, "--out", out, env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     # (the second process may have claimed it: then the first process kills that one, and says so)
     assert "is stuck in" in p.stdout + p.stderr, p.stdout[-2000:] + p.stderr[-2000:]
@@ -158,8 +160,8 @@ def test_a_hung_configuration_on_a_cluster_worker_is_a_timeout_row(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "CRASH_METHOD": "sphere_trace", "CRASH_KNOB": "tol=1e-08", "CRASH_HOW": "hang",
            supervise.HUNG_AFTER_ENV: HUNG_AFTER}
-    p = bench_cli("run", "--backend", f"{CRASHY},numpy", "--case", "torus.camera.32x32", "--method", "sphere_trace",
-                  "--cluster", "local:2", "--timeout", LIMIT, *QUIET, "--out", out, env=env)
+    p = bench_cli("run", "--backend", f"{CRASHY},numpy", *HANG_RUN, "--cluster", "local:2", *QUIET, "--out", out,
+                  env=env)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     g = _configs(out / "results.csv")
     failed = g[g.outcome == "failed"]
