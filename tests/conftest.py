@@ -170,18 +170,18 @@ def backend(request):
     return resolve_or_skip(request.param)
 
 
-#: the test files that take longest (measured with --durations on 2 cores, empty cache: the shared
-#: quick-suite run, the conformance suite's files, the 256² checks, the compiling drivers), longest
-#: first.  Under ``-n auto --dist loadfile`` a file runs whole on one worker, in collection order: a
+#: the test files that take longest (measured per test on 2 cores, warm cache, 2026-12-01: the
+#: shared quick-suite run, the 256² checks, the subprocess and compiling tests), longest first.
+#: Under ``-n auto --dist loadfile`` a file runs whole on one worker, in collection order: a
 #: long file collected late (test_cli.py sorts mid-list) starts when the others are nearly done and
 #: leaves the other workers idle until it ends.  Started first, the long files run beside the many
 #: short ones.  (Only the order changes; every file still runs whole, its own tests in order.)  For
 #: the same reason the conformance suite is a folder of files (tests/conformance/), not one file.
-LONGEST_FILES = ("test_certified_at_scale.py", "test_cli.py", "test_rootfind_certified.py", "test_ray_bounds.py",
-                 "test_renderers.py", "test_roots.py", "test_driver.py", "test_compile_cache.py",
-                 "test_every_method.py", "test_jax_kernel_reuse.py", "test_status_contract.py",
-                 "test_reference_derivatives.py", "test_backends_autodiff.py", "test_plugin.py",
-                 "test_bench_resume.py", "test_claims_checks.py", "test_cluster.py")
+LONGEST_FILES = ("test_certified_at_scale.py", "test_cli.py", "test_crash_isolation.py", "test_compile_cache.py",
+                 "test_rootfind_certified.py", "test_step_field.py", "test_cluster.py", "test_jax_kernel_store.py",
+                 "test_plugin.py", "test_claims_checks.py", "test_driver.py", "test_rootfind_marching.py",
+                 "test_renderers.py", "test_reference_bounds.py", "test_bench_resume.py", "test_jax_kernel_reuse.py",
+                 "test_reference_depth_bound.py", "test_ray_bounds.py", "test_roots.py", "test_every_method.py")
 
 
 def pytest_configure(config):

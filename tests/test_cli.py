@@ -339,7 +339,16 @@ USER_ERRORS = {
 }
 
 
-@pytest.mark.parametrize("name", list(USER_ERRORS))
+#: the quick tier's (``-m "not slow"``) share of :data:`USER_ERRORS`: one error of each command's
+#: own parsing and one of a run's plan; the others (0.6 s of two interpreters each, 19 s for the 31
+#: on 2 cores) run in the whole suite, CI's gate
+USER_ERRORS_QUICK = ("run --threads 0", "run --backend nosuch", "run where every configuration failed",
+                     "report on a missing directory", "compare with a garbage results.csv", "speed --side 0",
+                     "cases --tag nosuch")
+
+
+@pytest.mark.parametrize("name", [n if n in USER_ERRORS_QUICK else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in USER_ERRORS])
 def test_user_errors_end_in_one_clear_line_and_a_nonzero_exit(name, tmp_path):
     argv, code, names = USER_ERRORS[name]
     p = bench(*argv(tmp_path))
@@ -355,6 +364,10 @@ def test_user_errors_end_in_one_clear_line_and_a_nonzero_exit(name, tmp_path):
         assert len(sleepy), "no row of the plug-in"
         assert sleepy["reason"].str.startswith(OVER_BUDGET).all(), sleepy["reason"].tolist()
         assert sleepy["reason"].str.contains("interrupted in flight").any(), sleepy["reason"].tolist()
+
+
+def test_the_quick_tiers_user_errors_are_listed_ones():
+    assert set(USER_ERRORS_QUICK) <= set(USER_ERRORS), set(USER_ERRORS_QUICK) - set(USER_ERRORS)
 
 
 def test_compare_may_allow_a_partial_selection_on_purpose(tmp_path):
