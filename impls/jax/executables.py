@@ -143,8 +143,9 @@ def serialize(compiled, executable_bytes: bytes | None = None) -> tuple:
             return super().persistent_id(obj)
 
     unloaded = getattr(compiled._executable, "_unloaded_executable", None)
-    if unloaded is None or compiled._params.const_args:
-        raise ValueError("this compilation does not serialize")
+    if (unloaded is None or compiled._params.const_args
+            or (getattr(unloaded, "mut", None) and unloaded.mut.in_mut)):
+        raise ValueError("this compilation does not serialize")  # (where jax's own serialize refuses)
     args_info_flat, in_tree = jax.tree_util.tree_flatten(compiled.args_info)
     with io.BytesIO() as file:
         Pickler(file).dump((unloaded, args_info_flat, compiled._no_kwargs))
