@@ -305,3 +305,43 @@ def test_a_loaded_executable_serializes_only_from_the_bytes_it_was_loaded_from()
     assert broken is None
     again = serialize_executable.deserialize_and_load(*executables.serialize(loaded, raw), execution_devices=[cpu])
     np.testing.assert_array_equal(np.asarray(again(x)), want)
+
+
+def test_the_store_drops_its_least_recently_used_entries_past_its_size(tmp_path, monkeypatch):
+    """Every edit of isobench's code changes every key, and a warm run stores its kernels anew:
+    past ``max_bytes`` a save removes the entries used longest ago (a load marks its entry used)
+    down to ``PRUNE_TO`` of it, with their ``.checked`` markers; ``.refused`` markers stay."""
+    import os
+
+    store = executables.KernelStore(tmp_path, max_bytes=1000)
+    for i, key in enumerate("abcdef"):
+        (tmp_path / f"{key}.bin").write_bytes(b"x" * 200)  # 1,200 bytes in all
+        os.utime(tmp_path / f"{key}.bin", (1000 + i, 1000 + i))  # a oldest … f newest
+    (tmp_path / "a.checked").write_bytes(b"")
+    (tmp_path / "b.refused").write_bytes(b"")
+    os.utime(tmp_path / "b.bin", (2000, 2000))  # b used last
+    assert store.prune() == 600  # to ≤ 750 bytes: a, c, d go (the oldest), b (used) stays
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.bin", "b.refused", "e.bin", "f.bin"]
+    assert store.prune() == 0  # within the bound: nothing more
+    # a load marks its entry used (the load itself fails on these bytes: a damaged entry, removed)
+    assert executables.KernelStore(tmp_path).load("e", None) is None and not (tmp_path / "e.bin").exists()
+
+
+@pytest.mark.slow  # compiles jax kernels
+def test_a_loaded_entry_is_the_last_to_be_pruned(tmp_path):
+    import os
+
+    store = executables.KernelStore(tmp_path)
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0 + 9 * FRESH)
+    _run(_backend(store), scene)
+    (entry,) = tmp_path.glob("*.bin")
+    os.utime(entry, (1000, 1000))
+    _run(_backend(store), scene)  # loaded from the store
+    assert entry.stat().st_mtime > 1000
+    size = entry.stat().st_size
+    old = tmp_path / "0.bin"
+    old.write_bytes(b"x" * size)
+    os.utime(old, (1000, 1000))
+    # 2 × size past 1.5 × size: pruned to 1.125 × size, the entry not loaded since goes
+    assert executables.KernelStore(tmp_path, max_bytes=int(1.5 * size)).prune() == size
+    assert entry.exists() and not old.exists()

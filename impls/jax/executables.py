@@ -75,6 +75,18 @@ FORMAT = 2
 #: float64 with their per-ray outputs are ~0.1 MB
 EXAMPLE_BYTES = 4 << 20
 
+#: the store's size (bytes of its entries) past which a save removes the least recently used
+#: entries (:meth:`KernelStore.prune`).  Every edit of ``impls/`` or ``reference/`` changes every
+#: key, and a warm run stores its kernels anew under the new ones (a quick run's timed kernels and
+#: the tests' untimed ones are ~0.3 GB each), so without a bound the store grows by that much per
+#: edit; 2 GiB keeps the last few versions of the code
+MAX_BYTES = 2 << 30
+#: what a prune leaves, as a share of :data:`MAX_BYTES` (so that it does not run at every save)
+PRUNE_TO = 0.75
+#: bytes a store object writes between two looks at the store's size (a look reads every entry's
+#: size: ~15 ms for 2,000 entries, once per save in a cold run of ~120 kernels was 1.6 s)
+PRUNE_EVERY = 128 << 20
+
 #: top-level packages whose classes, functions and globals may appear in a scene's pickle
 _OWN = ("reference", "impls")
 _TRUSTED = _OWN + ("numpy", "builtins", "copyreg", "_codecs", "collections")
@@ -229,10 +241,43 @@ def kernel_key(backend, method: str, scene, t_range, extra: dict, static: dict, 
 
 
 class KernelStore:
-    """Executables under ``root`` by :func:`kernel_key`."""
+    """Executables under ``root`` by :func:`kernel_key`, at most ``max_bytes`` of them (the least
+    recently used go first: :meth:`prune`)."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, max_bytes: int = MAX_BYTES):
         self.root = Path(root)
+        self.max_bytes = max_bytes
+        self._unpruned = PRUNE_EVERY  # bytes written since the last prune: the first save looks
+
+    def prune(self) -> int:
+        """Remove the least recently used entries (a load marks its entry used: its modification
+        time) while the entries take more than ``max_bytes``, down to :data:`PRUNE_TO` of it; an
+        entry's ``.checked`` marker goes with it (``.refused`` markers stay: empty files that keep
+        a failed key from being stored again).  Returns the bytes removed.  Another process
+        removing or writing entries meanwhile costs nothing but a miss."""
+        entries = []
+        try:
+            with os.scandir(self.root) as it:
+                for e in it:
+                    if e.name.endswith(".bin"):
+                        try:
+                            st = e.stat()
+                        except OSError:
+                            continue
+                        entries.append((st.st_mtime, st.st_size, e.name))
+        except OSError:
+            return 0
+        total = sum(size for _, size, _ in entries)
+        if total <= self.max_bytes:
+            return 0
+        removed = 0
+        for _, size, name in sorted(entries):
+            if total - removed <= PRUNE_TO * self.max_bytes:
+                break
+            _unlink(self.root / name)
+            _unlink(self._checked(name[: -len(".bin")]))
+            removed += size
+        return removed
 
     def _path(self, key: str) -> Path:
         return self.root / f"{key}.bin"
@@ -268,6 +313,10 @@ class KernelStore:
             _unlink(path)
             _unlink(self._checked(key))
             return None
+        try:
+            os.utime(path)  # used now: the last to go when the store is pruned
+        except OSError:
+            pass
         if entry.get("example") is None or self._checked(key).exists():
             return loaded
         args, want = entry["example"]
@@ -319,6 +368,10 @@ class KernelStore:
             self.root.mkdir(parents=True, exist_ok=True)
             _unlink(self._checked(key))  # (a marker left by an entry this one replaces)
             _write_atomically(self._path(key), blob)
+            self._unpruned += len(blob)
+            if self._unpruned >= PRUNE_EVERY:
+                self._unpruned = 0
+                self.prune()
             return True
         except Exception:  # noqa: BLE001 - an unserializable executable or a full disk: not stored
             return False
