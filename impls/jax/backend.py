@@ -475,7 +475,7 @@ class JaxBackend(ArrayBackend):
                     # trace registers the call's target) — at the kernel's first call, whose outputs
                     # are the ones the entry is checked against (computing them here was one more
                     # run of every kernel a cold run compiled)
-                    cached = self._cached_bytes if self.last_compile_cache == "reused" else None
+                    cached = self._cached_bytes  # (None where XLA compiled it here)
                     if (stored is not None and traced_calls() == host_calls
                             and (self.last_compile_cache != "reused" or cached is not None)):
                         compiled = _SavedAtFirstCall(compiled, functools.partial(
