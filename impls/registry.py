@@ -82,6 +82,10 @@ def _checked_plugin(obj: Any, spec: str, own: str | None = None) -> Any:
     try:
         bid = getattr(obj, "id", None)
         problem = id_problem(bid)
+        # read again: every later use reads it anew, and an id that changes between reads passed
+        # this check as one name and ran (and was reported) as a built-in's
+        if problem is None and any(getattr(obj, "id", None) != bid for _ in range(2)):
+            problem = f"its id {bid!r} changes from one read to the next (make `id` a plain attribute)"
         if problem is None:
             lib = bid.partition(":")[0]
             eps = _entry_points()

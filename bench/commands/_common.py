@@ -80,6 +80,7 @@ def resolve_backends(ids: list[str], threads: int, flag: str = "--backend", spec
     by} for other processes."""
     from impls import registry
 
+    from ..run import interrupts
     from ..run.environment import configure_driver
 
     backends: dict = {}
@@ -92,9 +93,15 @@ def resolve_backends(ids: list[str], threads: int, flag: str = "--backend", spec
         backends[key], given[key] = b, spec
     if specs is not None:
         specs.update(given)
-    for b in backends.values():
+    for key, b in list(backends.items()):
         if not isinstance(b, registry.Unavailable):
-            configure_driver(b, threads)
+            try:
+                configure_driver(b, threads)
+            except BaseException as exc:  # a plug-in's settings or configure(): its fault, not the run's
+                if not interrupts.is_fault(exc):
+                    raise
+                backends[key] = registry.Unavailable(key, f"{given[key]}: configuring its loop driver (settings, "
+                                                          f"configure(threads=…)) raised {type(exc).__name__}: {exc}")
     unknown = [b for b in backends.values() if isinstance(b, registry.Unavailable) and b.unknown]
     if unknown:
         return None, f"{flag}: " + "; ".join(b.reason for b in unknown)

@@ -238,7 +238,8 @@ def _run(args, held: list) -> int:
     _precheck(args)
     cases = _select(args, suite)
     run_id = plan.new_run_id()
-    out = Path(args.out) if args.out else DEFAULT_REPORTS / run_id
+    # absolute: a backend's os.chdir must not move where the run writes (or its in-flight note)
+    out = (Path(args.out) if args.out else DEFAULT_REPORTS / run_id).absolute()
     try:  # this process is the run directory's one writer from here on (bench.run.rundir)
         held.append(claim_out(out, resume=args.resume))
     except ValueError as exc:  # OutError, LockHeld

@@ -369,10 +369,11 @@ class ClusterExecutor:
         return out
 
     def retime_rounds(self, rows: list[dict], todo: list, rounds: int, run_id: str, policy: TimingPolicy,
-                      progress, counts: dict) -> None:
+                      progress, counts: dict, inflight=None) -> None:
         """``--rounds``: rounds 2… of every measured configuration, each on the worker that
         measured it first, one task per worker at a time, pooled into its rows with that worker's
-        closed-form unit (:func:`bench.run.cluster_jobs.retime_rounds`)."""
+        closed-form unit (:func:`bench.run.cluster_jobs.retime_rounds`).  (``inflight``: unused,
+        the workers' processes are watched by the cluster.)"""
         retime_rounds(self, rows, todo, rounds, run_id, policy, progress, counts)
 
     def env_record(self, previous: dict | None = None) -> dict[str, str]:

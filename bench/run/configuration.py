@@ -23,8 +23,8 @@ from reference.cases import freeze_arrays
 from reference.quadric import ray_sphere_roots
 
 from . import environment, interrupts, references
-from .contract import (BackendFault, backend_call, backend_dtypes, backend_methods, check_result, compile_seconds,
-                       library_state_kept, result_arrays, status_counts)
+from .contract import (BackendFault, answers_differ, backend_call, backend_dtypes, backend_methods, check_result,
+                       compile_seconds, library_state_kept, owned, result_arrays, status_counts)
 from .metrics import measure_accuracy, primary_quantity
 from .plan import Config, applies
 from .results import OVER_BUDGET, SCHEMA_VERSION, knob_string
@@ -221,10 +221,23 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
             # timing samples above are untouched (each timed call synchronised already)
             raw = result_arrays(raw)
             result_s = time.perf_counter() - started
+            later = None
+            if timing.last_out is not None and timing.last_out is not out:
+                # the last timed call's answer, to check below that the calls timed computed the
+                # answer the first call's accuracy judges (copied first: its buffers may be reused)
+                raw = owned(raw)
+                later = result_arrays(backend_call(backend, "Prepared.result(out)",
+                                                   lambda: prep.result(timing.last_out)))
             compile_s = compile_seconds(prep)
             compile_cache = getattr(prep, "compile_cache", None)
         res = check_result(raw, case.n_rays, tuple(spec.outputs), scene=case.scene, who=cfg.backend_id,
-                           dtype=cfg.dtype, t_range=(case.t_min, case.t_max) if spec.family == "root" else None)
+                           dtype=cfg.dtype, t_range=(case.t_min, case.t_max) if spec.family == "root" else None,
+                           evaluates=spec.family == "root" and spec.libs != ())
+        differ = answers_differ(raw, later, cfg.dtype) if later is not None else ""
+        if differ:
+            raise BackendFault(f"the timed calls did not give the answer of the checked (first) call: {differ}; every "
+                               "call of Prepared.run() must compute the method's answer anew (docs/backends.md), so "
+                               "this row's time and accuracy cannot stand")
         counts = status_counts(res.status)
         quantities = measure_accuracy(spec, res, case, cfg.dtype, cfg.knobs, cache)
     except Timeout as exc:
@@ -314,11 +327,13 @@ def run_budgeted(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, c
 def retime(cfg: Config, backend: Any, policy: TimingPolicy) -> list[float] | str:
     """Timing samples of one more round for ``cfg`` (prepared afresh, compile excluded), or the
     error message when this round failed."""
-    try:
-        with time_limit(policy.timeout_s):
+    try:  # (the library settings put back after it, as after the first round: run_one)
+        with library_state_kept(), time_limit(policy.timeout_s):
             _, timing, _ = _prepare_and_time(cfg, backend, policy)
         return timing.samples_s
-    except (Exception, SystemExit, Timeout) as exc:
+    except BaseException as exc:  # the backend's fault is this round's note, not the run's end
+        if not isinstance(exc, Timeout) and not interrupts.is_fault(exc):
+            raise
         return f"{type(exc).__name__}: {exc}"
 
 

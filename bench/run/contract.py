@@ -6,6 +6,7 @@ the backend that configuration's row and nothing else."""
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 from typing import Any, Callable, Iterator
 
@@ -28,9 +29,18 @@ def library_state_kept() -> Iterator[None]:
     """Run a configuration and then put back the process-wide settings a backend's code can change
     for every row after its own: numpy's floating-point error handling (a plug-in's
     ``np.seterr(all="raise")`` made numpy's own rows fail with FloatingPointError), torch's default
-    dtype and thread count, jax's ``jax_enable_x64``.  Libraries not yet imported are not imported.
+    dtype and thread count, jax's ``jax_enable_x64``; and the interpreter's: the working directory
+    (a plug-in's ``os.chdir`` moved a relative ``--out``), the recursion limit (60 made the results
+    write fail, losing every row), ``sys.stdout`` and ``sys.stderr`` (one closed or replaced lost
+    the run's progress and report lines).  Libraries not yet imported are not imported.
     Within the configuration the change stands, so it costs that configuration's rows at most."""
     err = np.geterr()
+    try:
+        cwd = os.getcwd()
+    except OSError:  # (a directory removed under the process: nothing to go back to)
+        cwd = None
+    recursion = sys.getrecursionlimit()
+    streams = (sys.stdout, sys.stderr)
     torch, jax = sys.modules.get("torch"), sys.modules.get("jax")
     try:  # (a stand-in module in sys.modules, as tests plant, is left alone)
         torch_state = (torch.get_default_dtype(), torch.get_num_threads()) if torch is not None else None
@@ -44,6 +54,7 @@ def library_state_kept() -> Iterator[None]:
         yield
     finally:
         np.seterr(**err)
+        _restore_interpreter(cwd, recursion, streams)
         if torch_state is not None:
             if torch.get_default_dtype() != torch_state[0]:
                 torch.set_default_dtype(torch_state[0])
@@ -51,6 +62,29 @@ def library_state_kept() -> Iterator[None]:
                 torch.set_num_threads(torch_state[1])
         if x64 is not None and bool(jax.config.jax_enable_x64) != x64:
             jax.config.update("jax_enable_x64", x64)
+
+
+def _restore_interpreter(cwd: str | None, recursion: int, streams: tuple) -> None:
+    """Put back what :func:`library_state_kept` saved of the interpreter; a stream the backend
+    closed is opened again on its file descriptor (which closing ``sys.stdout`` leaves open)."""
+    if cwd is not None:
+        try:
+            os.chdir(cwd)
+        except OSError:  # (removed meanwhile: the backend's doing; nothing to go back to)
+            pass
+    if sys.getrecursionlimit() != recursion:
+        sys.setrecursionlimit(recursion)
+    for name, saved in zip(("stdout", "stderr"), streams):
+        now = getattr(sys, name)
+        if now is saved and not getattr(saved, "closed", False):
+            continue
+        if getattr(saved, "closed", False):
+            try:
+                saved = open(1 if name == "stdout" else 2, "w", encoding=getattr(saved, "encoding", None) or "utf-8",
+                             errors="backslashreplace", closefd=False, buffering=1)
+            except (OSError, ValueError):
+                continue
+        setattr(sys, name, saved)
 
 
 def backend_call(backend: Any, what: str, fn: Callable[[], Any]) -> Any:
@@ -170,17 +204,22 @@ def _shape_text(shape: tuple) -> str:
 
 
 def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = None,
-                 who: str = "the backend", dtype: str | None = None, t_range: tuple | None = None) -> RayResult:
+                 who: str = "the backend", dtype: str | None = None, t_range: tuple | None = None,
+                 evaluates: bool = False) -> RayResult:
     """The per-ray contract, checked on what a backend's ``Prepared.result`` returned, which is
     user code: ``t``, ``status``, ``iterations``, ``evals`` arrays of shape (n,) and real dtype;
     ``status`` integer codes of :class:`impls.protocol.Status`; ``iterations``/``evals`` whole
     counts in [0, :data:`COUNT_MAX`]; ``outputs`` a dict holding every declared output with its whole shape
     (:data:`OUTPUT_SHAPES`, e.g. ``normal`` (n, 3); dt/dθ's columns those of ``scene``'s
     parameters) and a numeric dtype; no silent NaN (a non-finite ``t`` or output row on a ray whose
-    status is CONVERGED).  With ``dtype`` "float64": ``t`` and real outputs at least float64 (a
-    float32 answer is no float64 row).  With ``t_range`` (t_min, t_max; root finders): a CONVERGED
-    ``t`` within it (to 4 spacings of the dtype at t) and a MISS's ``t`` = inf (the status
-    table).  ``res`` may be what :func:`result_arrays` made of it (the runner converts inside the
+    status is CONVERGED).  With ``dtype``: ``t`` and real outputs computed in it (:func:`_check_precision`:
+    a float32 answer is no float64 row, a float64 one no float32 row).  With ``t_range`` (t_min,
+    t_max; root finders): a CONVERGED ``t`` within it (to 4 spacings of the dtype at t) and a
+    MISS's ``t`` = inf (the status table).  With ``evaluates`` (a root finder that evaluates φ, as
+    every method an array library runs does): at least one evaluation counted on every CONVERGED
+    ray, since a bracket or φ = 0 needs one (a plug-in counting none won "which to pick" on
+    evaluations in an accuracy-only run); the counts are otherwise the backend's own, not
+    verified.  ``res`` may be what :func:`result_arrays` made of it (the runner converts inside the
     time limit); ``who`` names the backend in a shape error.  Returns a clean
     :class:`RayResult` of numpy arrays (``t`` float64, counts int64); raises :class:`BackendFault`
     (a ValueError) naming the offending array."""
@@ -189,6 +228,9 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
     _check_precision(t, "t", dtype)
     t = t.astype(np.float64)
     status = _array(arrays, "status", n)
+    if status.dtype.kind == "b":
+        raise BackendFault("result status has dtype bool; status codes are the integers of impls.protocol.Status "
+                           "(e.g. Status.CONVERGED, Status.MISS)")
     if status.dtype.kind == "f":
         if not np.all(np.isfinite(status)) or np.any(status != np.round(status)):
             raise BackendFault(f"result status holds non-integer values (dtype {status.dtype}); status codes are "
@@ -211,6 +253,10 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
                                f"max {np.max(a)}" + (", not whole numbers" if fraction else ""))
         counts[name] = a.astype(np.int64)
     conv = status == Status.CONVERGED
+    if evaluates and np.any(conv & (counts["evals"] < 1)):
+        k = int(np.sum(conv & (counts["evals"] < 1)))
+        raise BackendFault(f"{k} rays are CONVERGED with no evaluation of φ counted (evals 0): a root finder's hit "
+                           "needs at least one; count every evaluation in evals (docs/backends.md)")
     nbad = int(np.sum(conv & ~np.isfinite(t)))
     if nbad:
         raise BackendFault(f"silent NaN: {nbad} rays have non-finite t with status CONVERGED")
@@ -228,8 +274,9 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
         elif a.ndim != len(want) or any(w is not None and g != w for g, w in zip(a.shape, want)):
             raise BackendFault(f"wrong shape: output {name} of {who} has shape {a.shape}, expected "
                                f"{_shape_text(want)} ({n} rays; impls.protocol.RayResult gives each output's shape)")
-        if a.dtype.kind not in "biufc":
-            raise BackendFault(f"output {name} has dtype {a.dtype}, expected numbers")
+        if a.dtype.kind not in "biuf":
+            # (complex: the metrics' float64 conversion would drop the imaginary part and judge the rest)
+            raise BackendFault(f"output {name} has dtype {a.dtype}, expected real numbers")
         _check_precision(a, f"output {name}", dtype)
         nbad = int(np.sum(conv & ~finite_rows(a)))
         if nbad:
@@ -238,11 +285,31 @@ def check_result(res: Any, n: int, outputs: tuple[str, ...], *, scene: Any = Non
 
 
 def _check_precision(a: np.ndarray, what: str, dtype: str | None) -> None:
-    """A float64 configuration's real arrays hold float64 (or wider): a float32 answer under a
-    float64 label would be compared, ranked and baselined as float64's accuracy."""
-    if dtype == "float64" and a.dtype.kind in "fc" and np.finfo(a.dtype).bits < 64:
+    """A configuration's real arrays hold what its dtype computes: in a float64 configuration
+    float64 (or wider), since a float32 answer under a float64 label would be compared, ranked and
+    baselined as float64's accuracy; in a float32 one float32, or a wider dtype holding only values
+    float32 represents exactly (a float32 answer widened), since a float64 answer under a float32
+    label makes float32's accuracy and its scoreboard look like float64's, and a float16 one is
+    not float32's either."""
+    if a.dtype.kind != "f" or dtype not in ("float32", "float64"):
+        return
+    bits = np.finfo(a.dtype).bits
+    if dtype == "float64" and bits < 64:
         raise BackendFault(f"result {what} has dtype {a.dtype} in a float64 configuration: compute in float64, "
                            "or declare only the dtypes the backend computes in (capabilities.dtypes)")
+    if dtype == "float32" and bits < 32:
+        raise BackendFault(f"result {what} has dtype {a.dtype} in a float32 configuration: compute in float32, "
+                           "or declare only the dtypes the backend computes in (capabilities.dtypes)")
+    if dtype == "float32" and bits > 32:
+        with np.errstate(over="ignore", invalid="ignore"):
+            narrow = a.astype(np.float32).astype(a.dtype)
+        wider = ~((narrow == a) | (np.isnan(a) & np.isnan(narrow)))
+        if wider.any():
+            i = np.unravel_index(int(np.flatnonzero(wider.reshape(-1))[0]), a.shape)
+            raise BackendFault(f"result {what} holds values float32 cannot represent in a float32 configuration "
+                               f"({int(wider.sum())} of them; at {tuple(int(k) for k in i)}: {a[i].item()!r}): it was computed "
+                               "in a wider dtype; compute in float32 (a float32 answer may be returned widened), or "
+                               "declare only the dtypes the backend computes in (capabilities.dtypes)")
 
 
 def _check_range(t: np.ndarray, status: np.ndarray, t_range: tuple, dtype: str | None) -> None:
@@ -262,6 +329,49 @@ def _check_range(t: np.ndarray, status: np.ndarray, t_range: tuple, dtype: str |
         i = int(np.flatnonzero(miss)[0])
         raise BackendFault(f"{int(miss.sum())} rays are MISS with t ≠ inf (ray {i}: t = {t[i]!r}); a MISS has t = inf "
                            "(impls.protocol.Status, docs/backends.md)")
+
+
+#: how far a timed call's real numbers may lie from the checked call's, in spacings of the
+#: configuration's dtype at the larger of the two: a device's reductions may round in another order
+#: from call to call; a backend that answers differently beyond that computes something else
+CALL_ULPS = 64
+
+
+def owned(res: RayResult) -> RayResult:
+    """``res`` (numpy arrays, :func:`result_arrays`) with every array copied: a backend whose
+    ``result`` returns views of buffers its next call overwrites cannot change it."""
+    return RayResult(t=np.array(res.t), status=np.array(res.status), iterations=np.array(res.iterations),
+                     evals=np.array(res.evals), outputs={k: np.array(v) for k, v in res.outputs.items()})
+
+
+def answers_differ(first: RayResult, later: RayResult, dtype: str | None) -> str:
+    """Where a later (timed) call's answer differs from the first (checked) call's, as a phrase, or
+    "": statuses and counts exactly, real numbers to :data:`CALL_ULPS` spacings of ``dtype`` (NaN
+    equals NaN).  The timed calls are what a row's time claims; the first call is what its
+    accuracy judges, so they must be one answer (a plug-in that computed once, then returned
+    garbage fast was picked at ×0.001 with numpy's errors: the 2026-12-01 plug-in probe).  A
+    backend that returns a remembered answer to the same inputs is not caught by this."""
+    eps = float(np.finfo(np.float32 if dtype == "float32" else np.float64).eps)
+    pairs = [(n, getattr(first, n), getattr(later, n)) for n in ("t", "status", "iterations", "evals")]
+    pairs += [(f"output {k}", v, later.outputs.get(k)) for k, v in first.outputs.items()]
+    for name, a, b in pairs:
+        if b is None:
+            return f"{name} is missing from a timed call's result"
+        a, b = np.asarray(a), np.asarray(b)
+        if a.shape != b.shape:
+            return f"{name} has shape {a.shape} in the checked call, {b.shape} in a timed one"
+        if a.dtype.kind == "f" or b.dtype.kind == "f":
+            x, y = a.astype(np.float64), b.astype(np.float64)
+            with np.errstate(invalid="ignore", over="ignore"):
+                same = (x == y) | (np.isnan(x) & np.isnan(y)) | (
+                    np.abs(x - y) <= CALL_ULPS * eps * np.maximum(np.abs(x), np.abs(y)))
+        else:
+            same = a == b
+        if not np.all(same):
+            i = np.unravel_index(int(np.flatnonzero(~np.asarray(same).reshape(-1))[0]), a.shape)
+            return (f"{name} differs on {int(np.size(same) - np.count_nonzero(same))} of {np.size(same)} values "
+                    f"(at {tuple(int(k) for k in i)}: {a[i].item()!r} checked, {b[i].item()!r} timed)")
+    return ""
 
 
 def status_counts(status: np.ndarray) -> dict[str, int]:

@@ -100,12 +100,16 @@ def untimed_backend(backend):
 def driver_record(backend) -> str:
     """``backend.settings.record()`` as JSON (the loop driver's settings, recorded with every row);
     "" for a backend that states none, or whose record fails (a plug-in's fault is not the run's)."""
-    settings = getattr(backend, "settings", None)
-    if settings is None or not callable(getattr(settings, "record", None)):
-        return ""
+    from . import interrupts
+
     try:
+        settings = getattr(backend, "settings", None)
+        if settings is None or not callable(getattr(settings, "record", None)):
+            return ""
         return json.dumps(settings.record(), sort_keys=True)
-    except Exception:  # noqa: BLE001 - untrusted plug-in code
+    except BaseException as exc:  # noqa: BLE001 - untrusted plug-in code (its own KeyboardInterrupt too)
+        if not interrupts.is_fault(exc):
+            raise
         return ""
 
 

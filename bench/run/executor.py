@@ -41,10 +41,12 @@ class Executor(Protocol):
         ...
 
     def retime_rounds(self, rows: list[dict], todo: list[Config], rounds: int, run_id: str, policy: TimingPolicy,
-                      progress: Callable[..., None] | None, counts: dict) -> None:
+                      progress: Callable[..., None] | None, counts: dict, inflight=None) -> None:
         """``--rounds``: rounds 2… of every measured configuration of ``todo``, their samples
         pooled into ``rows`` (:func:`bench.run.configuration.pool`) with the closed-form unit
-        of the same process."""
+        of the same process.  ``inflight`` (the run's in-flight note, where the configurations
+        run in this process): told each configuration as it is timed again, so that a crash or a
+        native hang in a later round is seen by the supervising process as in the first."""
         ...
 
     def closed_form_samples(self) -> dict[str, list[float]]:
@@ -93,7 +95,7 @@ class InProcessExecutor:
                 on_start(j)
             yield (j, *self.run_config(run_id, cfg, backends, policy, ref_cache, budget_s, deadline))
 
-    def retime_rounds(self, rows, todo, rounds, run_id, policy, progress, counts):
+    def retime_rounds(self, rows, todo, rounds, run_id, policy, progress, counts, inflight=None):
         index: dict[tuple, list[int]] = {}
         for j, r in enumerate(rows):
             if r.get("outcome") == "ok" and r.get("run_id") == run_id:
@@ -107,7 +109,11 @@ class InProcessExecutor:
                 if progress:
                     progress(i, len(todo_ok), f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.method}",
                              counts)
+                if inflight is not None:
+                    inflight.start(cfg, f"round {rnd}/{rounds}: {cfg.case.id} {cfg.backend_id} {cfg.dtype} {cfg.method}")
                 extra = retime(cfg, self._backends[cfg.backend_id], policy)
+                if inflight is not None:
+                    inflight.end(cfg)
                 for j in index[tuple(map(str, cfg.key))]:
                     pool(rows[j], extra, float(np.median(samples)))
 

@@ -36,7 +36,7 @@ from .resume import check_case_versions, kept_rows, load_previous, outcome_count
 from .sharing import SharingExecutor
 from .suites import Suite
 from .supervise import INFLIGHT, hung_reason, read_note
-from .timing import TimingPolicy
+from .timing import Timeout, TimingPolicy, time_limit
 
 __all__ = ["CONFIG_KEY", "Config", "Interrupted", "RunOptions", "new_run_id", "plan", "run"]
 
@@ -103,15 +103,24 @@ class RunOptions:
             raise ValueError(f"--budget must be a finite number of seconds ≥ 0, got {self.budget_s}")
 
 
+#: seconds a backend's versions() may take (it reads version strings; a plug-in's that hung held
+#: the run before its first row, past any --timeout)
+VERSIONS_LIMIT_S = 60.0
+
+
 def _versions(bid: str, backend: Any) -> dict[str, str]:
-    """``backend.versions()`` as recorded in environment.json; a versions() that raises or
-    returns something else is recorded as such (the run goes on)."""
+    """``backend.versions()`` as recorded in environment.json; a versions() that raises (anything
+    but a Ctrl-C), runs past :data:`VERSIONS_LIMIT_S` or returns something else is recorded as
+    such (the run goes on).  One that ends the process (``os._exit``, a crash) is not caught."""
     try:
-        got = backend.versions()
-        if not isinstance(got, dict):
-            raise TypeError(f"returned {type(got).__name__}, expected a dict of library → version")
-        return {f"backend.{bid}.{k}": str(v) for k, v in got.items()}
-    except (Exception, SystemExit) as exc:
+        with time_limit(VERSIONS_LIMIT_S, "a backend's versions()"):
+            got = backend.versions()
+            if not isinstance(got, dict):
+                raise TypeError(f"returned {type(got).__name__}, expected a dict of library → version")
+            return {f"backend.{bid}.{k}": str(v) for k, v in got.items()}
+    except BaseException as exc:  # noqa: BLE001 - a plug-in's code: whatever it raises is recorded
+        if not isinstance(exc, Timeout) and not interrupts.is_fault(exc):
+            raise
         return {f"backend.{bid}.versions_error": f"{type(exc).__name__}: {exc}"[:300]}
 
 
@@ -325,7 +334,12 @@ def _run(suite, backends, out_dir, options, progress, option_values):
     # plan order, as the plan lists them (an executor's completion order may differ)
     rows[kept:] = [r for _, got in sorted(finished, key=lambda jg: jg[0]) for r in got]
     if opts.rounds > 1 and not opts.policy.accuracy_only and not interrupted:
-        executor.retime_rounds(rows, todo, opts.rounds, run_id, opts.policy, progress, dict(counts))
+        writer.flush()  # the first round's rows on disk before any later round can end the process
+        try:
+            executor.retime_rounds(rows, todo, opts.rounds, run_id, opts.policy, progress, dict(counts),
+                                   inflight=inflight)
+        finally:
+            inflight.clear()
         write_results(to_frame(rows), out_dir)
     env.update(executor.env_record(env))
     if progress:

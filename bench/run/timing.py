@@ -50,6 +50,9 @@ class Timing:
     samples_s: list[float]
     loops: int = 1
     unit_s: float | None = None
+    #: the output of the last timed call after the first (None where the first call was the only
+    #: one): the runner checks that it is the first call's answer (the one whose accuracy is measured)
+    last_out: Any = dataclasses.field(default=None, repr=False, compare=False)
 
     @property
     def median_s(self) -> float:
@@ -143,7 +146,8 @@ UNIT_CALLS = 3
 def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingPolicy = TimingPolicy(),
             unit: Callable[[], Any] | None = None) -> tuple[Timing, Any]:
     """Time ``run`` (each call followed by ``sync(out)``); returns the timing and the first call's
-    output (the one whose accuracy is measured).
+    output (the one whose accuracy is measured); ``Timing.last_out`` is the last timed call's, for
+    the caller to check that the calls timed computed that answer too.
 
     ``unit`` (host work, not synchronised: the closed-form unit of
     :func:`bench.run.configuration.closed_form_time`) is called :data:`UNIT_CALLS` times right
@@ -156,13 +160,14 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
         return Timing(first_call_s=first, samples_s=[first], loops=1), out
     before = call_times(unit, UNIT_CALLS) if unit is not None else []
     loops = 1
+    last = None
     if not policy.warmup and first >= max(policy.min_sample_s, policy.min_time_s / policy.min_repeats):
         samples, total = [first], first  # a long first call of a backend warm after it: the first sample
     else:
         for _ in range(policy.warmup if first < policy.warm_after_s else 0):
             _timed(run, sync, 1)
         while True:  # calibration: double until one sample reaches min_sample_s
-            dt, _ = _timed(run, sync, loops)
+            dt, last = _timed(run, sync, loops)
             if dt >= policy.min_sample_s or loops >= 2 ** 20:
                 break
             loops *= 2
@@ -170,11 +175,11 @@ def measure(run: Callable[[], Any], sync: Callable[[Any], None], policy: TimingP
         total = dt
     while len(samples) < policy.max_repeats and total < policy.max_time_s and (
             len(samples) < policy.min_repeats or total < policy.min_time_s):
-        dt, _ = _timed(run, sync, loops)
+        dt, last = _timed(run, sync, loops)
         samples.append(dt / loops)
         total += dt
     unit_s = float(np.median(before + call_times(unit, UNIT_CALLS))) if unit is not None else None
-    return Timing(first_call_s=first, samples_s=samples, loops=loops, unit_s=unit_s), out
+    return Timing(first_call_s=first, samples_s=samples, loops=loops, unit_s=unit_s, last_out=last), out
 
 
 class Timeout(BaseException):
