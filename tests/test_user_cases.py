@@ -399,3 +399,48 @@ def test_an_edited_user_field_class_is_another_scene(tmp_path):
                        usecols=["case_id", "case_version"], dtype=str).drop_duplicates()
     for cid, version in base.itertuples(index=False):
         assert get_case(cid).version == version, cid
+
+
+class _WrongHitsSphere(Sphere):
+    """A user's unit-sphere field whose closed-form ``first_hit`` is wrong as ``mode`` says (a
+    user's Field subclass: its hits are a claim, checked against the numerical reference)."""
+
+    def __init__(self, mode: str):
+        super().__init__()
+        self.mode = mode
+
+    def _static_spec(self):
+        return {**super()._static_spec(), "mode": self.mode}
+
+    def first_hit(self, o, d, t_min=0.0):
+        t = np.asarray(super().first_hit(o, d, t_min), np.float64)
+        if self.mode == "exit":  # the second crossing: the entry mirrored through the chord's midpoint
+            b = np.einsum("ij,ij->i", o, d)
+            return np.where(np.isfinite(t), -2.0 * b - t, np.inf)
+        if self.mode == "halfmiss":
+            t = t.copy()
+            t[np.flatnonzero(np.isfinite(t))[::2]] = np.inf
+            return t
+        if self.mode == "nan":
+            return np.where(np.arange(t.size) % 3 == 0, np.nan, t)
+        return t[:, None] if self.mode == "shape" else t
+
+
+@pytest.mark.parametrize("mode, words", [("exit", "disagrees with the numerical reference's first crossing"),
+                                         ("halfmiss", "disagrees with the numerical reference's first crossing"),
+                                         ("nan", "first_hit returned NaN on"),
+                                         ("shape", "first_hit returned shape (64, 1), expected (64,)")])
+def test_a_users_closed_form_first_hit_is_checked(mode, words):
+    """Before (the 2026-12-01 user-field probe): a user's ``first_hit`` was taken as the truth: the
+    exit instead of the entry charged a correct backend 2.0 of depth error, inf on every other hit
+    1,512 false hits, a NaN was a judged MISS, an (n, 1) array a numpy broadcast error."""
+    from reference.cases import make_case
+    from reference.rays import pinhole
+    from reference.scene import FieldError
+
+    o, d = pinhole((0, 0, 3), (0, 0, 0), width=8, height=8, fov_deg=50)
+    case = make_case(f"test.wrong.{mode}", _WrongHitsSphere(mode), o, d, t_max=6.0)
+    with pytest.raises(FieldError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        case.exact_t
+    good = make_case("test.wrong.none", _WrongHitsSphere("none"), o, d, t_max=6.0)
+    assert np.isfinite(good.exact_t).sum() > 0

@@ -43,6 +43,29 @@ def test_every_method_agrees_with_numpy(any_backend, method):
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_call_gives_the_first_calls_answer(any_backend, method):
+    """``bench run`` judges a configuration's first call and times the later ones, so they must be
+    one answer (:func:`bench.run.contract.answers_differ`: statuses and counts equal, numbers within
+    64 spacings): a backend whose later calls answer otherwise has its rows failed."""
+    from bench.run.contract import answers_differ, owned, result_arrays
+    from impls.protocol import Declined
+
+    skip_unless_offered(any_backend, method)
+    o, d, t, hit, x = hits(SPHERE, 5)
+    kw = dict(t_max=6.0, t_hit=t if METHODS[method].needs_t_hit else None, **_knobs_for(method))
+    try:
+        prep = any_backend.prepare(method, SPHERE, o, d, dtype="float64", t_min=0.0, **kw)
+    except Declined as exc:
+        pytest.skip(f"{any_backend.id} declines {method}: {exc}")
+    outs = []
+    for _ in range(3):
+        outs.append(prep.run())
+        any_backend.synchronize(outs[-1])
+    first = owned(result_arrays(prep.result(outs[0])))
+    assert answers_differ(first, result_arrays(prep.result(outs[-1])), "float64") == ""
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
 def test_every_method_runs_in_float32(any_backend, method):
     """float32 is a stress dtype: every method runs, returns every output and a valid status, and
     hits are where float64 puts them to float32 accuracy."""
