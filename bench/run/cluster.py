@@ -372,8 +372,7 @@ class ClusterExecutor:
                       progress, counts: dict, inflight=None) -> None:
         """``--rounds``: rounds 2… of every measured configuration, each on the worker that
         measured it first, one task per worker at a time, pooled into its rows with that worker's
-        closed-form unit (:func:`bench.run.cluster_jobs.retime_rounds`).  (``inflight``: unused,
-        the workers' processes are watched by the cluster.)"""
+        closed-form unit (:func:`bench.run.cluster_jobs.retime_rounds`; ``inflight`` unused)."""
         retime_rounds(self, rows, todo, rounds, run_id, policy, progress, counts)
 
     def env_record(self, previous: dict | None = None) -> dict[str, str]:

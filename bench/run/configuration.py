@@ -250,6 +250,22 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
             raise
         return [{**row, "outcome": "failed", "reason": f"{type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc(limit=5)}]
+    timed = _timed_columns(timing, counts, compile_s, compile_cache, result_s, cf_time, policy)
+    rows = []
+    for q in quantities:
+        if "skip" in q:
+            rows.append({**row, **timed, "quantity": q["quantity"], "outcome": "skipped", "reason": q["skip"]})
+        else:
+            rows.append({**row, **timed, **q, "outcome": "ok", "reason": ""})
+    return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
+
+
+def _timed_columns(timing, counts: dict, compile_s, compile_cache, result_s: float, cf_time: float,
+                   policy: TimingPolicy) -> dict:
+    """The columns of a configuration's rows that its timing gives: status counts, first call,
+    compile (``compile_cache``: compiled or reused), the samples' median and spread, and the ratio
+    to the unit measured beside them; NaN under ``--accuracy-only``, and a timing note (the ratio
+    NaN) where ``Prepared.result()`` did work that the timed calls left out."""
     timed = {
         "status_counts": json.dumps(counts, sort_keys=True),
         "first_call_s": timing.first_call_s,
@@ -272,13 +288,7 @@ def _run_one(run_id: str, cfg: Config, backend: Any, policy: TimingPolicy, cf_ti
                                      f"timed run() ({timing.median_s:.3g} s): work done there is not timed "
                                      "(result() should only convert; docs/backends.md), so this time is not "
                                      "comparable; "})
-    rows = []
-    for q in quantities:
-        if "skip" in q:
-            rows.append({**row, **timed, "quantity": q["quantity"], "outcome": "skipped", "reason": q["skip"]})
-        else:
-            rows.append({**row, **timed, **q, "outcome": "ok", "reason": ""})
-    return rows or [{**row, **timed, "outcome": "skipped", "reason": "the method returned nothing that has a reference"}]
+    return timed
 
 
 #: result() slower than this many timed run() calls, and than RESULT_FLOOR_S, does untimed work
