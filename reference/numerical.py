@@ -94,8 +94,29 @@ MAX_PENDING_TOTAL = 1 << 22
 NEAR_WIDEN = 4.0
 
 
+#: points per call of φ (the scan's samples, a pass's subdivision points): memory, since a field's
+#: intermediates scale with the points of a call (a user's MLP of width 256 as a CallableField holds
+#: 256 float64 per point per layer: 0.5 GB a call at this size, where one pass's 4,194,304 samples
+#: in one call took 8.6 GB a layer and the machine's memory)
+POINTS_PER_CALL = 1 << 18
+
+
+def _phi_at(scene, o, d, t):
+    """φ(o + t d) in float64 for rays o, d (k, 3) at depths t (k,) (points (k, 3)) or (k, m) (points
+    (k, m, 3)), in calls of at most :data:`POINTS_PER_CALL` points (whole rays at a time)."""
+    if t.ndim == 1:
+        k, m = t.shape[0], 1
+    else:
+        k, m = t.shape
+    step = max(1, POINTS_PER_CALL // max(m, 1))
+    if k <= step:
+        x = o + t[:, None] * d if t.ndim == 1 else o[:, None, :] + t[:, :, None] * d[:, None, :]
+        return np.asarray(scene.value(x), np.float64)
+    return np.concatenate([_phi_at(scene, o[a:a + step], d[a:a + step], t[a:a + step]) for a in range(0, k, step)])
+
+
 def _phi_along(scene, o, d, rows, t):
-    return np.asarray(scene.value(o[rows] + t[:, None] * d[rows]), np.float64)
+    return _phi_at(scene, o[rows], d[rows], t)
 
 
 def _bisect(scene, o, d, rows, lo, hi, f_lo):
@@ -261,7 +282,7 @@ def _check_repeatable(scene, o, d, ts, f, live) -> None:
     rows = np.flatnonzero(live)[:REPEAT_RAYS]
     if rows.size == 0:
         return
-    again = np.asarray(scene.value(o[rows, None, :] + ts[rows, :, None] * d[rows, None, :]), np.float64)
+    again = _phi_at(scene, o[rows], d[rows], ts[rows])
     first = f[rows]
     L = scene.info.lipschitz if scene.info.lipschitz is not None else 1.0
     mag = _magnitude(scene, o[rows])[:, None]
@@ -289,7 +310,7 @@ def _scan(scene, o, d, t0, t1, n_samples, lipschitz, min_width, all_crossings):
     n = o.shape[0]
     live = t0 <= t1
     ts = _sample_depths(np.where(live, t0, 0.0), np.where(live, t1, 0.0), n_samples, _ray_phase(o, d))
-    f = np.asarray(scene.value(o[:, None, :] + ts[:, :, None] * d[:, None, :]), np.float64)
+    f = _phi_at(scene, o, d, ts)
     bad = ~np.isfinite(f) & live[:, None]
     if bad.any():
         i, j = (int(v[0]) for v in np.nonzero(bad))
@@ -415,7 +436,7 @@ def _bounds_refuted(scene, o, d, t_min, t_max, t0, t1, n_samples) -> bool:
         if not live.any():
             continue
         ts = lo[live, None] + (hi - lo)[live, None] * u[live]
-        f = np.asarray(scene.value(o[live, None, :] + ts[:, :, None] * d[live, None, :]), np.float64)
+        f = _phi_at(scene, o[live], d[live], ts)
         if np.any(f <= 0):
             return True
     return False

@@ -492,3 +492,33 @@ def test_a_field_that_changes_between_evaluations_is_refused():
     tiny = CallableField(lambda x, xp: noisy(x, xp, 1e-17), lipschitz=1.0, name="tests.noisy_within_rounding")
     t, err = first_hit_numeric(tiny, o, d, 0.0, 6.0)
     assert np.all(np.isfinite(t)) and np.all(np.isfinite(err))
+
+
+def test_a_field_is_called_with_a_bounded_number_of_points(monkeypatch):
+    """One pass's samples (4,096 rays × 1,024) went to φ in one call: a user's MLP of width 256
+    held 8.6 GB a layer and the process was killed.  φ is now called with at most
+    POINTS_PER_CALL points (whole rays at a time), and the answers are those of one call, bit for
+    bit: hits, misses, bounds and every crossing."""
+    from reference import numerical as N
+    from reference.rays import pinhole
+
+    sizes = []
+
+    def ball(x, xp):
+        sizes.append(int(np.prod(x.shape[:-1])))
+        return xp.minimum(xp.sqrt(xp.sum(x * x, axis=-1)) - 1.0, _shell_before_sphere(x, xp))
+
+    f = CallableField(ball, lipschitz=1.0, name="tests.counted_ball")
+    o, d = pinhole((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov_deg=40, width=24, height=24)
+    monkeypatch.setattr(N, "POINTS_PER_CALL", 1 << 40)
+    whole = first_hit_numeric(f, o, d, 0.0, 6.0), crossings_numeric(f, o, d, 0.0, 6.0)
+    assert max(sizes) >= 576 * 1024
+    sizes.clear()
+    monkeypatch.setattr(N, "POINTS_PER_CALL", 5000)
+    blocked = first_hit_numeric(f, o, d, 0.0, 6.0), crossings_numeric(f, o, d, 0.0, 6.0)
+    assert max(sizes) <= 5000
+    for a, b in zip(whole[0], blocked[0]):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(whole[1][0], blocked[1][0]):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(whole[1][1], blocked[1][1])
