@@ -295,8 +295,8 @@ def _check_repeatable(scene, o, d, ts, f, live) -> None:
         raise FieldError(
             f"{field_label(scene)} is not repeatable: evaluated twice at the same points it differs by up to "
             f"{float(np.nanmax(np.where(same, 0.0, diff))):.3g} (at x = "
-            f"{np.array2string(o[rows[i]] + ts[rows[i], j] * d[rows[i]], precision=6)}: {first[i, j]!r} then "
-            f"{again[i, j]!r}), beyond its float64 rounding; a first crossing of a field that changes between "
+            f"{np.array2string(o[rows[i]] + ts[rows[i], j] * d[rows[i]], precision=6)}: {float(first[i, j])!r} then "
+            f"{float(again[i, j])!r}), beyond its float64 rounding; a first crossing of a field that changes between "
             "evaluations cannot be certified.  Make φ a deterministic function of x (fix its random state, put "
             "stochastic layers in evaluation mode)")
 
