@@ -119,6 +119,17 @@ def _phi_along(scene, o, d, rows, t):
     return _phi_at(scene, o[rows], d[rows], t)
 
 
+def _phi_active(scene, o, d, rows, t, active, fill):
+    """φ at ``t`` on the ``active`` entries (the bisections' unfinished brackets), ``fill`` on the
+    others: a bracket at adjacent floats is not evaluated again (its value is never read: every
+    update is masked by ``active``)."""
+    if active.all():
+        return _phi_along(scene, o, d, rows, t)
+    f = np.array(fill, np.float64)
+    f[active] = _phi_along(scene, o, d, rows[active], t[active])
+    return f
+
+
 def _bisect(scene, o, d, rows, lo, hi, f_lo):
     """Bisect brackets [lo, hi] (sign change of φ) to adjacent floats, blindly; vectorised.  What
     the search does without a Lipschitz bound (nothing can be certified: which crossing of a
@@ -129,7 +140,7 @@ def _bisect(scene, o, d, rows, lo, hi, f_lo):
         active = (mid != lo) & (mid != hi)
         if not active.any():
             break
-        f = _phi_along(scene, o, d, rows, mid)
+        f = _phi_active(scene, o, d, rows, mid, active, f_lo)
         zero = f == 0
         same = (f > 0) == lo_pos
         lo = np.where(active & same & ~zero, mid, lo)
@@ -374,7 +385,7 @@ def _bisect_leftmost(scene, o, d, br, L, mag, gain, violated, both_sides):
         active = (mid != lo) & (mid != hi)
         if not active.any():
             break
-        f = _phi_along(scene, o, d, r, mid)
+        f = _phi_active(scene, o, d, r, mid, active, flo)
         left = active & (((f > 0) != (flo > 0)) | (f == 0))
         right = active & ~left
         violated[r[active & (lipschitz_violated(flo, f, lo, mid, L, mag[r], gain)
