@@ -69,11 +69,12 @@ def test_driver_settings_are_validated_and_recorded(backend_id):
 
 
 @pytest.mark.slow  # compiles many kernels or sweeps a whole catalog
-@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_newton"])
+@pytest.mark.parametrize("method", ["sphere_trace", "hybrid_secant", "march_newton", "march_bisect"])
 def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     """The jax driver (impls.jax.driver.run_loop: chunks, batches compacted level by level,
     the chunks' capped stragglers finished together) gives the same per-ray results for any
-    chunk size, shrink ratio, last size and cap, including a single uncompacted level."""
+    chunk size, shrink ratio, last size and cap, including a single uncompacted level, with the
+    refinement stages in every level or run once per chunk after them (``park``)."""
     pytest.importorskip("jax")
     import jax
     import jax.numpy as jnp
@@ -92,8 +93,9 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     alg = make_root_finder(method, case.scene, 0.0, 10.0, knobs)
     ev = derivatives.ray_eval(case.scene)
 
-    def run(chunk, ratio, last, cap=1):
-        f = jax.jit(lambda o, d: tracing.run_loop(alg, o, d, ev, chunk=chunk, ratio=ratio, last=last, tail_cap=cap))
+    def run(chunk, ratio, last, cap=1, park=True):
+        f = jax.jit(lambda o, d: tracing.run_loop(alg, o, d, ev, chunk=chunk, ratio=ratio, last=last, tail_cap=cap,
+                                                  park=park))
         return {k: np.asarray(v) for k, v in f(jnp.asarray(o), jnp.asarray(d)).items()}
 
     n = o.shape[0]
@@ -108,14 +110,21 @@ def test_jax_results_do_not_depend_on_chunks_or_levels(method):
     # 2-3 levels per setting, chunks' and stragglers' passes together
     # (impls.jax.driver.level_sizes).  (A fourth setting, whole chunks at ratio 8 down to 4 rays,
     # added 4 levels and no path: 154 s → 123 s for the three methods, empty cache, 2-core machine.)
-    for chunk, ratio, last, cap in ((n, 32, 1, 30), (350, 3, 40, 1), (128, 8, 16, 1000)):
-        got = run(chunk, ratio, last, cap)
+    # (park: the hybrid's and the constant-step marches' refinement once per chunk after the levels,
+    # or in every level; Newton's and sphere tracing's keep the levels either way: search_stages)
+    for chunk, ratio, last, cap, park in ((n, 32, 1, 30, True), (350, 3, 40, 1, False), (128, 8, 16, 1000, True)):
+        got = run(chunk, ratio, last, cap, park)
         for k in ("status", "iterations", "evals"):
             np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}: chunk={chunk} ratio={ratio} last={last} "
-                                                                  f"cap={cap}")
+                                                                  f"cap={cap} park={park}")
         np.testing.assert_array_equal(got["t"], ref["t"])
     assert tracing.level_sizes(1000, 2, 64) == [1000, 500, 250, 125, 64]
     assert tracing.level_sizes(50, 2, 64) == [50]
+    searching = tracing.search_stages(alg)
+    # (the marching and ladder stages search; the refinement and certification are parked)
+    assert searching == (alg.search_stages if method in ("hybrid_secant", "march_bisect") else len(tracing._stages(alg)))
+    assert searching < len(tracing._stages(alg)) or method in ("sphere_trace", "march_newton")
+    assert tracing.search_stages(alg, park=False) == len(tracing._stages(alg))
 
 
 @pytest.mark.parametrize("method", ["hybrid_secant", "march_secant", "march_newton", "march_bisect"])

@@ -1025,6 +1025,14 @@ class MarchRefine(_Search):
         return march + (("step_refine", "step_certify") if self.rule.certifies else ("step_refine",))
 
     @property
+    def search_stages(self) -> int:
+        """The number of leading stages that search for a crossing (marching, then the ladder);
+        the later ones refine and certify the bracket it found.  A masked driver compacts only the
+        searching stages level by level and runs the others once on the whole chunk afterwards
+        (:func:`impls.jax.driver.run_loop`)."""
+        return 2 if self.ladder > 1 else 1
+
+    @property
     def deriv(self) -> bool:
         return self.refiner.deriv
 

@@ -205,7 +205,8 @@ class JaxBackend(ArrayBackend):
             autodiff="both",
             jit=True,
             notes=("methods run under jax.jit; fixed-shape masked loops: lax.map over chunks of rays, each "
-                   "compacted level by level into smaller batches, one lax.while_loop per stage and level; the "
+                   "compacted level by level into smaller batches, one lax.while_loop per stage and level (a root "
+                   "finder's refinement and certification stages, but Newton's, once per chunk after the levels); the "
                    "chunks' stragglers after a capped number of steps of the last level finished together; n rays "
                    "run as the next power of two ≥ max(n, settings.pad) rows, copies of the first ray, whose "
                    "outputs are dropped (sizes: backend.settings, recorded with every result)",
@@ -528,4 +529,4 @@ class JaxBackend(ArrayBackend):
     def run_loop(self, alg, o, d, ev):
         st = self.settings
         return driver.run_loop(alg, o, d, ev, chunk=st.chunk, ratio=st.ratio, last=driver.smallest_level(alg, st),
-                               tail_cap=st.tail_cap)
+                               tail_cap=st.tail_cap, park=bool(st.park))

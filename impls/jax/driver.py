@@ -6,7 +6,8 @@ rays in chunks of ``CHUNK``; within a chunk every stage of the algorithm is a
 (``jnp.where`` on the status), and the batch shrinks by ``RATIO`` from level to level as rays
 finish (the rays still iterating are gathered with ``jnp.nonzero(size=…)``, a static size);
 each chunk's last level stops after ``TAIL_CAP`` steps and the stragglers of all chunks are
-finished together.
+finished together.  The levels compact the stages that search for a crossing; a root finder's
+refinement and certification stages run on the whole chunk after them (``PARK``).
 """
 
 from __future__ import annotations
@@ -52,6 +53,12 @@ LADDER = 0
 # file, tests/test_conformance.py) and tests/test_rootfind_certified.py (-k jax, empty cache) XLA
 # compiled 265 → 235 s.  A power of two pads at most 2× (a padding row costs what ray 0 costs).
 PAD = 64
+# The levels compact only the stages that search for a crossing; a root finder's refinement and
+# certification stages run once on the whole chunk after them (run_loop).  Each level is a copy of
+# the loops of the stages it runs, and XLA:CPU's compile time grows with them; a bracket's
+# refinement takes a few dozen steps on every ray that crossed, no heavy tail for a small level
+# to serve.  Measured side by side (docs/performance.md, "jax's compile time"): the same bits.
+PARK = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,7 +75,10 @@ class MaskedSettings:
     pad:      a batch of n rays runs as :func:`padded_size` ``(n, pad)`` rows, the next power of two
               of at least ``pad`` (copies of the first ray, their results dropped), so that ray sets
               of nearby sizes share one compiled kernel; 0: run n rows as they are.  The catalog's
-              ray counts are powers of two ≥ 64, so its rows run no padding row."""
+              ray counts are powers of two ≥ 64, so its rows run no padding row;
+    park:     1: the levels compact only the stages that search for a crossing, and a root finder's
+              refinement and certification stages run once on the whole chunk after them
+              (:func:`run_loop`); 0: every stage in every level."""
 
     chunk: int = CHUNK
     ratio: int = RATIO
@@ -77,13 +87,17 @@ class MaskedSettings:
     tail_cap: int = TAIL_CAP
     ladder: int = LADDER
     pad: int = PAD
+    park: int = PARK
 
     kind = "masked"
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
             _whole_at_least(type(self).__name__, f.name, getattr(self, f.name),
-                            0 if f.name in ("ladder", "pad") else (2 if f.name == "ratio" else 1))
+                            0 if f.name in ("ladder", "pad", "park") else (2 if f.name == "ratio" else 1))
+        if self.park not in (0, 1):
+            raise ValueError(f"{type(self).__name__}: park must be 0 or 1 (levels for every stage, or for the "
+                             f"searching stages only), got {self.park!r}")
 
     def record(self) -> dict:
         """The settings as recorded with a result: ``{"driver": kind, field: value, …}``."""
@@ -123,12 +137,35 @@ def level_sizes(m: int, ratio: int = RATIO, last: int = LAST) -> list[int]:
     return sizes
 
 
-def _stage_loops(alg, s: dict, o, d, ev, keep: int, cap: int | None) -> dict:
-    """Step the rays of ``s`` stage by stage, each stage while more than ``keep`` of its rays
-    are iterating (and, with ``cap``, for at most ``cap`` steps); other rows keep their values."""
+def _stages(alg) -> tuple[str, ...]:
+    """The stages a masked driver steps: ``alg.masked_stages`` (one step for all of them, every row
+    in progress) where the algorithm has them, else ``alg.stages``."""
+    return getattr(alg, "masked_stages", None) or alg.stages
+
+
+def search_stages(alg, park: bool = True) -> int:
+    """How many leading stages of ``alg`` the levels compact (:func:`_levels`): with ``park``, its
+    searching stages (``alg.search_stages``: marching, the ladder) where it has stages after them
+    (refinement, certification) and its refiner needs no derivative, which then run once on the
+    whole chunk after the levels (:func:`_run`); else all of its stages."""
+    n = len(_stages(alg))
+    if getattr(alg, "deriv", False):
+        # Newton's refinement: a step evaluates φ and dφ/dt, and its safeguarded iterations have a
+        # tail; run on the whole chunk it cost ×1.08–1.24 at 1,024 rays for 0.1–0.2 s of compile
+        # (docs/performance.md), so its refinement keeps the levels
+        return n
+    k = getattr(alg, "search_stages", n) if getattr(alg, "masked_stages", None) is None else n
+    return k if park and 0 < k < n else n
+
+
+def _stage_loops(alg, s: dict, o, d, ev, keep: int, cap: int | None, ks=None) -> dict:
+    """Step the rays of ``s`` stage by stage (the stages of indices ``ks``, default all), each
+    stage while more than ``keep`` of its rays are iterating (and, with ``cap``, for at most
+    ``cap`` steps); other rows keep their values."""
     masked = getattr(alg, "masked_stages", None)  # (one step for all of the stages: every row in progress)
-    for k, name in enumerate(masked or alg.stages):
-        step = getattr(alg, name)
+    names = _stages(alg)
+    for k in (range(len(names)) if ks is None else ks):
+        step = getattr(alg, names[k])
 
         def active(c, k=k):
             return (c["status"] == rootfind.IN) & (True if masked else c["phase"] == k)
@@ -157,63 +194,81 @@ def _gather(s: dict, o, d, mask, size: int):
     return sel, sub, o[g], d[g]
 
 
-def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None = None):
-    """Run the rays of state ``s`` (a batch of ``sizes[0]`` rows, rays ``o``, ``d``); returns
-    ``(outputs, rest)``.
+def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None, searching: int):
+    """Run the searching stages (the first ``searching`` of :func:`_stages`) of the rays of state
+    ``s`` (a batch of ``sizes[0]`` rows, rays ``o``, ``d``); returns ``(state, rest)``.
 
-    This level's loop for stage k runs while more than ``sizes[1]``/(number of stages) rays
-    are in stage k, so at most ``sizes[1]`` rays are left; they are gathered into a batch of
-    that size (``jnp.nonzero`` with a static ``size``; padding rows are marked finished) and
-    run by the next level, skipped (``lax.cond``) when no ray is left; only their outputs are
-    scattered back.  The last level runs every stage to the end (``cap`` None; ``rest`` is
-    None) or for at most ``cap`` steps per stage: ``rest = (idx, state, o, d)`` is then that
-    last batch, ``idx`` its rows' indices in ``s`` (= ``sizes[0]`` for padding), for the
-    caller to finish.  Per-ray results do not depend on the levels: each ray's iteration is
-    independent of the others."""
+    This level's loop for stage k runs while more than ``sizes[1]``/``searching`` rays are in
+    stage k, so at most ``sizes[1]`` rays are left searching; they are gathered into a batch of
+    that size (``jnp.nonzero`` with a static ``size``; padding rows are marked finished) and run
+    by the next level, skipped (``lax.cond``) when no ray is left; their states are scattered
+    back.  The last level runs the searching stages to the end (``cap`` None; ``rest`` is None)
+    or for at most ``cap`` steps per stage: ``rest = (idx, state, o, d)`` is then that last
+    batch, ``idx`` the indices in ``s`` of its rows still searching (= ``sizes[0]`` for the
+    others, whose rows there are marked finished), for the caller to finish.  A ray past the
+    searching stages waits in ``s`` for the later ones (:func:`_run`).  Per-ray results do not
+    depend on the levels: each ray's iteration is independent of the others."""
     m = sizes[0]
     last = len(sizes) == 1
-    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // len(getattr(alg, "masked_stages", None) or alg.stages),
-                     cap if last else None)
-    out = rootfind.outputs(jnp, s)
-    if last:
-        return out, (None if cap is None else (jnp.arange(m), s, o, d))
+    ks = range(searching)
+    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // searching, cap if last else None, ks)
     left = s["status"] == rootfind.IN
+    if searching < len(_stages(alg)):  # (a masked algorithm's phase is its own: all of its stages search)
+        left = left & (s["phase"] < searching)
+    if last:
+        if cap is None:
+            return s, None
+        rest = dict(s, status=jnp.where(left, s["status"], rootfind.CONV))
+        return s, (jnp.where(left, jnp.arange(m), m), rest, o, d)
 
-    def next_level(out):
+    def next_level(s):
         sel, sub, oc, dc = _gather(s, o, d, left, sizes[1])
-        res, rest = _levels(alg, sub, oc, dc, ev, sizes[1:], cap)
-        out = {k: v.at[sel].set(res[k], mode="drop") for k, v in out.items()}
+        res, rest = _levels(alg, sub, oc, dc, ev, sizes[1:], cap, searching)
+        s = {k: v.at[sel].set(res[k], mode="drop") for k, v in s.items()}
         if rest is not None:  # indices in sub → in s (sub's padding index sizes[1] → m)
             rest = (jnp.append(sel, m)[rest[0]],) + rest[1:]
-        return out, rest
+        return s, rest
 
-    def done(out):  # nothing left: a rest of the same shape, all padding
-        return out, (None if cap is None else _gather(s, o, d, jnp.zeros_like(left), sizes[-1]))
+    def done(s):  # nothing left: a rest of the same shape, all padding
+        return s, (None if cap is None else _gather(s, o, d, jnp.zeros_like(left), sizes[-1]))
 
-    return lax.cond(jnp.any(left), next_level, done, out)
+    return lax.cond(jnp.any(left), next_level, done, s)
+
+
+def _run(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None, searching: int):
+    """The searching stages level by level (:func:`_levels`), then the later stages (refinement,
+    certification) on the whole batch, each to the end; returns ``(outputs, rest)``."""
+    s, rest = _levels(alg, s, o, d, ev, sizes, cap, searching)
+    s = _stage_loops(alg, s, o, d, ev, 0, None, range(searching, len(_stages(alg))))
+    return rootfind.outputs(jnp, s), rest
 
 
 def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = LAST,
-             tail_cap: int = TAIL_CAP) -> dict:
+             tail_cap: int = TAIL_CAP, park: bool = True) -> dict:
     """Run ``alg`` on every ray; returns the per-ray outputs.
 
     Per-ray step counts are heavy-tailed (grazing rays need thousands of steps, most rays a
     few), and a fixed-shape loop runs as long as its slowest ray, so the rays still iterating
     are compacted into ever smaller batches (:func:`_levels`), chunk by chunk (``lax.map``
-    over chunks of ``chunk`` rays keeps each chunk's state in cache).  With several chunks,
-    each chunk's last level stops after ``tail_cap`` steps and the stragglers of all chunks
-    are finished together, again level by level.  The algorithm is a per-ray state machine,
-    so the results do not depend on chunks, levels or caps."""
+    over chunks of ``chunk`` rays keeps each chunk's state in cache).  With ``park`` the levels
+    compact only the stages that search for a crossing (:func:`search_stages`): the brackets'
+    refinement and certification take a few dozen steps on every ray that crossed, not a heavy
+    tail, and run once on the whole chunk after its levels (every level is a copy of the loops
+    of the stages it runs: docs/performance.md).  With several chunks, each chunk's last level
+    stops after ``tail_cap`` steps and the stragglers of all chunks are finished together, again
+    level by level.  The algorithm is a per-ray state machine, so the results do not depend on
+    chunks, levels, caps or ``park``."""
     n = o.shape[0]
     if n == 0:
         return rootfind.outputs(jnp, alg.init(jnp, o, d, ev))
+    searching = search_stages(alg, park)
     chunk = min(chunk, n)
     rows = -(-n // chunk) * chunk  # whole chunks: copies of the first ray, their results dropped
     o, d = pad_rows(o, rows), pad_rows(d, rows)
     sizes = level_sizes(chunk, ratio, last)
     n_chunks = o.shape[0] // chunk
     cap = tail_cap if n_chunks > 1 else None
-    out, rest = lax.map(lambda od: _levels(alg, alg.init(jnp, od[0], od[1], ev), od[0], od[1], ev, sizes, cap),
+    out, rest = lax.map(lambda od: _run(alg, alg.init(jnp, od[0], od[1], ev), od[0], od[1], ev, sizes, cap, searching),
                         (o.reshape(-1, chunk, 3), d.reshape(-1, chunk, 3)))
     out = {k: v.reshape(-1) for k, v in out.items()}
     if rest is not None:  # the stragglers of every chunk, finished together
@@ -221,6 +276,7 @@ def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = 
         starts = (jnp.arange(n_chunks) * chunk)[:, None]
         idx = jnp.where(idx < chunk, idx + starts, o.shape[0]).reshape(-1)
         s = {k: v.reshape(-1) for k, v in s.items()}
-        res, _ = _levels(alg, s, oc.reshape(-1, 3), dc.reshape(-1, 3), ev, level_sizes(idx.shape[0], ratio, last))
+        res, _ = _run(alg, s, oc.reshape(-1, 3), dc.reshape(-1, 3), ev, level_sizes(idx.shape[0], ratio, last), None,
+                      searching)
         out = {k: v.at[idx].set(res[k], mode="drop") for k, v in out.items()}
     return {k: v[:n] for k, v in out.items()}
