@@ -158,13 +158,13 @@ def search_stages(alg, park: bool = True) -> int:
     return k if park and 0 < k < n else n
 
 
-def _stage_loops(alg, s: dict, o, d, ev, keep: int, cap: int | None, ks=None) -> dict:
-    """Step the rays of ``s`` stage by stage (the stages of indices ``ks``, default all), each
+def _stage_loops(alg, s: dict, o, d, ev, keep: int, cap: int | None, ks: range) -> dict:
+    """Step the rays of ``s`` stage by stage (the stages of indices ``ks``), each
     stage while more than ``keep`` of its rays are iterating (and, with ``cap``, for at most
     ``cap`` steps); other rows keep their values."""
     masked = getattr(alg, "masked_stages", None)  # (one step for all of the stages: every row in progress)
     names = _stages(alg)
-    for k in (range(len(names)) if ks is None else ks):
+    for k in ks:
         step = getattr(alg, names[k])
 
         def active(c, k=k):
@@ -210,8 +210,7 @@ def _levels(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None, searching
     depend on the levels: each ray's iteration is independent of the others."""
     m = sizes[0]
     last = len(sizes) == 1
-    ks = range(searching)
-    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // searching, cap if last else None, ks)
+    s = _stage_loops(alg, s, o, d, ev, 0 if last else sizes[1] // searching, cap if last else None, range(searching))
     left = s["status"] == rootfind.IN
     if searching < len(_stages(alg)):  # (a masked algorithm's phase is its own: all of its stages search)
         left = left & (s["phase"] < searching)
