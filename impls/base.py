@@ -13,7 +13,7 @@ import numpy as np
 from reference.rays import unit_directions, unit_tolerance
 
 from .core.methods_root import step_field
-from .core.param_grad import python_fori
+from .core.param_grad import python_fori, python_switch
 from .core.rootfind import void_if_refuted
 from .core.table import METHOD_TABLE
 from .methods import get_method
@@ -126,7 +126,8 @@ class ArrayBackend:
       run to completion on every ray, with ``settings``;
     * ``stop_gradient`` (``None``: no autodiff, ``render_surface`` is ρ at the hit itself),
       ``compact`` (volume rendering drops terminated rays), ``fori_loop`` (the unrolled tracer's
-      loop, ``lax.fori_loop`` semantics), ``map_rays`` (a function over blocks of rays: the default
+      loop, ``lax.fori_loop`` semantics), ``switch`` (a branch chosen by an index, ``lax.switch``
+      semantics: a volume renderer's density model, :class:`impls.core.rendering.DensityChoice`), ``map_rays`` (a function over blocks of rays: the default
       loops over them, which any array library can run; jax maps them inside its kernel).
 
     ``cost`` counts φ evaluations per point or ray (autodiff: 1; central differences: more).
@@ -139,6 +140,7 @@ class ArrayBackend:
     stop_gradient: Callable[[Any], Any] | None = None
     compact: bool = True
     fori_loop = staticmethod(python_fori)
+    switch = staticmethod(python_switch)
     _impl = METHOD_TABLE
 
     def __init__(self, device: str = "cpu", settings: Any = None):

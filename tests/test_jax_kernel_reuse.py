@@ -253,7 +253,8 @@ def test_a_precomputed_hit_is_refused_with_a_callers_theta():
 @pytest.mark.slow  # compiles jax kernels
 def test_volume_renderers_share_a_sampler_kernel_and_a_shading_kernel_with_the_fused_results(monkeypatch):
     """The volume renderers whose bins are fixed up front run a sampler kernel (one per sampler,
-    whatever the density model) and a shading kernel (one per model, whatever the sampler); their
+    whatever the density model) and a shading kernel (one per model, or for the three of
+    ``SAMPLE_DENSITIES`` one for all, whatever the sampler); their
     statuses and counts equal those of one kernel per method, and their floats are equal to a few
     units in the last place (XLA contracts a multiply and an add into one FMA where both are in
     one fused loop, so where the bins are computed, in their own kernel or inside the shading's,
@@ -277,8 +278,8 @@ def test_volume_renderers_share_a_sampler_kernel_and_a_shading_kernel_with_the_f
 
     got = {m: run(b, m) for m in methods}
     assert sorted(k[0] for k in b._kernels) == sorted(
-        ["volume_samples_uniform", "volume_samples_stratified", "volume_samples_band", "volume_shading_nerf",
-         "volume_shading_neus"])
+        ["volume_samples_uniform", "volume_samples_stratified", "volume_samples_band", "volume_shading_switch",
+         "volume_shading_neus"])  # (nerf's shading: the kernel of the three sample-density models)
     for m in methods:
         monkeypatch.delattr(METHOD_TABLE[m], "stages")
     fused = JaxBackend("cpu")
@@ -295,6 +296,124 @@ def test_volume_renderers_share_a_sampler_kernel_and_a_shading_kernel_with_the_f
             np.testing.assert_array_equal(a[~finite], w[~finite], err_msg=f"{m} {k}")
             np.testing.assert_array_max_ulp(a[finite], w[finite], maxulp=4)  # 3 measured (neus, band)
     assert sorted(k[0] for k in fused._kernels) == sorted(methods)
+
+
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_three_density_models_share_one_kernel_with_the_results_of_their_own(dtype, monkeypatch):
+    """nerf, volsdf and unisurf (``SAMPLE_DENSITIES``: opacities from φ at the samples) run one
+    shading kernel and one importance-sampling kernel, the model a traced index (``lax.switch``):
+    each model's outputs equal, bit for bit, those of a kernel compiled for that model alone, on
+    128 rows of a neural field (a field whose φ XLA cannot fold) and of a torus; and the model
+    matters (the three give three colours)."""
+    from impls.jax.backend import JaxBackend
+    from reference.cases import get_case
+
+    resolve_or_skip("jax:cpu")
+    merged, alone = JaxBackend("cpu"), JaxBackend("cpu")
+    merged._store = alone._store = None
+    monkeypatch.setattr(alone, "_density_choice", lambda method, impl: None)  # a kernel per model
+    for case_id in ("mlp.camera.32x32", "torus.camera.32x32"):
+        case = get_case(case_id)
+        o, d = case.origins[::9], case.directions[::9]  # 114 rays: 128 rows, padded
+        for sampler, more in (("uniform", {}), ("importance", {"n_coarse": 8}),
+                              ("band", {"delta": 0.2, "t_hit": np.full(len(o), 2.5)})):
+            merged._kernels.clear()
+            colors = []
+            for model in ("nerf", "volsdf", "unisurf"):
+                kw = dict(dtype=dtype, t_min=case.t_min, t_max=case.t_max, n_samples=16, sharpness=30.0, **more)
+                got, want = (b.prepare(f"volume_{model}_{sampler}", case.scene, o, d, **kw) for b in (merged, alone))
+                got, want = got.result(got.run()), want.result(want.run())
+                for k in ("t", "status", "iterations", "evals"):
+                    np.testing.assert_array_equal(getattr(got, k), getattr(want, k), err_msg=f"{model} {sampler} {k}")
+                assert set(got.outputs) == set(want.outputs)
+                for k in want.outputs:
+                    np.testing.assert_array_equal(got.outputs[k], want.outputs[k], err_msg=f"{model} {sampler} {k}")
+                colors.append(got.outputs["color"])
+            shading = [k[0] for k in merged._kernels if not k[0].startswith("volume_samples")]
+            assert shading == (["volume_switch_importance"] if sampler == "importance" else ["volume_shading_switch"])
+            assert not np.array_equal(colors[0], colors[1]) and not np.array_equal(colors[1], colors[2])
+
+
+@pytest.mark.slow  # compiles jax kernels
+@pytest.mark.parametrize("settings", ["timed", "untimed", "chunks", "ladder"])
+def test_the_bisection_and_secant_marchers_share_one_kernel_with_the_results_of_their_own(settings, monkeypatch):
+    """``march_bisect`` and ``march_secant`` run one kernel (``march_switch``: the secant's search,
+    then the refinement the traced index picks), whose outputs equal, bit for bit, those of each
+    method's own kernel: on a CSG camera and a torus camera (hits, misses, and rays that graze
+    the surface and end UNCERTIFIED), with the levels of a timed run, the one level of an untimed run, and chunks
+    of 256 rows whose stragglers finish together (the refinement runs in both passes), and with
+    ladder steps (a bracket found by the ladder stage)."""
+    from impls.jax import driver
+    from impls.jax.backend import JaxBackend
+    from reference.cases import get_case
+
+    resolve_or_skip("jax:cpu")
+    st = {"timed": driver.MaskedSettings(), "untimed": driver.MaskedSettings(last=driver.CHUNK),
+          "chunks": driver.MaskedSettings(chunk=256, tail_cap=16), "ladder": driver.MaskedSettings()}[settings]
+    ladder = {"ladder": 8, "ladder_after": 4} if settings == "ladder" else {}
+    merged, alone = JaxBackend("cpu", st), JaxBackend("cpu", st)
+    merged._store = alone._store = None
+    monkeypatch.setattr(alone, "_refiner_choice", lambda method, impl, th: None)  # a kernel per method
+    for case_id in ("csg.union.camera.32x32", "torus.camera.32x32"):
+        case = get_case(case_id)
+        o, d = (case.origins[::2], case.directions[::2]) if settings != "chunks" else (case.origins, case.directions)
+        merged._kernels.clear()
+        iterations = []
+        for method in ("march_bisect", "march_secant"):
+            kw = dict(t_min=case.t_min, t_max=case.t_max, xtol=1e-9, **ladder)
+            got, want = (b.prepare(method, case.scene, o, d, **kw) for b in (merged, alone))
+            got, want = got.result(got.run()), want.result(want.run())
+            for k in ("t", "status", "iterations", "evals"):
+                np.testing.assert_array_equal(getattr(got, k), getattr(want, k), err_msg=f"{case_id} {method} {k}")
+            assert (got.status == Status.CONVERGED).sum() > len(o) // 4 and (got.status == Status.MISS).any()
+            iterations.append(got.iterations)
+        assert [k[0] for k in merged._kernels] == ["march_switch"]
+        assert not np.array_equal(iterations[0], iterations[1])  # the refiner matters
+
+
+def test_later_stages_must_follow_the_search_they_finish():
+    """``run_loop``'s ``later`` (another algorithm's refinement after this one's search) refuses
+    algorithms whose stages differ, a refiner with derivatives, and a driver without ``park``."""
+    pytest.importorskip("jax")
+    from impls.jax import driver
+    from impls.methods import get_method
+
+    scene = Sphere(center=(0.0, 0.0, 0.0), radius=1.0)
+
+    def alg(method, **knobs):
+        return get_method(method).algorithm(scene, 0.0, 10.0, get_method(method).validate(knobs), None, ladder=0)
+
+    bisect, secant = alg("march_bisect"), alg("march_secant")
+    driver.check_later(secant, [bisect, secant], park=True)
+    with pytest.raises(ValueError, match="park"):
+        driver.check_later(secant, [bisect, secant], park=False)
+    with pytest.raises(ValueError, match="derivative"):
+        driver.check_later(secant, [alg("march_newton")], park=True)
+    with pytest.raises(ValueError, match="stages"):
+        driver.check_later(secant, [alg("march_bisect", ladder=8)], park=True)
+    with pytest.raises(ValueError, match="stages"):
+        driver.check_later(secant, [alg("sphere_trace")], park=True)
+
+
+def test_a_switched_renderer_is_the_renderer_of_the_model_it_picks():
+    """The renderers of the model ``switch`` (``rendering.SWITCHED``: the density model an index,
+    the knob ``density``) give each model's own outputs on a backend that picks the branch in
+    Python (numpy), and refuse to run without the index."""
+    from impls.core import rendering
+
+    numpy = resolve_or_skip("numpy")
+    scene, (o, d) = Sphere(center=(0.0, 0.0, 0.0), radius=0.75), _rays(16)
+    kw = dict(t_min=0.0, t_max=6.0, t_hit=None, color=rendering.R.SineColor(), n_samples=12, sharpness=20.0,
+              t_threshold=0.0)
+    for i, model in enumerate(rendering.SAMPLE_DENSITIES):
+        for sampler, more in (("uniform", {}), ("importance", {"n_coarse": 8}), ("stratified", {"seed": 3})):
+            got = rendering.SWITCHED[sampler](numpy, scene, o, d, density=i, **kw, **more)
+            want = rendering.IMPLS[f"volume_{model}_{sampler}"](numpy, scene, o, d, **kw, **more)
+            for k in want:
+                np.testing.assert_array_equal(got[k], want[k], err_msg=f"{model} {sampler} {k}")
+    with pytest.raises(TypeError, match="density"):
+        rendering.SWITCHED["importance"](numpy, scene, o, d, **kw, n_coarse=8)
 
 
 @pytest.mark.slow  # compiles jax kernels
@@ -327,6 +446,6 @@ def test_stratified_offsets_are_an_input_of_the_kernel_not_constants_of_it(fused
         again = prep.result(prep.run())  # the next call draws the same offsets
         np.testing.assert_array_equal(again.outputs["color"], got[seed].outputs["color"])
     assert [k[0] for k in b._kernels] == (["volume_nerf_stratified"] if fused
-                                          else ["volume_samples_stratified", "volume_shading_nerf"])
+                                          else ["volume_samples_stratified", "volume_shading_switch"])
     # the draws matter: another seed, other colours
     assert np.abs(got[0].outputs["color"] - got[1].outputs["color"]).max() > 1e-3

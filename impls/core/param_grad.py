@@ -80,6 +80,12 @@ def unrolled_depth(xp, scene, o, d, t_min, steps, theta, fori_loop=None):
     return (fori_loop or python_fori)(0, steps, lambda _, t: t + scene.value(o + t[:, None] * d, xp, theta) * inv_lip, t)
 
 
+def python_switch(index, branches, *operands):
+    """``lax.switch`` semantics as a plain call (numpy, torch): the branch of ``index``, clamped
+    to the branches' range."""
+    return branches[min(max(int(index), 0), len(branches) - 1)](*operands)
+
+
 def python_fori(lower, upper, body, init):
     """``lax.fori_loop`` semantics as a plain loop (numpy, torch)."""
     val = init

@@ -49,7 +49,9 @@ with ``t`` = inf and colour and opacity 0 (the background), one whose t_hit is N
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import Any, Callable
 
 import numpy as np
 
@@ -81,9 +83,33 @@ def shading_rows(model: str, n_samples: int) -> int:
     return block_rows(2 * n_samples + 1 if model == "neus" else n_samples)
 
 
+#: the density models whose opacities are functions of φ at the samples and of the bins' widths
+#: alone (NeuS reads φ at the bin edges): one program may hold the three and pick one at run time
+#: (:class:`DensityChoice`)
+SAMPLE_DENSITIES = ("nerf", "volsdf", "unisurf")
+#: the "model" of the renderers whose density model is the knob ``density``, an index into
+#: :data:`SAMPLE_DENSITIES` (:func:`make_volume_shading`, :func:`make_volume_impl`)
+SWITCH = "switch"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)  # (index: a traced value in a kernel)
+class DensityChoice:
+    """The density model ``SAMPLE_DENSITIES[index]``, chosen by ``switch(index, branches,
+    *operands)`` (``lax.switch`` semantics: ``backend.switch``), so that a compiled kernel takes
+    the index as a runtime argument and one compilation serves the three models: their branches
+    are the very code of each model, and the rest of the kernel is the same for all of them."""
+
+    index: Any
+    switch: Callable
+
+
 def alpha(xp, model, phi, delta, s):
     """Opacity per bin, from the formulas of :mod:`reference.rendering` (one source for backends
-    and reference).  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS."""
+    and reference).  ``phi``: (…, B) at the samples, or (…, B + 1) at the bin edges for NeuS;
+    ``model``: a name of :data:`~impls.methods.DENSITIES` or a :class:`DensityChoice`."""
+    if isinstance(model, DensityChoice):
+        branches = [lambda phi, delta, m=m: alpha(xp, m, phi, delta, s) for m in SAMPLE_DENSITIES]
+        return model.switch(model.index, branches, phi, delta)
     if model == "unisurf":
         return R.occupancy_alpha(phi, s, xp)
     if model == "neus":
@@ -278,19 +304,33 @@ def make_volume_sampler(sampler):
     return sample
 
 
+def _chosen(backend, model, knobs: dict):
+    """The model a renderer of ``model`` shades with: ``model`` itself, or for :data:`SWITCH` the
+    :class:`DensityChoice` of the knob ``density`` (taken out of ``knobs``)."""
+    if model != SWITCH:
+        return model
+    if "density" not in knobs:
+        raise TypeError(f"a renderer of model {SWITCH!r} needs the knob density, an index into {SAMPLE_DENSITIES}")
+    return DensityChoice(knobs.pop("density"), backend.switch)
+
+
 def make_volume_shading(model):
     """Density model ``model`` composited over given samples: ``shade(backend, scene, o, d, *,
     samples, color, sharpness, t_threshold)``, ``samples`` a sampler's output
-    (:func:`make_volume_sampler`); the same outputs as the method of that sampler."""
+    (:func:`make_volume_sampler`); the same outputs as the method of that sampler.  ``model``
+    :data:`SWITCH`: the model ``SAMPLE_DENSITIES[density]``, ``density`` one more keyword."""
 
-    def shade(backend, scene, o, d, *, samples, color, sharpness, t_threshold):
+    def shade(backend, scene, o, d, *, samples, color, sharpness, t_threshold, **choice):
+        m = _chosen(backend, model, choice)
+        if choice:
+            raise TypeError(f"{shade.__name__} got unexpected knobs {sorted(choice)}")
         n_samples = samples["pts"].shape[1]
         return _shade(backend.xp, backend, scene, color, o, d, samples["edges"], samples["pts"], samples["status"],
-                      model=model, sharpness=sharpness, t_threshold=t_threshold, planned=n_samples, coarse_cost=0)
+                      model=m, sharpness=sharpness, t_threshold=t_threshold, planned=n_samples, coarse_cost=0)
 
     shade.__name__ = f"volume_shading_{model}"
     shade.model = model
-    shade.knobs = SHADING_KNOBS  # its knobs; the sampler takes the others
+    shade.knobs = SHADING_KNOBS + (("density",) if model == SWITCH else ())  # its knobs; the sampler takes the others
     return shade
 
 
@@ -299,13 +339,17 @@ def make_volume_impl(model, sampler):
     (numpy, torch).  For the samplers that fix their bins up front it is a sampler followed by a
     shading of the model (``impl.stages`` = (sample, shade), :func:`make_volume_sampler`,
     :func:`make_volume_shading`), so a backend that compiles kernels may compile the two apart: a
-    model's shading is then one kernel for the three samplers."""
+    model's shading is then one kernel for the three samplers.  ``model`` :data:`SWITCH`: the
+    density model ``SAMPLE_DENSITIES[density]``, ``density`` one more knob (not a method of the
+    catalog: a backend that compiles kernels runs the methods of those models as one kernel,
+    :meth:`impls.jax.backend.JaxBackend.compile_configuration`)."""
     if sampler != "importance":
         sample, shade = make_volume_sampler(sampler), make_volume_shading(model)
 
         def impl(backend, scene, o, d, *, t_min, t_max, t_hit, color, n_samples, sharpness, t_threshold, jitter=None,
                  **knobs):
             xp = backend.xp
+            choice = {"density": knobs.pop("density")} if model == SWITCH and "density" in knobs else {}
             # the stratified draws of each block made in that block (PCG64 advanced to its first ray),
             # where the backend's blocks are a loop over slices; drawn whole where they are mapped
             # inside a kernel (a traced block does not know its first ray)
@@ -323,7 +367,7 @@ def make_volume_impl(model, sampler):
                 samples = sample(backend, scene, o, d, t_min=t_min, t_max=t_max, t_hit=t_hit, n_samples=n_samples,
                                  jitter=jitter, **knobs)
                 return shade(backend, scene, o, d, samples=samples, color=color, sharpness=sharpness,
-                             t_threshold=t_threshold)
+                             t_threshold=t_threshold, **choice)
 
             # the bins by blocks too (16–24 bytes a sample: edges, points, draws), the shading's blocks
             ray = xp.arange(o.shape[0], device=_device(o)) if per_block and o.shape[0] else None
@@ -338,19 +382,20 @@ def make_volume_impl(model, sampler):
         xp = backend.xp
         _check_far_end(t_max)
         nc = knobs["n_coarse"]
+        m = _chosen(backend, model, knobs)
 
         def block(o, d):
             e0, p0, status = bins(xp, backend, "uniform", o, d, t_min, t_max, None, nc, knobs)
             o_safe = xp.where(xp.isfinite(o), o, xp.zeros_like(o))
             d_safe = xp.where(xp.isfinite(d), d, xp.zeros_like(d))
             xc = o_safe[:, None, :] + (e0 if model == "neus" else p0)[..., None] * d_safe[:, None, :]
-            a = alpha(xp, model, scene.value(xc, xp), e0[:, 1:] - e0[:, :-1], sharpness)
+            a = alpha(xp, m, scene.value(xc, xp), e0[:, 1:] - e0[:, :-1], sharpness)
             w = xp.cumulative_prod(1 - a, axis=-1, include_initial=True)[:, :-1] * a
             fine = inverse_cdf(xp, e0, w, n_samples)
             pts = xp.sort(xp.concat([p0, fine], axis=1), axis=1)
             mids = 0.5 * (pts[:, 1:] + pts[:, :-1])
             edges = xp.concat([e0[:, :1], mids, e0[:, -1:]], axis=1)
-            return _shade(xp, backend, scene, color, o, d, edges, pts, status, model=model, sharpness=sharpness,
+            return _shade(xp, backend, scene, color, o, d, edges, pts, status, model=m, sharpness=sharpness,
                           t_threshold=t_threshold, planned=nc + n_samples,
                           coarse_cost=nc + (1 if model == "neus" else 0))
 
@@ -430,3 +475,7 @@ render_surface.hit_method = "hybrid_secant"
 
 IMPLS = {"render_surface": render_surface,
          **{f"volume_{model}_{sampler}": make_volume_impl(model, sampler) for model in DENSITIES for sampler in SAMPLERS}}
+#: the renderers of the model :data:`SWITCH`, by sampler (not methods of the catalog)
+SWITCHED = {sampler: make_volume_impl(SWITCH, sampler) for sampler in SAMPLERS}
+#: the shading of the model :data:`SWITCH` (one object: a backend's kernels find it by name)
+SWITCH_SHADING = make_volume_shading(SWITCH)

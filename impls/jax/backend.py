@@ -52,6 +52,10 @@ from ..base import ArrayBackend  # noqa: E402
 from ..protocol import Capabilities  # noqa: E402
 from reference.jax_host_call import traced_calls  # noqa: E402
 from ..core import rendering  # noqa: E402
+from ..core.methods_root import step_field  # noqa: E402
+from ..core.rootfind import void_if_refuted  # noqa: E402
+from ..core.table import METHOD_TABLE  # noqa: E402
+from ..methods import get_method  # noqa: E402
 from . import derivatives, driver, executables  # noqa: E402
 
 
@@ -71,7 +75,33 @@ RANGE_KNOBS = ("t_min", "t_max")
 #: cases differ in their range alone and share one kernel per method).  Not the volume renderers:
 #: they check in Python that the far end is finite (a trace with it traced fails, and would be
 #: retried with it compiled in), and no two of the suites' cases give them one scene.
-RANGE_METHODS = frozenset(("hybrid_secant", "sphere_trace", "march_bisect", "march_newton", "march_secant"))
+RANGE_METHODS = frozenset(("hybrid_secant", "sphere_trace", "march_bisect", "march_newton", "march_secant",
+                           "march_switch"))
+
+#: the constant-step marchers that run as one kernel on the CPU, the refiner an index into this
+#: tuple (the knob ``refiner`` of :func:`march_switch`): they differ in their bracket's refinement
+#: only, which runs after the search (:func:`impls.jax.driver.run_loop`'s ``later``).  The first
+#: searches (bisection's state is the smallest; the secant's bracket width at its last check is
+#: made at the hand-off, as its own search makes it on a crossing).  Not Newton's marcher: its
+#: search evaluates dφ/dt too, and its refinement keeps the levels (:func:`impls.jax.driver.search_stages`).
+REFINER_SWITCH = ("march_bisect", "march_secant")
+
+
+def march_switch(backend, scene, o, d, *, t_min, t_max, t_hit, refiner, **knobs):
+    """The marcher ``REFINER_SWITCH[refiner]`` (``refiner`` an index, traced in a kernel): the
+    search of the first of them, then the refinement of the one ``refiner`` picks (``lax.switch``
+    in the refinement loop's body).  Each ray's outputs are those of the method itself, bit for
+    bit (tests/test_jax_kernel_reuse.py): the searches differ only in the bracket width the secant
+    records for its safeguard (:meth:`impls.core.rootfind._OneSided.on_bracket`), made here from
+    the bracket at the hand-off instead."""
+    st = backend.settings
+    scene = step_field(scene)
+    algs = [get_method(m).algorithm(scene, t_min, t_max, knobs, None, ladder=st.ladder) for m in REFINER_SWITCH]
+    alg = algs[0]
+    out = driver.run_loop(alg, o, d, backend.ray_eval(scene), chunk=st.chunk, ratio=st.ratio,
+                          last=driver.smallest_level(alg, st), tail_cap=st.tail_cap, park=bool(st.park),
+                          later=(refiner, algs))
+    return void_if_refuted(alg, out)
 
 
 #: the number knobs of the catalog's methods that their code takes as traced values (a loop
@@ -83,12 +113,16 @@ RANGE_METHODS = frozenset(("hybrid_secant", "sphere_trace", "march_bisect", "mar
 TRACEABLE_KNOBS = {
     "hybrid_secant": ("ladder_after", "max_steps", "reach", "xtol") + RANGE_KNOBS,
     "render_surface": ("ladder_after", "max_steps", "reach", "xtol"),
-    **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") + RANGE_KNOBS for m in ("bisect", "newton", "secant")},
+    **{f"march_{m}": ("ladder_after", "max_steps", "step", "xtol") + RANGE_KNOBS
+       for m in ("bisect", "newton", "secant")},
+    "march_switch": ("ladder_after", "max_steps", "refiner", "step", "xtol") + RANGE_KNOBS,  # (REFINER_SWITCH)
     "sphere_trace": ("max_steps", "omega", "tol") + RANGE_KNOBS,
     "curvature": (), "normal": (),
     # the parts of the volume renderers that fix their bins up front (compile_configuration)
     "volume_samples_band": ("delta",), "volume_samples_stratified": (), "volume_samples_uniform": (),
     **{f"volume_shading_{m}": () for m in ("nerf", "neus", "unisurf", "volsdf")},
+    # one kernel for the three density models of SAMPLE_DENSITIES, the model an index (_density_choice)
+    "volume_shading_switch": ("density",), "volume_switch_importance": ("density",),
     **{m: ("min_cos",) for m in ("dt_finite_diff", "dt_idr", "dt_implicit")},
     "dt_unrolled": ("min_cos", "steps"),
     # (the stratified sampler's seed is no knob of its kernels: its draws are an input, made at every
@@ -194,6 +228,7 @@ class JaxBackend(ArrayBackend):
     compact = False  # masked blocks: early termination of volume rays is reported, not realised
     stop_gradient = staticmethod(lax.stop_gradient)
     fori_loop = staticmethod(lax.fori_loop)  # a long unroll does not become a long trace
+    switch = staticmethod(lax.switch)  # a traced index: one kernel for the models it picks among
 
     def __init__(self, device: str = "cpu", settings: driver.MaskedSettings | None = None):
         # compile_configuration's kernels, one per structure, the least recently used dropped past
@@ -213,7 +248,11 @@ class JaxBackend(ArrayBackend):
                    "render_surface runs two kernels: hybrid_secant's own (compiled once for both methods) and one "
                    "that shades its hit; on the CPU the volume renderers with the uniform, stratified and band "
                    "samplers run the sampler's kernel and the density model's shading kernel (one per model for the "
-                   "three samplers); a time is the two calls",),
+                   "three samplers); a time is the two calls",
+                   "on the CPU one kernel serves several methods where they differ in one choice, taken as a runtime "
+                   "index (lax.switch): the nerf, volsdf and unisurf renderers (the density model; neus has its own), "
+                   "march_bisect and march_secant (the refiner, after bisection's search); each method's outputs are "
+                   "those of a kernel of its own, bit for bit",),
             expected_failures=(
                 ("eval_count", "masked loops evaluate φ on every ray of a chunk each iteration (and jit traces φ "
                  "once), so counted calls ≠ per-ray evals; evals counts the evaluations a ray used"),
@@ -314,6 +353,15 @@ class JaxBackend(ArrayBackend):
           block.  Not on a GPU: there a second call's dispatch is as long as such a kernel's work
           (docs/performance.md); a root finder's loops are not.
 
+        One kernel serves several methods that differ in one choice, a traced index, on the CPU:
+
+        * the volume renderers of the density models nerf, volsdf and unisurf
+          (:data:`impls.core.rendering.SAMPLE_DENSITIES`, :meth:`_density_choice`): one shading
+          kernel (``volume_shading_switch``) and one importance-sampling kernel
+          (``volume_switch_importance``) for the three;
+        * ``march_bisect`` and ``march_secant`` (:data:`REFINER_SWITCH`, :meth:`_refiner_choice`):
+          one ``march_switch`` kernel, bisection's search, then the refiner the index picks.
+
         ``jitter``: ``draw(first=0, count=all padded rows)``, the stratified sampler's offsets of
         those rows (:meth:`compile_configuration`), drawn at every call and given to the kernel as
         its ``th`` (the sampler takes them as its ``jitter``, not as a hit); ``th`` is then None."""
@@ -324,6 +372,7 @@ class JaxBackend(ArrayBackend):
         impl = self._impl.get(method)
         hit_method, stages = getattr(impl, "hit_method", None), getattr(impl, "stages", None)
         t_min, t_max = t_range
+        choice = self._density_choice(method, impl)
         if hit_method is not None and th is None and hit_method in self._impl:
             root = self._impl[hit_method]
             # what the hit method's own configurations run (the same kernel)
@@ -335,6 +384,10 @@ class JaxBackend(ArrayBackend):
             return self._compile_chain(first, second, n, rows, given, padded, t_range)
         if stages is not None and set(extra) <= {"color"} and self.jax_device.platform == "cpu":
             sample, shade = stages
+            shade_knobs = {k: v for k, v in knobs.items() if k in shade.knobs}
+            sample_knobs = {k: v for k, v in knobs.items() if k not in shade.knobs}
+            if choice is not None:  # the shading of the three models: one kernel
+                shade, shade_knobs = rendering.SWITCH_SHADING, {**shade_knobs, "density": choice}
 
             def sample_call(o, d, th, knobs):
                 given = {"t_hit": None, "jitter": th} if jitter else {"t_hit": th}  # th: the offsets (above)
@@ -343,24 +396,55 @@ class JaxBackend(ArrayBackend):
             def shade_call(o, d, samples, knobs):
                 return shade(self, scene, o, d, samples=samples, **extra, **knobs)
 
-            first = dict(call=sample_call, knobs={k: v for k, v in knobs.items() if k not in shade.knobs},
-                         method=sample.__name__, impl=sample, scene=None, extra={})
-            second = dict(call=shade_call, knobs={k: v for k, v in knobs.items() if k in shade.knobs},
-                          method=shade.__name__, impl=shade, scene=scene, extra=extra)
+            first = dict(call=sample_call, knobs=sample_knobs, method=sample.__name__, impl=sample, scene=None,
+                         extra={})
+            second = dict(call=shade_call, knobs=shade_knobs, method=shade.__name__, impl=shade, scene=scene,
+                          extra=extra)
             return self._compile_chain(first, second, n, rows, given, padded, t_range,
                                        block=rendering.shading_rows(shade.model, knobs["n_samples"]), draw=jitter)
+        if choice is not None and method.endswith("_importance"):  # the three models' renderers: one kernel
+            impl = rendering.SWITCHED["importance"]
+            method, knobs, call = impl.__name__, {**knobs, "density": choice}, None
+        refiner = self._refiner_choice(method, impl, th)
+        if refiner is not None:  # the marchers of REFINER_SWITCH: one kernel
+            impl, method, knobs, call = march_switch, "march_switch", {**knobs, "refiner": refiner}, None
         if impl is not None:
             call, knobs, t_range = self._ranged(impl, method, scene, extra, knobs, t_range, call)
         if jitter is not None:  # the offsets of all rows, drawn at every call
             padded = padded[:2] + (jitter(),)
         compiled, traced, spent = self._kernel(call, knobs, *padded, method=method, scene=scene, t_range=t_range,
-                                               extra=extra)
+                                               extra=extra, impl=impl)
         if jitter is not None:
             run = _padded_call(compiled, traced, n, rows, given, padded)
             return (lambda o, d, th: run(o, d, jitter())), spent
         if rows == n:
             return (lambda o, d, th: compiled(o, d, th, traced)), spent
         return _padded_call(compiled, traced, n, rows, given, padded), spent
+
+    def _density_choice(self, method, impl) -> int | None:
+        """For a catalog volume renderer of a density model of
+        :data:`impls.core.rendering.SAMPLE_DENSITIES` on the CPU: the model's index there, the knob
+        ``density`` of the kernel that runs the three models (:class:`impls.core.rendering.DensityChoice`,
+        ``lax.switch`` on a traced index: one compilation instead of three, the same bits and run
+        times, docs/performance.md), else None.  Not on a GPU, where XLA may run a conditional's
+        index through the host, and not for a renderer a caller put in the method table."""
+        if self.jax_device.platform != "cpu" or impl is None or impl is not rendering.IMPLS.get(method):
+            return None
+        parts = method.split("_")  # volume_<model>_<sampler>
+        if len(parts) != 3 or parts[1] not in rendering.SAMPLE_DENSITIES:
+            return None
+        return rendering.SAMPLE_DENSITIES.index(parts[1])
+
+    def _refiner_choice(self, method, impl, th) -> int | None:
+        """For a marcher of :data:`REFINER_SWITCH` from the catalog, on the CPU, with its
+        refinement after the levels (``settings.park``): its index there, the knob ``refiner`` of
+        :func:`march_switch`'s kernel, which runs them all (one compilation instead of two; the
+        same bits and run times: docs/performance.md), else None.  Not on a GPU (as
+        :meth:`_density_choice`), not for a method a caller put in the table."""
+        if (method not in REFINER_SWITCH or th is not None or self.jax_device.platform != "cpu" or not self.settings.park
+                or impl is None or impl is not METHOD_TABLE.get(method)):
+            return None
+        return REFINER_SWITCH.index(method)
 
     def _ranged(self, impl, method, scene, extra, knobs, t_range, call=None):
         """``(call, knobs, t_range)`` for :meth:`_kernel`: for a method of :data:`RANGE_METHODS`,
