@@ -123,7 +123,7 @@ BLAS = {"transformed", "mlp"}
 def test_root_finders_agree_with_numpy(nb, name, method, ladder):
     """Same algorithm, same knobs: the same status, iterations and evaluations on every ray, and the
     same depth — bit for bit on the sphere and the CSG, within 1e-12 where numpy's φ uses BLAS.
-    (ladder 0: the hybrid and the marchers but Newton run in the lanes kernel; 16: one ray at a time.)"""
+    (ladder 0: the marchers run in the lanes kernel, Newton's too; 16: one ray at a time.)"""
     scene, o, d = _scene(name)
     # (sphere tracing on the MLP, whose L is loose, needs more than the default 512 steps)
     kw = dict(t_max=10.0, max_steps=20000) if method == "sphere_trace" else dict(t_max=10.0, ladder=ladder)
@@ -313,7 +313,7 @@ def test_threads_are_a_setting_and_do_not_change_results(nb):
 def test_one_thread_runs_serial_kernels_with_the_parallel_kernels_results(nb):
     """One thread runs kernels compiled without numba's parallel loops, more threads the ``prange``
     ones (:func:`impls.numba.driver.kernels`): the same rays, bit for bit, in each kernel (the
-    lanes kernel, the one-ray kernel with Newton's derivative, φ along rays for sphere tracing)."""
+    lanes kernel, Newton's derivative in it, φ along rays for sphere tracing)."""
     import numba
 
     from impls.numba import driver, fields
@@ -412,7 +412,8 @@ def test_each_step_is_written_once_and_both_kernels_are_generated_from_it():
             if name != "LADDER":  # (the lanes kernel has no ladder stage)
                 for k in range(template.LANES):
                     assert re.sub(r"_K\b", f"_{k}", line) in lanes, (name, k, line)
-    assert lanes.count("= ev(p, ") == template.LANES and "ev_d(" not in lanes
+    # (one φ per lane, and φ with dφ/dt for Newton's refinement: every refiner runs in the lanes)
+    assert lanes.count("= ev(p, ") == template.LANES and lanes.count("= ev_d(p, ") == template.LANES
     # the march step, the crossing test, the secant and chord, the safeguard's lengthened step, the
     # closed-bracket test: in the templates, and in no other module of the package
     arithmetic = [r"_min\(\w+ \+ step", r"\(\w+ > 0\) != \(\w+ > 0\)", r"\w+ - \w+ \* \(\w+ - \w+\) / \(\w+ - \w+\)",

@@ -56,7 +56,7 @@ class NumbaBackend(HostArrayBackend):
         jit=True,
         notes=("scenes compiled with numba per structure (the scene tree written out as scalar code; compile "
                "time reported apart, once per structure and process); the constant-step marchers run ray by ray "
-               "in prange loops (two rays in turn per thread without derivatives or ladder), or, in runs that time "
+               "in prange loops (two rays in turn per thread without ladder steps), or, in runs that time "
                "nothing (untimed_settings: per_ray False), as the certified methods do; the certified methods "
                "(sphere_trace, hybrid_secant, render_surface) run the core array algorithm with numpy's compacting "
                "driver, each φ evaluation one compiled parallel kernel over the rays: the same algorithms, knobs, "

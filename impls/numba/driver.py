@@ -23,9 +23,10 @@ masking), these kernels run each ray to completion on its own (``prange`` over r
 ``NumbaSettings.threads``; on one thread, kernels compiled without numba's parallel pipeline:
 :func:`kernels`), with its state in registers: no per-step overhead, which is what the
 array drivers' ladder stage exists to amortise, so the driver's choice for the knob
-``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).  Without derivatives or ladder
-steps two rays are stepped in turn per thread (the lanes kernel, whose rays' independent chains of
-operations overlap); Newton's refinement and the ladder run one ray at a time (``march_one``).
+``ladder = -1`` is no ladder (an explicit ``ladder`` is honoured).  Without ladder steps two rays
+are stepped in turn per thread (the lanes kernel, whose rays' independent chains of operations
+overlap; every refiner, Newton's with its derivative); the ladder runs one ray at a time
+(``march_one``).
 
 φ along a ray is the compiled scene (:mod:`impls.numba.fields`); dφ/dt, for Newton, is numpy's
 central difference (:mod:`impls.numba.derivatives`), 3 evaluations.
@@ -55,9 +56,9 @@ class NumbaSettings:
     threads: numba threads running rays side by side (``--threads`` of the bench commands; at
              most ``numba.config.NUMBA_NUM_THREADS``, fixed when numba starts);
     ladder:  samples per ladder step where the knob ``ladder`` is -1 (the driver's choice);
-    lanes:   run the constant-step marchers without derivatives or ladder in the lanes kernel
-             (``LANES`` rays stepped in turn per thread); False: in ``march_one``, one ray at a
-             time, as Newton's.  The two give the same per-ray results (the same step templates,
+    lanes:   run the constant-step marchers without ladder steps in the lanes kernel (``LANES``
+             rays stepped in turn per thread); False: in ``march_one``, one ray at a time, as
+             those with ladder steps.  The two give the same per-ray results (the same step templates,
              :mod:`impls.numba.template`); the lanes kernel runs faster and is a compilation of
              its own per scene structure, which a run that times nothing skips
              (:meth:`impls.numba.backend.NumbaBackend.untimed_settings`);
@@ -420,7 +421,7 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
         kernel(z, z, np.zeros(1, o.dtype), params, *(np.empty(1, o.dtype) for _ in range(1 + deriv)))
         out = _run_array(ks, params, alg, o, d, deriv)
     else:
-        if kind == "march" and ic[I_REFINER] != 2 and ic[I_LADDER] <= 1 and settings.lanes:
+        if kind == "march" and ic[I_LADDER] <= 1 and settings.lanes:
             kind = "lanes"  # (no derivatives, no ladder stage: impls.numba.template)
         n = o.shape[0]
         out = {"t": np.empty(n, o.dtype), "status": np.empty(n, np.int32), "iterations": np.empty(n, np.int32),

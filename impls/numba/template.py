@@ -24,15 +24,17 @@ generated from these templates by renaming the ray's variables (the suffix ``_K`
   (:func:`impls.numba.derivatives.make_ray_eval`) where the refiner is Newton's;
 - ``chunk_lanes`` (suffixes ``_0`` … ``_{LANES-1}``): ``LANES`` rays stepped in turn by one
   thread, each lane taking the next ray of its chunk when its ray finishes, for the marchers
-  without a ladder and without derivatives.  A ray's steps form one chain of dependent operations
+  without a ladder, every refiner (Newton's with φ and dφ/dt: one kernel per scene structure for
+  the three marchers; its own kernel, ``march_one``, had cost ~3 s of numba's compile per
+  structure, for the same bits and run times: docs/performance.md).  A ray's steps form one chain of dependent operations
   (φ's square roots, the secant's divisions), so a loop over one ray waits on their latency; rays
   are independent, so stepping several in turn gives the processor independent work to overlap.
   Each lane's state is its own local variables, which numba keeps in registers (a state passed
   through function calls or arrays is slower), and each lane calls φ once (LLVM inlines it).
 
 The variants differ only in what is not arithmetic: the evaluation (``@EVAL``: φ, or φ and dφ/dt
-where ``deriv``), the flags ``deriv``, ``use_ladder`` and ``cost`` (constants in the lanes kernel,
-so the compiler drops their branches), and how a ray starts and finishes (arguments and a return,
+where ``deriv``), the flag ``use_ladder`` (a constant in the lanes kernel, so the compiler drops
+its branches), and how a ray starts and finishes (arguments and a return,
 or a fetch from the chunk and a write to the outputs).
 """
 
@@ -348,11 +350,13 @@ def run_march(O, D, p, fc, ic, out_t, out_s, out_i, out_e):
 
 _LANES_HEAD = """
 def chunk_lanes(O, D, p, fc, ic, out_t, out_s, out_i, out_e, nxt, stop):
-    \"\"\"Rays nxt … stop − 1 of MarchRefine with a ConstantStep rule, without ladder or derivatives.\"\"\"
+    \"\"\"Rays nxt … stop − 1 of MarchRefine with a ConstantStep rule, without ladder steps.\"\"\"
 {head}
-    if refiner == 2 or ladder > 1:
-        raise ValueError("the lanes kernel runs no Newton refinement and no ladder stage: march_one does")
-    deriv, use_ladder, cost = False, False, 1
+    if ladder > 1:
+        raise ValueError("the lanes kernel runs no ladder stage: march_one does")
+    deriv = refiner == 2
+    cost = 3 if deriv else 1
+    use_ladder = False
 """
 
 _LANE_STATE = """
@@ -438,7 +442,7 @@ def lanes_source(lanes: int = LANES) -> str:
         parts.append(_lane(STATE + _LANE_STATE, f"_{k}", 4) + "\n")
     parts.append("    while True:\n        busy = False\n")
     for k in range(lanes):
-        fetch = _FETCH.format(start=_lane(START, "_K", 8), step=_lane(STEP, "_K", 4))
+        fetch = _FETCH.format(start=_lane(START, "_K", 8), step=_lane(STEP, "_K", 4, deriv=True))
         parts.append(_lane(fetch, f"_{k}", 8) + "\n")
     parts.append("        if not busy:\n            break\n")
     parts.append(_LANES_TAIL)
