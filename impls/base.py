@@ -127,8 +127,9 @@ class ArrayBackend:
     * ``stop_gradient`` (``None``: no autodiff, ``render_surface`` is ρ at the hit itself),
       ``compact`` (volume rendering drops terminated rays), ``fori_loop`` (the unrolled tracer's
       loop, ``lax.fori_loop`` semantics), ``switch`` (a branch chosen by an index, ``lax.switch``
-      semantics: a volume renderer's density model, :class:`impls.core.rendering.DensityChoice`), ``map_rays`` (a function over blocks of rays: the default
-      loops over them, which any array library can run; jax maps them inside its kernel).
+      semantics: a volume renderer's density model, :class:`impls.core.rendering.DensityChoice`),
+      ``map_rays`` (a function over blocks of rays: the default loops over them, which any array
+      library can run; jax maps them inside its kernel).
 
     ``cost`` counts φ evaluations per point or ray (autodiff: 1; central differences: more).
     """

@@ -341,9 +341,9 @@ def test_the_bisection_and_secant_marchers_share_one_kernel_with_the_results_of_
     """``march_bisect`` and ``march_secant`` run one kernel (``march_switch``: the secant's search,
     then the refinement the traced index picks), whose outputs equal, bit for bit, those of each
     method's own kernel: on a CSG camera and a torus camera (hits, misses, and rays that graze
-    the surface and end UNCERTIFIED), with the levels of a timed run, the one level of an untimed run, and chunks
-    of 256 rows whose stragglers finish together (the refinement runs in both passes), and with
-    ladder steps (a bracket found by the ladder stage)."""
+    the surface and end UNCERTIFIED), with the levels of a timed run, the one level of an untimed
+    run, chunks of 256 rows whose stragglers finish together (the refinement runs in both
+    passes), and ladder steps (a bracket found by the ladder stage)."""
     from impls.jax import driver
     from impls.jax.backend import JaxBackend
     from reference.cases import get_case

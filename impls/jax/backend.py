@@ -426,8 +426,8 @@ class JaxBackend(ArrayBackend):
         :data:`impls.core.rendering.SAMPLE_DENSITIES` on the CPU: the model's index there, the knob
         ``density`` of the kernel that runs the three models (:class:`impls.core.rendering.DensityChoice`,
         ``lax.switch`` on a traced index: one compilation instead of three, the same bits and run
-        times, docs/performance.md), else None.  Not on a GPU, where XLA may run a conditional's
-        index through the host, and not for a renderer a caller put in the method table."""
+        times, docs/performance.md), else None.  Not on a GPU, where a conditional's cost has not
+        been measured (no device was at hand), and not for a renderer a caller put in the table."""
         if self.jax_device.platform != "cpu" or impl is None or impl is not rendering.IMPLS.get(method):
             return None
         parts = method.split("_")  # volume_<model>_<sampler>
@@ -441,8 +441,8 @@ class JaxBackend(ArrayBackend):
         :func:`march_switch`'s kernel, which runs them all (one compilation instead of two; the
         same bits and run times: docs/performance.md), else None.  Not on a GPU (as
         :meth:`_density_choice`), not for a method a caller put in the table."""
-        if (method not in REFINER_SWITCH or th is not None or self.jax_device.platform != "cpu" or not self.settings.park
-                or impl is None or impl is not METHOD_TABLE.get(method)):
+        if (method not in REFINER_SWITCH or th is not None or self.jax_device.platform != "cpu"
+                or not self.settings.park or impl is None or impl is not METHOD_TABLE.get(method)):
             return None
         return REFINER_SWITCH.index(method)
 

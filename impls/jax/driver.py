@@ -265,10 +265,9 @@ def _run(alg, s: dict, o, d, ev, sizes: list[int], cap: int | None, searching: i
 
 def check_later(alg, algorithms, park: bool) -> None:
     """That ``algorithms`` may finish what ``alg`` searched (:func:`run_loop`'s ``later``): the same
-    class, stages and searching stages as ``alg``, no refiner that needs derivatives (whose
-    refinement keeps the levels: :func:`search_stages`), a state of ``alg``'s keys (the searching
-    algorithm starts it: a later stage must read nothing else), and ``park`` on (without it every
-    stage runs in the levels, and there is nothing later)."""
+    class, stages and searching stages as ``alg``, stages after the search, no refiner that needs
+    derivatives (whose refinement keeps the levels: :func:`search_stages`), and ``park`` on
+    (without it every stage runs in the levels, and there is nothing later)."""
     if not park:
         raise ValueError("run_loop: later needs park (without it every stage runs level by level)")
     stages, searching = _stages(alg), search_stages(alg, park)
@@ -300,7 +299,7 @@ def run_loop(alg, o, d, ev, chunk: int = CHUNK, ratio: int = RATIO, last: int = 
     chunks, levels, caps or ``park``.
 
     ``later``: ``(index, algorithms)``, algorithms that differ from ``alg`` in what they do after
-    the search only (the constant-step marchers' refiners: :meth:`impls.jax.backend.JaxBackend.compile_configuration`),
+    the search only (the constant-step marchers' refiners: :func:`impls.jax.backend.march_switch`),
     checked by :func:`check_later`: ``alg`` starts and searches, and the later stages are those of
     ``algorithms[index]``, an index that may be traced (``lax.switch`` in each loop's body), so
     that one program holds them all.  What another refiner holds and ``alg``'s search did not make

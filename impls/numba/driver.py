@@ -58,8 +58,8 @@ class NumbaSettings:
     ladder:  samples per ladder step where the knob ``ladder`` is -1 (the driver's choice);
     lanes:   run the constant-step marchers without ladder steps in the lanes kernel (``LANES``
              rays stepped in turn per thread); False: in ``march_one``, one ray at a time, as
-             those with ladder steps.  The two give the same per-ray results (the same step templates,
-             :mod:`impls.numba.template`); the lanes kernel runs faster and is a compilation of
+             those with ladder steps.  The two give the same per-ray results (the same step
+             templates, :mod:`impls.numba.template`); the lanes kernel runs faster and is a compilation of
              its own per scene structure, which a run that times nothing skips
              (:meth:`impls.numba.backend.NumbaBackend.untimed_settings`);
     per_ray: run the constant-step marchers in the per-ray kernels (``march_one``, and the lanes
@@ -422,7 +422,7 @@ def run_loop(key: str, params: np.ndarray, alg, o: np.ndarray, d: np.ndarray, se
         out = _run_array(ks, params, alg, o, d, deriv)
     else:
         if kind == "march" and ic[I_LADDER] <= 1 and settings.lanes:
-            kind = "lanes"  # (no derivatives, no ladder stage: impls.numba.template)
+            kind = "lanes"  # (no ladder stage: impls.numba.template)
         n = o.shape[0]
         out = {"t": np.empty(n, o.dtype), "status": np.empty(n, np.int32), "iterations": np.empty(n, np.int32),
                "evals": np.empty(n, np.int32)}

@@ -26,16 +26,18 @@ generated from these templates by renaming the ray's variables (the suffix ``_K`
   thread, each lane taking the next ray of its chunk when its ray finishes, for the marchers
   without a ladder, every refiner (Newton's with φ and dφ/dt: one kernel per scene structure for
   the three marchers; its own kernel, ``march_one``, had cost ~3 s of numba's compile per
-  structure, for the same bits and run times: docs/performance.md).  A ray's steps form one chain of dependent operations
-  (φ's square roots, the secant's divisions), so a loop over one ray waits on their latency; rays
+  structure, for the same bits and run times: docs/performance.md).  A ray's steps form one
+  chain of dependent operations (φ's square roots, the secant's divisions), so a loop over one
+  ray waits on their latency; rays
   are independent, so stepping several in turn gives the processor independent work to overlap.
   Each lane's state is its own local variables, which numba keeps in registers (a state passed
-  through function calls or arrays is slower), and each lane calls φ once (LLVM inlines it).
+  through function calls or arrays is slower), and each lane calls φ, or φ and dφ/dt, at one
+  place (LLVM inlines it).
 
 The variants differ only in what is not arithmetic: the evaluation (``@EVAL``: φ, or φ and dφ/dt
 where ``deriv``), the flag ``use_ladder`` (a constant in the lanes kernel, so the compiler drops
-its branches), and how a ray starts and finishes (arguments and a return,
-or a fetch from the chunk and a write to the outputs).
+its branches), and how a ray starts and finishes (arguments and a return, or a fetch from the
+chunk and a write to the outputs).
 """
 
 from __future__ import annotations
