@@ -477,5 +477,8 @@ IMPLS = {"render_surface": render_surface,
          **{f"volume_{model}_{sampler}": make_volume_impl(model, sampler) for model in DENSITIES for sampler in SAMPLERS}}
 #: the renderers of the model :data:`SWITCH`, by sampler (not methods of the catalog)
 SWITCHED = {sampler: make_volume_impl(SWITCH, sampler) for sampler in SAMPLERS}
+#: the catalog's renderers of the models of :data:`SAMPLE_DENSITIES`: method → (the model's index
+#: there, the knob ``density`` of the model :data:`SWITCH`; the sampler)
+DENSITY_CHOICES = {f"volume_{m}_{s}": (i, s) for i, m in enumerate(SAMPLE_DENSITIES) for s in SAMPLERS}
 #: the shading of the model :data:`SWITCH` (one object: a backend's kernels find it by name)
 SWITCH_SHADING = make_volume_shading(SWITCH)

@@ -94,14 +94,11 @@ def march_switch(backend, scene, o, d, *, t_min, t_max, t_hit, refiner, **knobs)
     bit (tests/test_jax_kernel_reuse.py): the searches differ only in the bracket width the secant
     records for its safeguard (:meth:`impls.core.rootfind._OneSided.on_bracket`), made here from
     the bracket at the hand-off instead."""
-    st = backend.settings
     scene = step_field(scene)
-    algs = [get_method(m).algorithm(scene, t_min, t_max, knobs, None, ladder=st.ladder) for m in REFINER_SWITCH]
-    alg = algs[0]
-    out = driver.run_loop(alg, o, d, backend.ray_eval(scene), chunk=st.chunk, ratio=st.ratio,
-                          last=driver.smallest_level(alg, st), tail_cap=st.tail_cap, park=bool(st.park),
-                          later=(refiner, algs))
-    return void_if_refuted(alg, out)
+    algs = [get_method(m).algorithm(scene, t_min, t_max, knobs, None, ladder=backend.settings.ladder)
+            for m in REFINER_SWITCH]
+    out = backend.run_loop(algs[0], o, d, backend.ray_eval(scene), later=(refiner, algs))
+    return void_if_refuted(algs[0], out)
 
 
 #: the number knobs of the catalog's methods that their code takes as traced values (a loop
@@ -402,7 +399,7 @@ class JaxBackend(ArrayBackend):
                           extra=extra)
             return self._compile_chain(first, second, n, rows, given, padded, t_range,
                                        block=rendering.shading_rows(shade.model, knobs["n_samples"]), draw=jitter)
-        if choice is not None and method.endswith("_importance"):  # the three models' renderers: one kernel
+        if choice is not None and rendering.DENSITY_CHOICES[method][1] == "importance":  # the three models: one kernel
             impl = rendering.SWITCHED["importance"]
             method, knobs, call = impl.__name__, {**knobs, "density": choice}, None
         refiner = self._refiner_choice(method, impl, th)
@@ -428,12 +425,10 @@ class JaxBackend(ArrayBackend):
         ``lax.switch`` on a traced index: one compilation instead of three, the same bits and run
         times, docs/performance.md), else None.  Not on a GPU, where a conditional's cost has not
         been measured (no device was at hand), and not for a renderer a caller put in the table."""
-        if self.jax_device.platform != "cpu" or impl is None or impl is not rendering.IMPLS.get(method):
+        if (self.jax_device.platform != "cpu" or method not in rendering.DENSITY_CHOICES
+                or impl is not rendering.IMPLS.get(method)):
             return None
-        parts = method.split("_")  # volume_<model>_<sampler>
-        if len(parts) != 3 or parts[1] not in rendering.SAMPLE_DENSITIES:
-            return None
-        return rendering.SAMPLE_DENSITIES.index(parts[1])
+        return rendering.DENSITY_CHOICES[method][0]
 
     def _refiner_choice(self, method, impl, th) -> int | None:
         """For a marcher of :data:`REFINER_SWITCH` from the catalog, on the CPU, with its
@@ -610,7 +605,9 @@ class JaxBackend(ArrayBackend):
     def theta_jacobian(self, fun, theta):
         return derivatives.theta_jacobian(fun, theta)
 
-    def run_loop(self, alg, o, d, ev):
+    def run_loop(self, alg, o, d, ev, later=None):
+        """:func:`impls.jax.driver.run_loop` with this backend's settings; ``later``: its argument
+        (another algorithm's later stages after ``alg``'s search: :func:`march_switch`)."""
         st = self.settings
         return driver.run_loop(alg, o, d, ev, chunk=st.chunk, ratio=st.ratio, last=driver.smallest_level(alg, st),
-                               tail_cap=st.tail_cap, park=bool(st.park))
+                               tail_cap=st.tail_cap, park=bool(st.park), later=later)
